@@ -1,0 +1,390 @@
+"""Filter and terrain-query throughput: batched torch TAN EKF vs FilterPy + scipy.
+
+Measures in one run, on the scenario's tile (default: jacksboro), and prints ratios:
+
+(a) the 5-state TAN filter step (predict + linearise + update,
+    :func:`neuralmap.nav.tan.tan_filter_step` on :class:`neuralmap.filters.ekf.BatchedEKF`)
+    with the bilinear grid (first-order Taylor), float32 and float64, N = 100 000;
+(b) the same step with the neural map and autograd linearisation (the newest trained
+    ``runs/*/version_*/neural_map.pt`` of the tile when present, else an untrained
+    ``BlockwiseTerrainNet.from_tile`` with the default configuration: same cost);
+(c) FilterPy's ``ExtendedKalmanFilter`` in a Python loop over trajectories and steps, with
+    scipy's ``RegularGridInterpolator`` (linear, the same bilinear surface; slope by
+    central differences), for the same problem at small N;
+(d) height + slope queries per second: neural map (autograd), torch bilinear and bicubic
+    (``GridTerrain.height_and_slope``) and scipy ``RegularGridInterpolator`` (cubic, slope
+    from its spline derivatives ``nu=(1, 0)``, ``(0, 1)``).
+
+Throughput is trajectory-steps (or queries) per second: the median over repeats after a
+warm-up. ``torch.set_num_threads(2)`` unless ``--threads`` says otherwise.
+
+Usage:
+    python benchmarks/bench_filter.py            # full run (about a minute)
+    python benchmarks/bench_filter.py --quick    # smoke test (a few seconds)
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(REPO_ROOT))
+
+from neuralmap.dem.tile import DemTile  # noqa: E402
+from neuralmap.exceptions import NeuralMapError  # noqa: E402
+
+
+@dataclasses.dataclass
+class Row:
+    """One benchmark result line.
+
+    Attributes:
+        group: Benchmark letter and name.
+        name: What was measured.
+        rate: Median throughput (per second).
+        unit: Unit of ``rate``.
+        detail: Problem size and notes.
+    """
+
+    group: str
+    name: str
+    rate: float
+    unit: str
+    detail: str
+
+
+def median_time(fn: Callable[[], Any], *, repeats: int, warmup: int = 1) -> float:
+    """Median wall-clock seconds of ``fn()`` over ``repeats`` calls after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def load_bench_tile(scenario_name: str) -> tuple[Any, DemTile, str]:
+    """The scenario and its tile (falls back to the tiny synthetic scenario)."""
+    from neuralmap.nav.scenario import load_scenario, scenario_tile
+
+    try:
+        scenario = load_scenario(scenario_name)
+        return scenario, scenario_tile(scenario), scenario_name
+    except NeuralMapError as exc:
+        print(f"note: scenario {scenario_name!r} unavailable ({exc}); using 'tiny'")
+        scenario = load_scenario("tiny")
+        return scenario, scenario_tile(scenario), "tiny"
+
+
+def neural_map_for(tile: DemTile, runs_dir: Path) -> tuple[torch.nn.Module, str]:
+    """The newest trained map of ``tile`` under ``runs_dir``, else an untrained default net."""
+    from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+
+    candidates = sorted(
+        runs_dir.glob("*/version_*/neural_map.pt"), key=lambda p: p.stat().st_mtime, reverse=True
+    )
+    try:
+        from neuralmap.terrain.export import load_map
+    except ImportError:
+        candidates = []
+    for path in candidates:
+        try:
+            model = load_map(path)
+        except NeuralMapError:
+            continue
+        if getattr(model, "tile_fingerprint", "") == tile.fingerprint():
+            return model, f"trained map {path}"
+    net = BlockwiseTerrainNet.from_tile(tile)
+    return net, "untrained BlockwiseTerrainNet.from_tile(tile) (default config; same cost)"
+
+
+def bench_tan_step(
+    truth: Any,
+    scenario: Any,
+    linearizer: torch.nn.Module,
+    *,
+    dtype: torch.dtype,
+    repeats: int,
+) -> float:
+    """Trajectory-steps per second of the batched TAN filter over the truth's K steps."""
+    from neuralmap.filters.ekf import BatchedEKF
+    from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+
+    n, k_steps = truth.n_runs, truth.n_steps
+    ins_pos = truth.ins_pos.to(dtype)
+    radar = truth.radar.to(dtype)
+    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype))
+    F = transition_matrix(scenario.dt, dtype=dtype)
+    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype))
+    R = scenario.R_m2 + scenario.fit_variance_m2
+
+    def run() -> None:
+        ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype), p0)
+        with torch.no_grad():
+            for k in range(1, k_steps + 1):
+                tan_filter_step(
+                    ekf, ins_pos[:, k], radar[:, k], linearizer, F=F, Q=Q, R=R,
+                    extent=truth.extent,
+                )
+
+    return n * k_steps / median_time(run, repeats=repeats)
+
+
+def filterpy_tan(
+    truth: Any, scenario: Any, tile: DemTile, *, n_runs: int, interp: str = "linear"
+) -> tuple[float, np.ndarray]:
+    """FilterPy EKF in a Python loop with scipy interpolation; returns (rate, final states).
+
+    The measurement model matches :func:`neuralmap.nav.tan.tan_filter_step`:
+    ``z = −h_radar``, ``h(δX) = −(h_ins − δh) + h_map(p_ins − δX[:2])`` so that the
+    innovation ``z − h(δX̂⁻) = (ĥ − h_map(p̂)) − h_radar`` and the Jacobian is
+    ``H = [−h_x, −h_y, 1, 0, 0]`` (SEEDS 004). The slope is the central difference of the
+    interpolant over ±1 mm (exact for the bilinear surface inside a cell).
+    """
+    from filterpy.kalman import ExtendedKalmanFilter
+    from scipy.interpolate import RegularGridInterpolator
+
+    from neuralmap.terrain.grid import fill_voids_nearest
+
+    heights = fill_voids_nearest(tile.heights, tile.spacing)
+    ny, nx = tile.shape
+    ys = tile.origin[1] + np.arange(ny) * tile.spacing[1]
+    xs = tile.origin[0] + np.arange(nx) * tile.spacing[0]
+    interp_fn = RegularGridInterpolator(
+        (ys, xs), heights, method=interp, bounds_error=False, fill_value=None
+    )
+    step = 1e-3
+    offsets = np.array([[0, 0], [step, 0], [-step, 0], [0, step], [0, -step]], dtype=float)
+    ins_pos = truth.ins_pos[:n_runs].double().numpy()
+    radar = truth.radar[:n_runs].double().numpy()
+    k_steps = truth.n_steps
+    F = np.eye(5)
+    F[0, 3] = F[1, 4] = scenario.dt
+    Q = np.diag(scenario.Q_diag)
+    R = np.array([[scenario.R_m2 + scenario.fit_variance_m2]])
+    finals = np.zeros((n_runs, 5))
+
+    start = time.perf_counter()
+    for i in range(n_runs):
+        ekf = ExtendedKalmanFilter(dim_x=5, dim_z=1)
+        ekf.x = np.zeros((5, 1))
+        ekf.P = np.diag(scenario.P0_diag).astype(float)
+        ekf.F, ekf.Q, ekf.R = F, Q, R
+        for k in range(1, k_steps + 1):
+            ekf.predict()
+            px, py, ph = ins_pos[i, k]
+            p_hat = np.array([px - ekf.x[0, 0], py - ekf.x[1, 0]])
+            pts = (p_hat + offsets)[:, ::-1]  # (y, x) order for the interpolator
+            vals = interp_fn(pts)
+            slope = np.array([vals[1] - vals[2], vals[3] - vals[4]]) / (2 * step)
+            h_map = vals[0]
+            H = np.array([[-slope[0], -slope[1], 1.0, 0.0, 0.0]])
+
+            def jac(x: np.ndarray, H: np.ndarray = H) -> np.ndarray:
+                return H
+
+            def hx(x: np.ndarray, ph: float = ph, h_map: float = h_map) -> np.ndarray:
+                return np.array([[-(ph - x[2, 0]) + h_map]])
+
+            ekf.update(np.array([[-radar[i, k]]]), jac, hx)
+        finals[i] = ekf.x[:, 0]
+    elapsed = time.perf_counter() - start
+    return n_runs * k_steps / elapsed, finals
+
+
+def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int) -> np.ndarray:
+    """Final states of the batched float64 torch filter on the first ``n_runs`` runs.
+
+    Uses the bilinear Taylor linearizer with zero linearisation variance so that the
+    problem equals :func:`filterpy_tan`'s exactly (a cross-check of the comparison).
+    """
+    from neuralmap.filters.ekf import BatchedEKF
+    from neuralmap.linearize.factory import make_linearizer
+    from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+
+    lin = make_linearizer("bilinear", tile=tile, variance="zero")
+    dtype = torch.float64
+    ekf = BatchedEKF(
+        torch.zeros(n_runs, N_STATES, dtype=dtype),
+        torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype)),
+    )
+    F = transition_matrix(scenario.dt, dtype=dtype)
+    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype))
+    with torch.no_grad():
+        for k in range(1, truth.n_steps + 1):
+            tan_filter_step(
+                ekf, truth.ins_pos[:n_runs, k].double(), truth.radar[:n_runs, k].double(), lin,
+                F=F, Q=Q, R=scenario.R_m2 + scenario.fit_variance_m2, extent=truth.extent,
+            )
+    return ekf.x.numpy()
+
+
+def bench_queries(
+    tile: DemTile, neural: torch.nn.Module, *, n_points: int, n_scipy: int, repeats: int
+) -> list[Row]:
+    """Height + slope queries per second for the neural map, torch grids and scipy."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    from neuralmap.linearize.autograd import AutogradLinearizer
+    from neuralmap.terrain.grid import GridTerrain, fill_voids_nearest
+
+    gen = torch.Generator().manual_seed(0)
+    xmin, xmax, ymin, ymax = tile.extent
+    lo = torch.tensor([xmin, ymin], dtype=torch.float64)
+    span = torch.tensor([xmax - xmin, ymax - ymin], dtype=torch.float64)
+    xy64 = lo + span * torch.rand(n_points, 2, generator=gen, dtype=torch.float64)
+    xy32 = xy64.float()
+    rows: list[Row] = []
+
+    lin = AutogradLinearizer(neural)
+    rate = n_points / median_time(lambda: lin(xy32), repeats=repeats)
+    rows.append(Row("(d) queries", "neural map, autograd (float32)", rate, "queries/s",
+                    f"{n_points} points"))
+    for method in ("bilinear", "bicubic"):
+        for dtype, xy in ((torch.float32, xy32), (torch.float64, xy64)):
+            grid = GridTerrain(tile, method=method, dtype=dtype)
+            rate = n_points / median_time(lambda g=grid, p=xy: g.height_and_slope(p),
+                                          repeats=repeats)
+            rows.append(Row("(d) queries", f"torch {method} grid, analytic ({str(dtype)[6:]})",
+                            rate, "queries/s", f"{n_points} points"))
+
+    heights = fill_voids_nearest(tile.heights, tile.spacing)
+    ny, nx = tile.shape
+    ys = tile.origin[1] + np.arange(ny) * tile.spacing[1]
+    xs = tile.origin[0] + np.arange(nx) * tile.spacing[0]
+    rgi = RegularGridInterpolator((ys, xs), heights, method="cubic")
+    pts = xy64[:n_scipy].numpy()[:, ::-1].copy()
+
+    def scipy_query() -> None:
+        rgi(pts)
+        rgi(pts, nu=(1, 0))
+        rgi(pts, nu=(0, 1))
+
+    rate = n_scipy / median_time(scipy_query, repeats=repeats)
+    rows.append(Row("(d) queries", "scipy RegularGridInterpolator cubic (float64)", rate,
+                    "queries/s", f"{n_scipy} points; slope from its derivatives nu"))
+    return rows
+
+
+def run(args: argparse.Namespace) -> list[Row]:
+    """Runs every benchmark and returns the rows (also printed)."""
+    from neuralmap.linearize.factory import make_linearizer
+    from neuralmap.nav.simulator import simulate
+
+    torch.set_num_threads(args.threads)
+    scenario, tile, scenario_name = load_bench_tile(args.scenario)
+    scenario = dataclasses.replace(scenario, duration_s=args.steps * scenario.dt)
+    n, n_neural = args.n, args.n_neural
+    print(f"# bench_filter: torch {torch.__version__}, {torch.get_num_threads()} threads, "
+          f"{platform.processor() or platform.machine()}; scenario {scenario_name} "
+          f"(tile {tile.name} {tile.shape[0]}x{tile.shape[1]}), {args.steps} steps")
+    truth = simulate(scenario, tile, n_runs=max(n, n_neural), seed=0, dtype=torch.float64)
+    rows: list[Row] = []
+
+    for dtype in (torch.float32, torch.float64):
+        lin = make_linearizer("bilinear", tile=tile, dtype=dtype)
+        rate = bench_tan_step(truth, scenario, lin, dtype=dtype, repeats=args.repeats)
+        rows.append(Row("(a) TAN step", f"torch bilinear Taylor ({str(dtype)[6:]})", rate,
+                        "traj-steps/s", f"N = {n}, {args.steps} steps"))
+
+    neural, neural_what = neural_map_for(tile, Path(args.runs_dir))
+    lin = make_linearizer("neural", tile=tile, terrain=neural)
+    sub = _subset(truth, n_neural)
+    for dtype in (torch.float32, torch.float64):
+        rate = bench_tan_step(sub, scenario, lin, dtype=dtype, repeats=args.repeats)
+        rows.append(Row("(b) TAN step", f"torch neural map, autograd ({str(dtype)[6:]} filter)",
+                        rate, "traj-steps/s", f"N = {n_neural}, {args.steps} steps; "
+                        f"{neural_what}"))
+
+    fp_rate, fp_final = filterpy_tan(truth, scenario, tile, n_runs=args.n_filterpy)
+    rows.append(Row("(c) TAN step", "FilterPy EKF loop + scipy RGI linear (float64)", fp_rate,
+                    "traj-steps/s", f"N = {args.n_filterpy}, {args.steps} steps"))
+    torch_final = torch_final_states(truth, scenario, tile, n_runs=args.n_filterpy)
+    deviation = float(np.abs(torch_final - fp_final).max())
+    print(f"# cross-check: max |torch float64 - FilterPy| over the final states of "
+          f"{args.n_filterpy} runs = {deviation:.2e}")
+
+    rows += bench_queries(tile, neural, n_points=args.n_queries, n_scipy=args.n_scipy,
+                          repeats=args.repeats)
+    return rows
+
+
+def _subset(truth: Any, n: int) -> Any:
+    """The first ``n`` runs of a Truth (tensors sliced along the run axis)."""
+    if n >= truth.n_runs:
+        return truth
+    sliced = {}
+    for f in dataclasses.fields(truth):
+        value = getattr(truth, f.name)
+        if isinstance(value, torch.Tensor) and value.ndim >= 2 and value.shape[0] == truth.n_runs:
+            value = value[:n]
+        sliced[f.name] = value
+    return type(truth)(**sliced)
+
+
+def format_rows(rows: list[Row]) -> str:
+    """Markdown table with ratios: filters against FilterPy, queries against scipy."""
+    ref_filter = next((r.rate for r in rows if r.group.startswith("(c)")), float("nan"))
+    ref_query = next(
+        (r.rate for r in rows if r.group.startswith("(d)") and "scipy" in r.name), float("nan")
+    )
+    lines = [
+        "| benchmark | implementation | throughput | ratio | problem |",
+        "|---|---|---:|---:|---|",
+    ]
+    for r in rows:
+        ref = ref_query if r.group.startswith("(d)") else ref_filter
+        ref_name = "scipy" if r.group.startswith("(d)") else "FilterPy"
+        lines.append(
+            f"| {r.group} | {r.name} | {r.rate:,.0f} {r.unit} | {r.rate / ref:,.1f}x {ref_name} "
+            f"| {r.detail} |"
+        )
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """Command-line options."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes: a smoke test")
+    parser.add_argument("--scenario", default="jacksboro", help="scenario whose tile is used")
+    parser.add_argument("--n", type=int, default=100_000, help="trajectories, (a)")
+    parser.add_argument("--n_neural", type=int, default=100_000, help="trajectories, (b)")
+    parser.add_argument("--n_filterpy", type=int, default=200, help="trajectories, (c)")
+    parser.add_argument("--n_queries", type=int, default=100_000, help="points, (d) torch")
+    parser.add_argument("--n_scipy", type=int, default=20_000, help="points, (d) scipy")
+    parser.add_argument("--steps", type=int, default=20, help="filter steps per run")
+    parser.add_argument("--repeats", type=int, default=5, help="timed repeats (median)")
+    parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
+    parser.add_argument("--runs_dir", default="runs", help="where to look for a trained map")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.n, args.n_neural, args.n_filterpy = 2000, 1000, 10
+        args.n_queries, args.n_scipy, args.steps, args.repeats = 2000, 1000, 5, 2
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Runs the benchmarks and prints the markdown table."""
+    args = parse_args(argv)
+    rows = run(args)
+    print()
+    print(format_rows(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

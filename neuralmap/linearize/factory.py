@@ -1,0 +1,146 @@
+"""Linearisation methods by name, for configs and the Monte Carlo comparison."""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from typing import Any
+
+from torch import nn
+
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.linearize.autograd import AutogradLinearizer
+from neuralmap.linearize.base import Linearizer
+from neuralmap.linearize.mean_point import MeanPointLinearizer
+from neuralmap.linearize.nine_point import NinePointLinearizer
+from neuralmap.linearize.plane_fit import PlaneFitLinearizer
+from neuralmap.linearize.region import SIGMA_MAX_M, SIGMA_MEAN_M, SIGMA_MIN_M
+from neuralmap.linearize.taylor import TaylorLinearizer
+from neuralmap.terrain.grid import GridTerrain
+
+#: Every name :func:`make_linearizer` accepts.
+LINEARIZER_NAMES = (
+    "neural",
+    "bilinear",
+    "bicubic",
+    "nine_point",
+    "mean_point",
+    "lsq_max",
+    "lsq_mean",
+    "lsq_min",
+    "lsq_adaptive",
+)
+
+_DESCRIPTIONS = {
+    "neural": "autograd on the given terrain model (neural map), variance = fit_variance",
+    "bilinear": "first-order Taylor on the bilinear DEM grid",
+    "bicubic": "autograd on the bicubic DEM grid",
+    "nine_point": "least-squares plane through the 3 x 3 nodes around the estimate",
+    "mean_point": "plane through half-region mean points, adaptive region",
+    "lsq_max": f"least-squares plane over Omega_max (sigma = {SIGMA_MAX_M:g} m)",
+    "lsq_mean": f"least-squares plane over Omega_mean (sigma = {SIGMA_MEAN_M:g} m)",
+    "lsq_min": f"least-squares plane over Omega_min (sigma = {SIGMA_MIN_M:g} m)",
+    "lsq_adaptive": "least-squares plane over Omega_adp (sigma from the position covariance)",
+}
+
+
+def describe_linearizer(name: str) -> str:
+    """One-line description of a linearizer name, for reports."""
+    return _DESCRIPTIONS.get(name, name)
+
+
+def _check_kwargs(name: str, target: Callable[..., Any], kw: dict[str, Any], fixed: set[str]) -> None:
+    """Raises NeuralMapError for keyword arguments ``target`` does not take."""
+    params = inspect.signature(target).parameters
+    allowed = sorted(p for p in params if p not in fixed and p != "self" and p != "tile")
+    unknown = sorted(set(kw) - set(allowed))
+    if unknown:
+        raise NeuralMapError(
+            f"make_linearizer('{name}'): unknown option(s) {', '.join(unknown)}; "
+            f"this method accepts: {', '.join(allowed) or 'none'}."
+        )
+
+
+def make_linearizer(
+    name: str,
+    *,
+    tile: DemTile | None,
+    terrain: nn.Module | None = None,
+    fit_variance: float = 0.0,
+    **kw: Any,
+) -> Linearizer:
+    """Builds a linearisation method by name.
+
+    Names (:data:`LINEARIZER_NAMES`): ``"neural"`` (AutogradLinearizer on ``terrain``),
+    ``"bilinear"`` (TaylorLinearizer), ``"bicubic"`` (AutogradLinearizer on a bicubic
+    GridTerrain), ``"nine_point"``, ``"mean_point"`` (adaptive region), ``"lsq_max"``,
+    ``"lsq_mean"``, ``"lsq_min"`` (PlaneFitLinearizer with sigma 400 / 240 / 80 m),
+    ``"lsq_adaptive"`` (sigma from the position covariance).
+
+    Args:
+        name: Method name.
+        tile: The DEM tile (required for every method but ``"neural"``).
+        terrain: The terrain model for ``"neural"``. When it records a
+            ``tile_fingerprint`` and ``tile`` is given, the two must match.
+        fit_variance: The map's fit-error variance (m^2) returned as the ``"neural"``
+            method's variance (SEEDS 004: 6 m^2). The grid methods read the DEM itself and
+            ignore it.
+        **kw: Options of the underlying class, e.g. ``dtype``, ``create_graph``,
+            ``n_samples``, ``max_sigma``, ``variance`` (Taylor).
+
+    Returns:
+        The :class:`Linearizer`.
+
+    Raises:
+        NeuralMapError: Unknown name (the message lists the valid ones), a missing tile or
+            terrain, a map fitted to another tile, or an option the method does not take.
+    """
+    if name not in LINEARIZER_NAMES:
+        raise NeuralMapError(
+            f"make_linearizer: unknown linearisation method {name!r}; choose one of "
+            f"{', '.join(LINEARIZER_NAMES)}."
+        )
+    if name == "neural":
+        if terrain is None:
+            raise NeuralMapError(
+                "make_linearizer('neural'): pass terrain=<the neural map> (load it with "
+                "neuralmap.terrain.load_map(path))."
+            )
+        fingerprint = getattr(terrain, "tile_fingerprint", "")
+        if tile is not None and fingerprint and fingerprint != tile.fingerprint():
+            raise NeuralMapError(
+                f"make_linearizer('neural'): the map was fitted to tile "
+                f"'{getattr(terrain, 'tile_name', '?')}' (fingerprint {fingerprint}), not to "
+                f"tile '{tile.name}' (fingerprint {tile.fingerprint()}). Fit a map to this "
+                "tile with `python train.py --data.path ...` or pick the matching tile."
+            )
+        _check_kwargs(name, AutogradLinearizer, kw, {"terrain", "fit_variance"})
+        return AutogradLinearizer(terrain, fit_variance=fit_variance, **kw)
+    if not isinstance(tile, DemTile):
+        raise NeuralMapError(
+            f"make_linearizer('{name}'): tile must be a DemTile (load one with "
+            f"neuralmap.dem.load_tile), got {type(tile).__name__}."
+        )
+    if name == "bicubic":
+        grid_kw = {k: kw.pop(k) for k in ("dtype",) if k in kw}
+        _check_kwargs(name, AutogradLinearizer, kw, {"terrain", "fit_variance"})
+        return AutogradLinearizer(GridTerrain(tile, method="bicubic", **grid_kw), **kw)
+    if name == "bilinear":
+        _check_kwargs(name, TaylorLinearizer, kw, set())
+        return TaylorLinearizer(tile, **kw)
+    if name == "nine_point":
+        _check_kwargs(name, NinePointLinearizer, kw, set())
+        return NinePointLinearizer(tile, **kw)
+    if name == "mean_point":
+        _check_kwargs(name, MeanPointLinearizer, kw, set())
+        return MeanPointLinearizer(tile, **kw)
+    sigma: float | str = {
+        "lsq_max": SIGMA_MAX_M,
+        "lsq_mean": SIGMA_MEAN_M,
+        "lsq_min": SIGMA_MIN_M,
+        "lsq_adaptive": "adaptive",
+    }[name]
+    fixed = {"sigma"} | ({"min_sigma", "max_sigma"} if sigma != "adaptive" else set())
+    _check_kwargs(name, PlaneFitLinearizer, kw, fixed)
+    return PlaneFitLinearizer(tile, sigma=sigma, **kw)

@@ -1,0 +1,247 @@
+"""Navigation metrics of a Monte Carlo TAN run: RMSE, 1σ, divergence, NEES, PCRB ratio.
+
+Definitions (the report quotes them; ``e`` is the error of the corrected estimate):
+
+- Horizontal error of run n at step k: ``e_{n,k} = ||p̂_{n,k} − p_{n,k}||`` (m); velocity
+  error ``||v̂ − v||`` (m/s).
+- Included runs: off-map runs (truth or estimate left the map at any step) are excluded
+  from every metric and counted in ``n_off_map``; runs with non-finite errors likewise
+  (``n_nonfinite``).
+- RMSE curve: ``sqrt(mean_n e_{n,k}²)`` per step. Time-averaged RMSE: root of the mean of
+  ``e²`` over the runs and the **last half** of the samples (indices ``(K+1)//2 … K``).
+  Final: the RMSE at the last sample.
+- Divergence: :data:`DIVERGENCE_RULE`. "Converged" runs are the included runs that did not
+  diverge.
+- ``sigma_pos_m`` (the papers' 1σ): ``sqrt(var(e_x) + var(e_y))`` with the sample variance
+  (about the mean, ddof = 1) pooled over the converged runs and the last-half samples;
+  ``sigma_vel_mps`` likewise for the velocity.
+- NEES (Bar-Shalom): ``ε_{n,k} = errᵀ P⁻¹ err`` on the 5-state error; per step the average
+  ``ε̄_k`` over the M converged runs; ``M·ε̄_k ~ χ²(5M)`` for a consistent filter, so
+  ``nees_in_band`` is the fraction of the K+1 samples with ``ε̄_k`` inside the two-sided
+  95 % band ``[χ²_{0.025}(5M)/M, χ²_{0.975}(5M)/M]``.
+- ``pcrb_ratio``: converged time-averaged RMSE divided by the time-averaged (RMS over the
+  last half) PCRB position bound.
+
+Outputs never contain NaN: an empty subset gives ``None`` (and curves of ``None``).
+"""
+
+from __future__ import annotations
+
+import math
+from statistics import NormalDist
+from typing import Any
+
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.monte_carlo import FilterRun
+
+#: Human-readable divergence rule (default factors), written into reports and results.json.
+DIVERGENCE_RULE = (
+    "A run diverged when its final horizontal position error exceeds 5x the final PCRB "
+    "position bound sqrt(J^-1_xx + J^-1_yy), or exceeds 3x the filter's own final 3-sigma "
+    "horizontal bound 3*sqrt(P_xx + P_yy); a run whose filter became unhealthy (covariance "
+    "non-finite or not positive definite) also counts as diverged. Runs whose truth or "
+    "estimate left the map are excluded from every metric and counted as off-map."
+)
+
+
+def divergence_rule(pcrb_factor: float = 5.0, sigma_factor: float = 3.0) -> str:
+    """:data:`DIVERGENCE_RULE` with the given factors.
+
+    Args:
+        pcrb_factor: Multiple of the final PCRB position bound.
+        sigma_factor: Multiple of the filter's final 3σ horizontal bound.
+
+    Returns:
+        The rule as one sentence group.
+    """
+    return DIVERGENCE_RULE.replace("5x the final PCRB", f"{pcrb_factor:g}x the final PCRB").replace(
+        "exceeds 3x the filter's", f"exceeds {sigma_factor:g}x the filter's"
+    )
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """Quantile of the χ² distribution.
+
+    Uses scipy when installed, else the Wilson–Hilferty approximation
+    ``ν (1 − 2/(9ν) + z_p sqrt(2/(9ν)))³`` (relative error at the 2.5 % / 97.5 % points
+    < 1e-2 for ν ≥ 10 and < 3e-4 for ν ≥ 50; the NEES band has ν = 5 × runs).
+
+    Args:
+        p: Probability in ``(0, 1)``.
+        dof: Degrees of freedom ν ≥ 1.
+
+    Returns:
+        ``x`` with ``P(χ²_ν ≤ x) = p``.
+    """
+    try:
+        from scipy.stats import chi2
+
+        return float(chi2.ppf(p, dof))
+    except ImportError:  # pragma: no cover - scipy is normally installed
+        return wilson_hilferty(p, dof)
+
+
+def wilson_hilferty(p: float, dof: int) -> float:
+    """Wilson–Hilferty approximation of the χ² quantile (see :func:`chi2_quantile`)."""
+    z = NormalDist().inv_cdf(p)
+    c = 2.0 / (9.0 * dof)
+    return dof * max(1.0 - c + z * math.sqrt(c), 0.0) ** 3
+
+
+def _none_if_bad(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def _rms(sq: torch.Tensor) -> float | None:
+    """Root of the mean of a tensor of squared errors (None when empty)."""
+    return _none_if_bad(math.sqrt(float(sq.mean()))) if sq.numel() else None
+
+
+def _curve(sq: torch.Tensor, n_steps: int) -> list[float | None]:
+    """Per-step RMS over runs of ``sq (M, K+1)`` (None entries when M = 0)."""
+    if sq.shape[0] == 0:
+        return [None] * n_steps
+    return [_none_if_bad(v) for v in sq.mean(dim=0).sqrt().tolist()]
+
+
+def _pooled_sigma(err_xy: torch.Tensor) -> float | None:
+    """``sqrt(var(e_x) + var(e_y))`` (ddof = 1) of ``(..., 2)`` errors; None when < 2."""
+    flat = err_xy.reshape(-1, 2)
+    if flat.shape[0] < 2:
+        return None
+    return _none_if_bad(math.sqrt(float(flat.var(dim=0, unbiased=True).sum())))
+
+
+def nees(err: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+    """Normalised estimation error squared ``errᵀ P⁻¹ err`` (Cholesky solve, float64).
+
+    Args:
+        err: ``(..., n)`` estimation errors.
+        P: ``(..., n, n)`` covariances (positive definite).
+
+    Returns:
+        ``(...)`` NEES; NaN where ``P`` is not positive definite.
+    """
+    err = err.double()
+    L, info = torch.linalg.cholesky_ex(P.double())
+    ok = info == 0
+    L = torch.where(ok[..., None, None], L, torch.eye(P.shape[-1], dtype=L.dtype))
+    y = torch.linalg.solve_triangular(L, err.unsqueeze(-1), upper=False).squeeze(-1)
+    out = (y * y).sum(-1)
+    return torch.where(ok, out, torch.full_like(out, float("nan")))
+
+
+def navigation_metrics(
+    run: FilterRun,
+    pcrb_pos: torch.Tensor,
+    *,
+    pcrb_factor: float = 5.0,
+    sigma_factor: float = 3.0,
+    nees_confidence: float = 0.95,
+) -> dict[str, Any]:
+    """Metrics of one method's Monte Carlo run (definitions in the module docstring).
+
+    Args:
+        run: The method's :class:`FilterRun`.
+        pcrb_pos: ``(K+1,)`` PCRB position bound ``sqrt(J⁻¹_xx + J⁻¹_yy)``, m
+            (:func:`neuralmap.nav.pcrb.pcrb_position`).
+        pcrb_factor: Divergence threshold as a multiple of the final PCRB bound.
+        sigma_factor: Divergence threshold as a multiple of the filter's final 3σ bound.
+        nees_confidence: Two-sided probability of the NEES band.
+
+    Returns:
+        Dict with floats (or None for empty subsets): ``rmse_pos_m`` (all included runs),
+        ``rmse_pos_converged_m``, ``rmse_vel_mps`` (all included runs),
+        ``rmse_vel_converged_mps``, ``sigma_pos_m``, ``sigma_vel_mps``,
+        ``divergence_rate``, ``nees_in_band``, ``nees_mean``, ``nees_band`` ([lo, hi]),
+        ``pcrb_ratio``, ``pcrb_pos_m`` (last-half RMS of the bound),
+        ``pcrb_pos_final_m``, ``final_pos_m``, ``final_pos_converged_m``; ints
+        ``n_runs``, ``n_off_map``, ``n_nonfinite``, ``n_unhealthy``, ``n_included``,
+        ``n_diverged``, ``n_converged``; lists over the K+1 samples ``rmse_pos_curve``,
+        ``rmse_pos_converged_curve``, ``rmse_vel_curve``, ``nees_curve``; the per-run
+        bool list ``diverged`` (False for excluded runs) and ``divergence_rule``.
+
+    Raises:
+        NeuralMapError: ``pcrb_pos`` does not have shape ``(K+1,)``, or bad factors.
+    """
+    err = run.err.detach().to("cpu", torch.float64)
+    P = run.P.detach().to("cpu", torch.float64)
+    n_runs, n_samples = err.shape[0], err.shape[1]
+    pcrb_pos = torch.as_tensor(pcrb_pos).detach().to("cpu", torch.float64).reshape(-1)
+    if pcrb_pos.shape != (n_samples,):
+        raise NeuralMapError(
+            f"navigation_metrics: pcrb_pos must have shape (K+1,) = ({n_samples},) like the "
+            f"run's time axis, got {tuple(pcrb_pos.shape)}."
+        )
+    if not (pcrb_factor > 0 and sigma_factor > 0 and 0.0 < nees_confidence < 1.0):
+        raise NeuralMapError(
+            "navigation_metrics: pcrb_factor and sigma_factor must be > 0 and nees_confidence "
+            f"in (0, 1), got {pcrb_factor!r}, {sigma_factor!r}, {nees_confidence!r}."
+        )
+    half = n_samples // 2
+    off_map = run.off_map.detach().cpu().bool()
+    healthy = run.healthy.detach().cpu().bool()
+    finite = torch.isfinite(err).all(dim=2).all(dim=1) & torch.isfinite(P).flatten(1).all(1)
+    included = ~off_map & finite
+    e_pos2 = err[..., 0] ** 2 + err[..., 1] ** 2
+    e_vel2 = err[..., 3] ** 2 + err[..., 4] ** 2
+    final_e = e_pos2[:, -1].sqrt()
+    bound3 = 3.0 * (P[:, -1, 0, 0] + P[:, -1, 1, 1]).clamp(min=0.0).sqrt()
+    pcrb_final = float(pcrb_pos[-1])
+    too_far = (final_e > pcrb_factor * pcrb_final) | (final_e > sigma_factor * bound3)
+    diverged = included & (too_far | ~healthy)
+    converged = included & ~diverged
+    n_included, n_conv = int(included.sum()), int(converged.sum())
+
+    out: dict[str, Any] = {
+        "n_runs": n_runs,
+        "n_off_map": int(off_map.sum()),
+        "n_nonfinite": int((~off_map & ~finite).sum()),
+        "n_unhealthy": int((included & ~healthy).sum()),
+        "n_included": n_included,
+        "n_diverged": int(diverged.sum()),
+        "n_converged": n_conv,
+        "divergence_rate": (int(diverged.sum()) / n_included) if n_included else None,
+        "rmse_pos_m": _rms(e_pos2[included, half:]),
+        "rmse_pos_converged_m": _rms(e_pos2[converged, half:]),
+        "rmse_vel_mps": _rms(e_vel2[included, half:]),
+        "rmse_vel_converged_mps": _rms(e_vel2[converged, half:]),
+        "sigma_pos_m": _pooled_sigma(err[converged, half:, 0:2]),
+        "sigma_vel_mps": _pooled_sigma(err[converged, half:, 3:5]),
+        "final_pos_m": _rms(e_pos2[included, -1]),
+        "final_pos_converged_m": _rms(e_pos2[converged, -1]),
+        "pcrb_pos_m": _rms(pcrb_pos[half:] ** 2),
+        "pcrb_pos_final_m": _none_if_bad(pcrb_final),
+    }
+    out["pcrb_ratio"] = (
+        out["rmse_pos_converged_m"] / out["pcrb_pos_m"]
+        if out["rmse_pos_converged_m"] is not None and out["pcrb_pos_m"]
+        else None
+    )
+    out["rmse_pos_curve"] = _curve(e_pos2[included], n_samples)
+    out["rmse_pos_converged_curve"] = _curve(e_pos2[converged], n_samples)
+    out["rmse_vel_curve"] = _curve(e_vel2[included], n_samples)
+
+    n_states = err.shape[-1]
+    if n_conv:
+        eps_bar = nees(err[converged], P[converged]).mean(dim=0)  # (K+1,)
+        dof = n_states * n_conv
+        alpha = 1.0 - nees_confidence
+        lo = chi2_quantile(0.5 * alpha, dof) / n_conv
+        hi = chi2_quantile(1.0 - 0.5 * alpha, dof) / n_conv
+        good = torch.isfinite(eps_bar)
+        inside = good & (eps_bar >= lo) & (eps_bar <= hi)
+        out["nees_in_band"] = float(inside.sum()) / n_samples
+        out["nees_mean"] = _none_if_bad(float(eps_bar[good].mean())) if good.any() else None
+        out["nees_band"] = [lo, hi]
+        out["nees_curve"] = [_none_if_bad(v) for v in eps_bar.tolist()]
+    else:
+        out["nees_in_band"] = None
+        out["nees_mean"] = None
+        out["nees_band"] = None
+        out["nees_curve"] = [None] * n_samples
+    out["diverged"] = diverged.tolist()
+    out["divergence_rule"] = divergence_rule(pcrb_factor, sigma_factor)
+    return out

@@ -1,0 +1,271 @@
+"""Monte Carlo TAN runs: the batched EKF over simulated truth, one method at a time.
+
+:func:`run_filter` runs the 5-state TAN EKF (:func:`neuralmap.nav.tan.tan_filter_step`) for
+all N runs of a :class:`~neuralmap.nav.simulator.Truth` at once with one linearisation
+method; :func:`run_monte_carlo` simulates the truth once and runs every method on it.
+
+Timing convention: sample 0 is the prior (``δX̂_0 = 0``, ``P_0 = diag(P0_diag)``, no
+altimeter update at t = 0, matching the PCRB's ``J_0 = P_0⁻¹``); steps ``k = 1 … K`` each
+predict and update with the altimeter sample ``k``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any, NamedTuple
+
+import torch
+
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.linearize.base import Linearizer
+from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
+from neuralmap.nav.simulator import Truth, simulate
+from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+
+
+@dataclass
+class FilterRun:
+    """One method's filter outputs over all runs and steps.
+
+    Attributes:
+        method: Method name (key of the ``methods`` dict).
+        t: ``(K+1,)`` sample times, s.
+        err: ``(N, K+1, 5)`` corrected estimate minus truth, ``δX − δX̂`` (m, m, m, m/s,
+            m/s); ``err[:, 0]`` is the prior error.
+        P: ``(N, K+1, 5, 5)`` filter covariance after each step (``P[:, 0] = P0``).
+        nis: ``(N, K+1)`` normalised innovation squared; NaN where no update happened
+            (sample 0, estimate off the map, unhealthy filter) — use ``updated``.
+        residual: ``(N, K+1)`` innovation (m); 0 where no update happened.
+        updated: ``(N, K+1)`` bool, an altimeter update was applied at that step.
+        est_on_map: ``(N, K+1)`` bool, the horizontal estimate was on the map.
+        off_map: ``(N,)`` bool, the truth or the estimate left the map at some step.
+        healthy: ``(N,)`` bool, the filter stayed healthy (finite, positive definite).
+        elapsed_s: Wall-clock time of the filter loop, s.
+    """
+
+    method: str
+    t: torch.Tensor
+    err: torch.Tensor
+    P: torch.Tensor
+    nis: torch.Tensor
+    residual: torch.Tensor
+    updated: torch.Tensor
+    est_on_map: torch.Tensor
+    off_map: torch.Tensor
+    healthy: torch.Tensor
+    elapsed_s: float = 0.0
+
+    @property
+    def n_runs(self) -> int:
+        """Number of runs N."""
+        return int(self.err.shape[0])
+
+    def estimate_xy(self, truth: Truth) -> torch.Tensor:
+        """Corrected horizontal estimate ``truth + err`` of every run, ``(N, K+1, 2)``."""
+        return truth.pos[..., :2] + self.err[..., :2]
+
+
+class MonteCarloResult(NamedTuple):
+    """What :func:`run_monte_carlo` returns (unpacks as ``truth, runs``).
+
+    Attributes:
+        truth: The simulated truth shared by every method.
+        runs: Method name to its :class:`FilterRun`, in the order of ``methods``.
+    """
+
+    truth: Truth
+    runs: dict[str, FilterRun]
+
+
+def _map_fingerprint(linearizer: Any) -> str:
+    """The tile fingerprint of the map behind a linearizer ("" when unknown)."""
+    for owner in (linearizer, getattr(linearizer, "terrain", None),
+                  getattr(linearizer, "grid", None), getattr(linearizer, "model", None)):
+        fingerprint = getattr(owner, "tile_fingerprint", "") if owner is not None else ""
+        if fingerprint:
+            return str(fingerprint)
+    return ""
+
+
+def check_map_matches(linearizer: Any, truth: Truth, *, method: str = "") -> None:
+    """Raises when the linearizer's map was made from another tile than the scenario's.
+
+    Args:
+        linearizer: The method (its ``tile_fingerprint``, or that of its ``terrain``, ``grid``
+            or ``model`` attribute, is compared when present).
+        truth: The simulated truth (its ``tile_fingerprint``).
+        method: Method name for the message.
+
+    Raises:
+        NeuralMapError: Both fingerprints are known and differ.
+    """
+    fingerprint = _map_fingerprint(linearizer)
+    if fingerprint and truth.tile_fingerprint and fingerprint != truth.tile_fingerprint:
+        raise NeuralMapError(
+            f"method {method or type(linearizer).__name__!r}: its map was made from a tile with "
+            f"fingerprint {fingerprint}, but the scenario flies over tile "
+            f"{truth.tile_name!r} (fingerprint {truth.tile_fingerprint}). Train the map on the "
+            "scenario's tile (python train.py) or pick the scenario of the map's tile."
+        )
+
+
+def run_filter(
+    truth: Truth,
+    linearizer: Linearizer,
+    scenario: Scenario,
+    *,
+    progress: bool | Any = False,
+    method: str = "",
+) -> FilterRun:
+    """Runs the 5-state TAN EKF over all N runs with one linearisation method.
+
+    The filter starts from ``δX̂ = 0``, ``P = diag(P0_diag)`` and uses ``Q = diag(Q_diag)``
+    and ``R = R_m2 + fit_variance_m2 + lin.variance`` (SEEDS 004). It runs in the dtype
+    and on the device of ``truth``; the linearizer's outputs are cast to them.
+
+    Args:
+        truth: Simulated truth (:func:`neuralmap.nav.simulator.simulate`).
+        linearizer: The map linearisation method.
+        scenario: Supplies the filter tuning (``P0_diag``, ``Q_diag``, ``R_m2``,
+            ``fit_variance_m2``, ``dt``).
+        progress: True shows a tqdm bar over the steps; a tqdm bar object is advanced by
+            one per step instead (used by :func:`run_monte_carlo`).
+        method: Method name stored in the result.
+
+    Returns:
+        :class:`FilterRun`.
+
+    Raises:
+        NeuralMapError: The map was made from another tile than the truth's.
+    """
+    from neuralmap.filters.ekf import BatchedEKF
+
+    scenario.validate()
+    check_map_matches(linearizer, truth, method=method)
+    dtype, device = truth.pos.dtype, truth.pos.device
+    n, k_steps = truth.n_runs, truth.n_steps
+    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype, device=device))
+    ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device), p0)
+    F = transition_matrix(scenario.dt, dtype=dtype, device=device)
+    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype, device=device))
+    R = scenario.R_m2 + scenario.fit_variance_m2
+
+    err = torch.empty(n, k_steps + 1, N_STATES, dtype=dtype, device=device)
+    P_hist = torch.empty(n, k_steps + 1, N_STATES, N_STATES, dtype=dtype, device=device)
+    nis = torch.full((n, k_steps + 1), float("nan"), dtype=dtype, device=device)
+    residual = torch.zeros(n, k_steps + 1, dtype=dtype, device=device)
+    updated = torch.zeros(n, k_steps + 1, dtype=torch.bool, device=device)
+    est_on_map = torch.ones(n, k_steps + 1, dtype=torch.bool, device=device)
+    err[:, 0] = truth.ins_error[:, 0] - ekf.x
+    P_hist[:, 0] = ekf.P
+    est_on_map[:, 0] = _inside(truth.ins_pos[:, 0, :2], truth.extent)
+
+    bar, own_bar = None, False
+    if progress is True:
+        from tqdm.auto import tqdm
+
+        bar, own_bar = tqdm(total=k_steps, desc=method or "filter", unit="step"), True
+    elif progress is not False and progress is not None:
+        bar = progress
+    start = time.perf_counter()
+    try:
+        for k in range(1, k_steps + 1):
+            diag = tan_filter_step(
+                ekf, truth.ins_pos[:, k], truth.radar[:, k], linearizer, F=F, Q=Q, R=R,
+                extent=truth.extent,
+            )
+            if ekf.x.requires_grad or ekf.P.requires_grad:  # a graph-keeping linearizer
+                ekf.x, ekf.P = ekf.x.detach(), ekf.P.detach()
+            err[:, k] = truth.ins_error[:, k] - ekf.x
+            P_hist[:, k] = ekf.P
+            upd = diag.updated.detach()
+            nis[:, k] = torch.where(upd, diag.nis.detach(), nis[:, k])
+            residual[:, k] = torch.where(upd, diag.residual.detach(), residual[:, k])
+            updated[:, k] = upd
+            est_on_map[:, k] = diag.on_map
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if own_bar:
+            bar.close()
+    elapsed = time.perf_counter() - start
+    off_map = ~(truth.on_map.all(dim=1) & est_on_map.all(dim=1))
+    return FilterRun(
+        method=method, t=truth.t, err=err, P=P_hist, nis=nis, residual=residual,
+        updated=updated, est_on_map=est_on_map, off_map=off_map,
+        healthy=ekf.healthy.clone(), elapsed_s=elapsed,
+    )
+
+
+def _inside(xy: torch.Tensor, extent: tuple[float, float, float, float]) -> torch.Tensor:
+    """``(N,)`` bool: points ``(N, 2)`` inside ``extent``."""
+    xmin, xmax, ymin, ymax = extent
+    return (xy[:, 0] >= xmin) & (xy[:, 0] <= xmax) & (xy[:, 1] >= ymin) & (xy[:, 1] <= ymax)
+
+
+def run_monte_carlo(
+    scenario: Scenario | str,
+    methods: dict[str, Linearizer],
+    *,
+    n_runs: int,
+    seed: int | None = None,
+    progress: bool = True,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype = torch.float64,
+    tile: DemTile | None = None,
+) -> MonteCarloResult:
+    """Simulates the truth once and runs the TAN EKF with every linearisation method.
+
+    Every method sees the same truth (same trajectories, INS errors and altimeter noise),
+    so differences between methods are the methods'. The linearizers are moved to
+    ``device`` (their parameter dtype is kept; outputs are cast to ``dtype``).
+
+    Args:
+        scenario: A :class:`Scenario` or a shipped name / YAML path.
+        methods: Method name to linearizer, e.g. ``{"neural": ..., "bilinear": ...}``.
+        n_runs: Number of Monte Carlo runs N.
+        seed: Simulation seed; None = ``scenario.seed``.
+        progress: Show one tqdm bar over methods × steps.
+        device: Device of the truth and the filters.
+        dtype: Filter dtype (float64 default).
+        tile: The scenario's tile, when already loaded (else :func:`scenario_tile`).
+
+    Returns:
+        :class:`MonteCarloResult` ``(truth, runs)``.
+
+    Raises:
+        NeuralMapError: Bad scenario, empty ``methods``, or a map of another tile.
+    """
+    scenario = load_scenario(scenario)
+    if not isinstance(methods, dict) or not methods:
+        raise NeuralMapError(
+            "run_monte_carlo: methods must be a non-empty dict of name -> Linearizer, got "
+            f"{methods!r}."
+        )
+    if tile is None:
+        tile = scenario_tile(scenario)
+    truth = simulate(scenario, tile, n_runs=n_runs, seed=seed, dtype=dtype, device=device)
+    for name, linearizer in methods.items():
+        check_map_matches(linearizer, truth, method=name)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=len(methods) * truth.n_steps, desc="Monte Carlo", unit="step")
+    runs: dict[str, FilterRun] = {}
+    try:
+        for name, linearizer in methods.items():
+            if bar is not None:
+                bar.set_description(f"Monte Carlo [{name}]")
+            if isinstance(linearizer, torch.nn.Module):
+                linearizer.to(device)
+            runs[name] = run_filter(
+                truth, linearizer, scenario, progress=bar if bar is not None else False,
+                method=name,
+            )
+    finally:
+        if bar is not None:
+            bar.close()
+    return MonteCarloResult(truth, runs)

@@ -1,0 +1,588 @@
+"""Monte Carlo navigation results: ``results.json``, ``report.md``, console table, claims check.
+
+The evaluation front end (``evaluate.py``) collects one metrics dict per linearisation
+method (:func:`neuralmap.nav.metrics.navigation_metrics`), the posterior Cramér-Rao bound
+and the run configuration; this module turns them into the files a user reads. It knows
+nothing about filters or maps: every input is plain numbers, lists and dicts.
+
+The claims check compares the measured numbers with paper 004's statements (SEEDS 004,
+"Claims"): position error < 50 m (1σ), velocity error < 5 m/s (1σ), the neural map about
+25 m (1σ) better than the classical linearisations; and with the accuracy targets of
+issue 3 §6 (neural converged RMSE within 1.5× the PCRB, divergence ≤ 2 %).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neuralmap.exceptions import NeuralMapError
+
+#: Per-method keys that every results.json carries (issue 3 §5).
+METHOD_KEYS: tuple[str, ...] = (
+    "rmse_pos_m",
+    "rmse_pos_converged_m",
+    "rmse_vel_mps",
+    "sigma_pos_m",
+    "divergence_rate",
+    "nees_in_band",
+    "pcrb_ratio",
+)
+
+#: Per-method count keys (integers).
+COUNT_KEYS: tuple[str, ...] = ("n_runs", "n_off_map", "n_diverged")
+
+#: Per-method curve keys (lists over the time steps), kept under ``curves`` in results.json.
+CURVE_KEYS: tuple[str, ...] = (
+    "rmse_pos_curve",
+    "rmse_pos_converged_curve",
+    "rmse_vel_curve",
+    "nees_curve",
+)
+
+#: Per-method keys of the metrics dict that are not copied into results.json (per-run
+#: lists; the rule is stored once at the top level).
+_SKIPPED_KEYS: tuple[str, ...] = ("diverged", "divergence_rule")
+
+#: The method that carries the neural map (the subject of paper 004's claims).
+NEURAL_METHOD = "neural"
+
+#: Human-readable labels of the method names.
+METHOD_LABELS: dict[str, str] = {
+    "neural": "neural map + autograd",
+    "bilinear": "bilinear grid (Taylor)",
+    "bicubic": "bicubic grid (Taylor)",
+    "nine_point": "nine-point fit",
+    "mean_point": "mean-point selection",
+    "lsq_adaptive": "least squares Ω_adp",
+    "lsq_min": "least squares Ω_min (σ = 80 m)",
+    "lsq_mean": "least squares Ω_mean (σ = 240 m)",
+    "lsq_max": "least squares Ω_max (σ = 400 m)",
+}
+
+# Columns of the console and markdown tables: (key, header, format).
+_TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
+    ("rmse_pos_m", "RMSE pos all [m]", "{:.1f}"),
+    ("rmse_pos_converged_m", "RMSE pos conv [m]", "{:.1f}"),
+    ("sigma_pos_m", "1σ pos conv [m]", "{:.1f}"),
+    ("rmse_vel_mps", "RMSE vel [m/s]", "{:.2f}"),
+    ("final_pos_m", "final pos [m]", "{:.1f}"),
+    ("pcrb_ratio", "RMSE/PCRB", "{:.2f}"),
+    ("divergence_rate", "diverged", "{:.1%}"),
+    ("nees_in_band", "NEES in 95% band", "{:.1%}"),
+    ("n_off_map", "off-map", "{:d}"),
+)
+
+
+@dataclass(frozen=True)
+class ClaimCheck:
+    """One claim or target compared with the measured numbers.
+
+    Attributes:
+        claim: The statement being checked (with its source).
+        measured: The measured value(s), as text with units.
+        verdict: ``"holds"``, ``"partly"``, ``"does not hold"`` or ``"not checked"``.
+        detail: How the verdict was reached (the rule), and caveats.
+    """
+
+    claim: str
+    measured: str
+    verdict: str
+    detail: str
+
+
+def method_label(name: str) -> str:
+    """Human-readable label of a method name (the name itself when unknown)."""
+    return METHOD_LABELS.get(name, name)
+
+
+def to_jsonable(value: Any) -> Any:
+    """Converts tensors, numpy values and non-finite floats to strict-JSON values.
+
+    NaN and ±inf become ``None`` (strict JSON has no NaN); tensors and arrays become
+    (nested) lists; tuples become lists; dataclasses become dicts; paths become strings.
+
+    Args:
+        value: Any nesting of dicts, lists, scalars, numpy arrays and torch tensors.
+
+    Returns:
+        The same structure made of ``dict``, ``list``, ``str``, ``int``, ``float``,
+        ``bool`` and ``None`` only.
+    """
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "detach") and hasattr(value, "cpu"):  # torch.Tensor
+        return to_jsonable(value.detach().cpu().numpy())
+    if isinstance(value, np.ndarray):
+        return to_jsonable(value.tolist())
+    if isinstance(value, Mapping):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, set)):
+        return [to_jsonable(v) for v in value]
+    if hasattr(value, "__dataclass_fields__"):
+        return to_jsonable(asdict(value))
+    return str(value)
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """Writes ``text`` to ``path`` through a temporary file and :func:`os.replace`.
+
+    Args:
+        path: Destination file; its folder must exist.
+        text: UTF-8 content.
+
+    Returns:
+        The destination path.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
+    """Writes ``obj`` as strict JSON (no NaN; see :func:`to_jsonable`) atomically.
+
+    Args:
+        path: Destination file; its folder must exist.
+        obj: Any structure accepted by :func:`to_jsonable`.
+
+    Returns:
+        The destination path.
+    """
+    text = json.dumps(to_jsonable(obj), indent=2, allow_nan=False, ensure_ascii=False)
+    return atomic_write_text(path, text + "\n")
+
+
+def _last_half_rms(curve: Sequence[float]) -> float:
+    """Root mean square of the finite values of the last half of a curve (NaN when none).
+
+    The same time average as :func:`neuralmap.nav.metrics.navigation_metrics` uses for the
+    PCRB (samples ``(K+1)//2 … K``).
+    """
+    values = np.asarray(curve, dtype=np.float64)
+    values = values[len(values) // 2 :]
+    values = values[np.isfinite(values)]
+    return float(np.sqrt((values**2).mean())) if values.size else float("nan")
+
+
+def build_results(
+    *,
+    method_metrics: Mapping[str, Mapping[str, Any]],
+    t: Sequence[float],
+    pcrb_pos: Sequence[float],
+    divergence_rule: str,
+    config: Mapping[str, Any],
+    scenario: Mapping[str, Any] | None = None,
+    map_info: Mapping[str, Any] | None = None,
+    off_map: Mapping[str, Any] | None = None,
+    timing_s: Mapping[str, float] | None = None,
+) -> dict[str, Any]:
+    """Assembles the ``results.json`` structure.
+
+    Args:
+        method_metrics: Method name -> metrics dict from
+            :func:`neuralmap.nav.metrics.navigation_metrics` (must hold :data:`METHOD_KEYS`;
+            curves and counts are kept when present).
+        t: ``(K+1,)`` time stamps in seconds.
+        pcrb_pos: ``(K+1,)`` horizontal position PCRB in metres
+            (:func:`neuralmap.nav.pcrb.pcrb_position`).
+        divergence_rule: The divergence rule text (``neuralmap.nav.metrics.DIVERGENCE_RULE``).
+        config: The evaluation configuration (JSON-serialisable).
+        scenario: The scenario's fields.
+        map_info: Map file, tile name and fingerprint, parameter count, ...
+        off_map: Off-map counts (e.g. ``{"truth": n, "per_method": {...}}``).
+        timing_s: Wall-clock seconds per stage.
+
+    Returns:
+        A dict with ``methods`` (name -> the :data:`METHOD_KEYS` plus counts and
+        ``final_pos_m``), ``curves`` (``t``, ``pcrb_pos_m`` and per-method curves),
+        ``pcrb_pos_m`` (RMS over the last half), ``pcrb_pos_final_m``,
+        ``divergence_rule``, ``config``, ``scenario``, ``map``, ``off_map``, ``timing_s``.
+
+    Raises:
+        NeuralMapError: When a method lacks one of :data:`METHOD_KEYS` or the curves do
+            not match ``t``.
+    """
+    if not method_metrics:
+        raise NeuralMapError("build_results: no methods were evaluated; pass at least one.")
+    n_steps = len(t)
+    if len(pcrb_pos) != n_steps:
+        raise NeuralMapError(
+            f"build_results: pcrb_pos has {len(pcrb_pos)} values but t has {n_steps}; "
+            "both must cover the same time steps."
+        )
+    methods: dict[str, dict[str, Any]] = {}
+    curves: dict[str, Any] = {
+        "t": [float(v) for v in t],
+        "pcrb_pos_m": [float(v) for v in pcrb_pos],
+    }
+    for name, metrics in method_metrics.items():
+        missing = [key for key in METHOD_KEYS if key not in metrics]
+        if missing:
+            raise NeuralMapError(
+                f"build_results: metrics of method '{name}' lack {missing}; "
+                "compute them with neuralmap.nav.metrics.navigation_metrics."
+            )
+        entry: dict[str, Any] = {"label": method_label(name)}
+        for key, value in metrics.items():
+            if key in _SKIPPED_KEYS:
+                continue
+            if key in CURVE_KEYS:
+                if len(value) != n_steps:
+                    raise NeuralMapError(
+                        f"build_results: curve '{key}' of method '{name}' has {len(value)} "
+                        f"values, expected {n_steps} (one per time step)."
+                    )
+                curves.setdefault(name, {})[key] = [
+                    None if v is None else float(v) for v in value
+                ]
+            elif isinstance(value, (bool, int, float, str, np.integer, np.floating)) or (
+                value is None
+            ):
+                entry[key] = value
+            elif hasattr(value, "numel") and value.numel() == 1:
+                entry[key] = value.item()
+            elif isinstance(value, (list, tuple)) and len(value) <= 8:
+                entry[key] = list(value)  # small vectors such as the NEES band
+        methods[name] = entry
+    return {
+        "methods": methods,
+        "pcrb_pos_m": _last_half_rms(pcrb_pos),
+        "pcrb_pos_final_m": float(pcrb_pos[-1]),
+        "divergence_rule": divergence_rule,
+        "config": dict(config),
+        "scenario": dict(scenario or {}),
+        "map": dict(map_info or {}),
+        "off_map": dict(off_map or {}),
+        "timing_s": dict(timing_s or {}),
+        "curves": curves,
+    }
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
+
+
+def _fmt(value: Any, spec: str) -> str:
+    """Formats a metric; non-finite or missing values print as ``n/a``."""
+    if not _finite(value):
+        return "n/a"
+    if spec == "{:d}":
+        return f"{int(value):d}"
+    return spec.format(float(value))
+
+
+def check_claims(
+    results: Mapping[str, Any],
+    *,
+    neural_method: str = NEURAL_METHOD,
+    pos_limit_m: float = 50.0,
+    vel_limit_mps: float = 5.0,
+    improvement_m: float = 25.0,
+    pcrb_ratio_target: float = 1.5,
+    divergence_target: float = 0.02,
+) -> list[ClaimCheck]:
+    """Compares the measured numbers with paper 004's claims and the issue's targets.
+
+    Rules (all on the neural method unless stated):
+
+    * position < ``pos_limit_m`` (1σ): the 1σ of the converged horizontal error
+      (``sigma_pos_m``, SEEDS 004 "Claims") is below the limit;
+    * velocity < ``vel_limit_mps`` (1σ): ``sigma_vel_mps`` when the metrics provide it,
+      else ``rmse_vel_mps`` (an upper bound of the 1σ);
+    * ≈ ``improvement_m`` better than classical: Δ = σ_classical − σ_neural per classical
+      method; "holds" when the neural map beats every classical method and the mean Δ is
+      at least half the claimed improvement, "partly" when the mean Δ is positive
+      otherwise, "does not hold" when it is not;
+    * converged RMSE / PCRB ≤ ``pcrb_ratio_target`` and divergence ≤ ``divergence_target``
+      (issue 3 §6 accuracy targets).
+
+    Args:
+        results: The structure from :func:`build_results`.
+        neural_method: Name of the neural-map method.
+        pos_limit_m: Claimed 1σ position bound, metres.
+        vel_limit_mps: Claimed 1σ velocity bound, m/s.
+        improvement_m: Claimed improvement over the classical linearisations, metres.
+        pcrb_ratio_target: Target converged-RMSE / PCRB ratio.
+        divergence_target: Target divergence rate (fraction).
+
+    Returns:
+        One :class:`ClaimCheck` per claim/target, in the order above.
+    """
+    methods: Mapping[str, Mapping[str, Any]] = results["methods"]
+    neural = methods.get(neural_method)
+    if neural is None:
+        reason = f"method '{neural_method}' was not evaluated (add it to --methods)"
+        claims = [
+            f"position error < {pos_limit_m:g} m (1σ) [SEEDS 004]",
+            f"velocity error < {vel_limit_mps:g} m/s (1σ) [SEEDS 004]",
+            f"neural map ≈ {improvement_m:g} m (1σ) better than classical [SEEDS 004]",
+            f"converged RMSE ≤ {pcrb_ratio_target:g}× PCRB [issue 3 §6]",
+            f"divergence ≤ {divergence_target:.0%} [issue 3 §6]",
+        ]
+        return [ClaimCheck(c, "n/a", "not checked", reason) for c in claims]
+
+    checks: list[ClaimCheck] = []
+
+    sigma = neural.get("sigma_pos_m")
+    checks.append(
+        ClaimCheck(
+            claim=f"position error < {pos_limit_m:g} m (1σ) [SEEDS 004]",
+            measured=f"1σ = {_fmt(sigma, '{:.1f}')} m",
+            verdict=(
+                "not checked"
+                if not _finite(sigma)
+                else ("holds" if sigma < pos_limit_m else "does not hold")
+            ),
+            detail="1σ of the horizontal error of the non-diverged runs, last half of the "
+            "flight" + ("" if _finite(sigma) else "; no converged run to measure"),
+        )
+    )
+
+    if _finite(neural.get("sigma_vel_mps")):
+        vel, vel_what = neural["sigma_vel_mps"], "1σ of the velocity error"
+    else:
+        vel, vel_what = neural.get("rmse_vel_mps"), "velocity RMSE (an upper bound of the 1σ)"
+    checks.append(
+        ClaimCheck(
+            claim=f"velocity error < {vel_limit_mps:g} m/s (1σ) [SEEDS 004]",
+            measured=f"{_fmt(vel, '{:.2f}')} m/s",
+            verdict=(
+                "not checked"
+                if not _finite(vel)
+                else ("holds" if vel < vel_limit_mps else "does not hold")
+            ),
+            detail=vel_what,
+        )
+    )
+
+    classical = {
+        name: entry["sigma_pos_m"]
+        for name, entry in methods.items()
+        if name != neural_method and _finite(entry.get("sigma_pos_m"))
+    }
+    claim = f"neural map ≈ {improvement_m:g} m (1σ) better than classical [SEEDS 004]"
+    if not classical or not _finite(sigma):
+        checks.append(
+            ClaimCheck(
+                claim,
+                "n/a",
+                "not checked",
+                "needs the neural method and at least one classical method with a "
+                "finite 1σ",
+            )
+        )
+    else:
+        deltas = {name: value - sigma for name, value in classical.items()}
+        mean_delta = float(np.mean(list(deltas.values())))
+        if min(deltas.values()) > 0 and mean_delta >= 0.5 * improvement_m:
+            verdict = "holds"
+        elif mean_delta > 0:
+            verdict = "partly"
+        else:
+            verdict = "does not hold"
+        per_method = ", ".join(f"{name} {delta:+.1f} m" for name, delta in deltas.items())
+        checks.append(
+            ClaimCheck(
+                claim,
+                f"mean Δ = {mean_delta:+.1f} m ({per_method})",
+                verdict,
+                "Δ = 1σ(classical) − 1σ(neural); holds when the neural map beats every "
+                f"classical method and mean Δ ≥ {0.5 * improvement_m:g} m, partly when "
+                "mean Δ > 0",
+            )
+        )
+
+    ratio = neural.get("pcrb_ratio")
+    checks.append(
+        ClaimCheck(
+            claim=f"converged RMSE ≤ {pcrb_ratio_target:g}× PCRB [issue 3 §6]",
+            measured=f"ratio = {_fmt(ratio, '{:.2f}')}",
+            verdict=(
+                "not checked"
+                if not _finite(ratio)
+                else ("holds" if ratio <= pcrb_ratio_target else "does not hold")
+            ),
+            detail="converged horizontal RMSE / PCRB, both time-averaged over the last half",
+        )
+    )
+    rate = neural.get("divergence_rate")
+    checks.append(
+        ClaimCheck(
+            claim=f"divergence ≤ {divergence_target:.0%} [issue 3 §6]",
+            measured=f"{_fmt(rate, '{:.1%}')} ({neural.get('n_diverged', 'n/a')} runs)",
+            verdict=(
+                "not checked"
+                if not _finite(rate)
+                else ("holds" if rate <= divergence_target else "does not hold")
+            ),
+            detail="fraction of on-map runs that diverged (rule below)",
+        )
+    )
+    return checks
+
+
+def format_table(results: Mapping[str, Any], *, markdown: bool = False) -> str:
+    """The per-method metrics table.
+
+    Args:
+        results: The structure from :func:`build_results`.
+        markdown: Pipe table for markdown instead of aligned plain text.
+
+    Returns:
+        The table as text (no trailing newline). Missing or non-finite values show ``n/a``.
+    """
+    headers = ["method"] + [header for _, header, _ in _TABLE_COLUMNS]
+    rows = []
+    for name, entry in results["methods"].items():
+        rows.append([name] + [_fmt(entry.get(key), spec) for key, _, spec in _TABLE_COLUMNS])
+    pcrb_row = ["PCRB", _fmt(results.get("pcrb_pos_m"), "{:.1f}")] + ["" for _ in headers[2:]]
+    pcrb_row[headers.index("final pos [m]")] = _fmt(results.get("pcrb_pos_final_m"), "{:.1f}")
+    rows.append(pcrb_row)
+    if markdown:
+        lines = ["| " + " | ".join(headers) + " |"]
+        lines.append("|" + "|".join(["---"] + ["---:"] * (len(headers) - 1)) + "|")
+        lines += ["| " + " | ".join(row) + " |" for row in rows]
+        return "\n".join(lines)
+    widths = [max(len(row[i]) for row in [headers, *rows]) for i in range(len(headers))]
+    out = ["  ".join(h.ljust(w) if i == 0 else h.rjust(w) for i, (h, w) in enumerate(
+        zip(headers, widths, strict=True)))]
+    out.append("  ".join("-" * w for w in widths))
+    for row in rows:
+        out.append("  ".join(
+            v.ljust(w) if i == 0 else v.rjust(w)
+            for i, (v, w) in enumerate(zip(row, widths, strict=True))
+        ))
+    return "\n".join(out)
+
+
+def _claims_table(checks: Sequence[ClaimCheck]) -> str:
+    lines = ["| claim | measured | verdict | how |", "|---|---|---|---|"]
+    for check in checks:
+        lines.append(f"| {check.claim} | {check.measured} | **{check.verdict}** | {check.detail} |")
+    return "\n".join(lines)
+
+
+def render_report(
+    results: Mapping[str, Any],
+    *,
+    claims: Sequence[ClaimCheck],
+    figures: Mapping[str, str] | None = None,
+    title: str = "Terrain-aided navigation: Monte Carlo evaluation",
+) -> str:
+    """The markdown report: setup, metrics table, PCRB, divergence rule, claims, plots.
+
+    Args:
+        results: The structure from :func:`build_results`.
+        claims: From :func:`check_claims`.
+        figures: Caption -> image path relative to the report.
+        title: First heading.
+
+    Returns:
+        Markdown text.
+    """
+    config = results.get("config", {})
+    scenario = results.get("scenario", {})
+    map_info = results.get("map", {})
+    off_map = results.get("off_map", {})
+    lines = [f"# {title}", ""]
+    lines.append("## Setup")
+    lines.append("")
+    setup = [
+        ("map", map_info.get("path", config.get("map", "n/a"))),
+        ("tile", f"{map_info.get('tile_name', 'n/a')} (fingerprint "
+                 f"{map_info.get('tile_fingerprint', 'n/a')})"),
+        ("scenario", scenario.get("name", config.get("scenario", "n/a"))),
+        ("Monte Carlo runs", config.get("n_runs", "n/a")),
+        ("time steps", max(len(results.get("curves", {}).get("t", [])) - 1, 0)),
+        ("methods", ", ".join(results["methods"])),
+        ("seed", config.get("seed", "n/a")),
+        ("dtype / device", f"{config.get('dtype', 'n/a')} / {config.get('device', 'n/a')}"),
+    ]
+    for key in ("dt", "speed_mps", "altimeter_sigma_m", "init_pos_sigma_m", "R_m2"):
+        if key in scenario:
+            setup.append((f"scenario.{key}", scenario[key]))
+    lines += [f"- **{key}**: {value}" for key, value in setup]
+    lines.append("")
+
+    lines.append("## Results")
+    lines.append("")
+    lines.append(format_table(results, markdown=True))
+    lines.append("")
+    lines.append(
+        "RMSE pos all: horizontal RMSE over **all** on-map runs, time-averaged over the last "
+        "half of the flight. RMSE pos conv: the same over the runs that did not diverge. "
+        "1σ pos conv: standard deviation of the converged horizontal error (the papers' "
+        "figure). RMSE/PCRB: converged RMSE over the PCRB, both time-averaged over the last "
+        "half. NEES in 95% band: fraction of (run, step) NEES values inside the two-sided "
+        "95 % χ² band. The PCRB row gives the bound time-averaged over the last half and "
+        "its final value."
+    )
+    lines.append("")
+    n_truth = off_map.get("truth")
+    per_method = off_map.get("per_method", {})
+    off_text = ", ".join(f"{k}: {v}" for k, v in per_method.items()) or "none"
+    lines.append(
+        "**Off-map runs** (excluded from every metric): "
+        + (f"{n_truth} truth trajectories left the tile; " if n_truth is not None else "")
+        + f"per method (truth or estimate left the map): {off_text}."
+    )
+    lines.append("")
+
+    lines.append("## Divergence rule")
+    lines.append("")
+    lines.append(str(results.get("divergence_rule", "n/a")))
+    lines.append("")
+
+    lines.append("## Paper 004's claims and the accuracy targets, checked")
+    lines.append("")
+    lines.append(_claims_table(claims))
+    lines.append("")
+
+    if figures:
+        lines.append("## Plots")
+        lines.append("")
+        for caption, path in figures.items():
+            lines.append(f"### {caption}")
+            lines.append("")
+            lines.append(f"![{caption}]({path})")
+            lines.append("")
+
+    timing = results.get("timing_s", {})
+    if timing:
+        lines.append("## Timing")
+        lines.append("")
+        lines += [f"- {key}: {value:.2f} s" for key, value in timing.items() if _finite(value)]
+        lines.append("")
+    lines.append(
+        "Full numbers (per-step curves, configuration, scenario) are in `results.json`; the "
+        "configuration used is in `config.yaml`; TensorBoard logs are in this folder "
+        "(`tensorboard --logdir .`)."
+    )
+    lines.append("")
+    return "\n".join(lines)

@@ -1,0 +1,50 @@
+"""The terrain-model interface every map representation implements."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+
+class TerrainModel(nn.Module):
+    """A terrain height field ``h(x, y)`` in metres over a metric east-north frame.
+
+    Subclasses implement :meth:`forward`; grid and neural models are interchangeable in
+    the linearisation layer and the filter.
+
+    Attributes:
+        extent: ``(xmin, xmax, ymin, ymax)`` metric bounds where the model is valid.
+        tile_name: Name of the DEM tile the model represents.
+        tile_fingerprint: :meth:`DemTile.fingerprint` of that tile ("" when unknown).
+    """
+
+    extent: tuple[float, float, float, float]
+    tile_name: str = ""
+    tile_fingerprint: str = ""
+
+    def forward(self, xy: torch.Tensor) -> torch.Tensor:  # pragma: no cover - interface
+        """Heights at metric points.
+
+        Args:
+            xy: ``(..., 2)`` east/north coordinates in metres.
+
+        Returns:
+            ``(...)`` heights in metres.
+        """
+        raise NotImplementedError
+
+    def contains(self, xy: torch.Tensor, margin: float = 0.0) -> torch.Tensor:
+        """Whether points lie inside :attr:`extent` shrunk by ``margin`` metres.
+
+        Args:
+            xy: ``(..., 2)`` metric points.
+            margin: Distance kept from the border, metres.
+
+        Returns:
+            ``(...)`` bool.
+        """
+        xmin, xmax, ymin, ymax = self.extent
+        x, y = xy[..., 0], xy[..., 1]
+        return (x >= xmin + margin) & (x <= xmax - margin) & (y >= ymin + margin) & (
+            y <= ymax - margin
+        )

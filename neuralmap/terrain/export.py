@@ -1,0 +1,119 @@
+"""Export and load neural maps as plain ``nn.Module`` files (no Lightning needed)."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+
+FORMAT = "neuralmap-terrain-map"
+FORMAT_VERSION = 1
+_CLASSES: dict[str, type[BlockwiseTerrainNet]] = {"BlockwiseTerrainNet": BlockwiseTerrainNet}
+
+
+def save_map(
+    model: BlockwiseTerrainNet,
+    path: str | os.PathLike[str],
+    *,
+    metrics: dict[str, Any] | None = None,
+    extra: dict[str, Any] | None = None,
+) -> Path:
+    """Writes a neural map atomically (temporary file, then rename).
+
+    The file records the model class, its constructor config (including the tile it was
+    fitted to: name, fingerprint, extent), the float state dict and optional metrics.
+
+    Args:
+        model: The fitted network.
+        path: Destination, conventionally ``runs/<experiment>/<version>/neural_map.pt``.
+        metrics: Final fit metrics (JSON-like), stored for reports.
+        extra: Any further JSON-like information (e.g. the training config).
+
+    Returns:
+        The path written.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "class": type(model).__name__,
+        "config": model.config,
+        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "metrics": dict(metrics or {}),
+        "extra": dict(extra or {}),
+    }
+    fd, tmp = tempfile.mkstemp(prefix=".neural_map.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def load_map_payload(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Reads and checks an exported map file; returns its raw payload dict.
+
+    Raises:
+        NeuralMapError: If the file is missing or is not a neuralmap export.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise NeuralMapError(
+            f"map file not found: {path}. Train one with `python train.py` (it prints the "
+            "path of neural_map.pt on its last line) or pass an existing file."
+        )
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - any unpickling failure means "not our format"
+        raise NeuralMapError(
+            f"{path} is not a neuralmap map export (could not be read as one: "
+            f"{type(exc).__name__}). Use the neural_map.pt written by `python train.py`."
+        ) from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise NeuralMapError(
+            f"{path} is not a neuralmap map export (no '{FORMAT}' header); a Lightning "
+            "checkpoint (.ckpt) or another torch file is not a map. Use the neural_map.pt "
+            "written by `python train.py`."
+        )
+    if payload.get("format_version", 0) > FORMAT_VERSION:
+        raise NeuralMapError(
+            f"{path} was written by a newer neuralmap (format version "
+            f"{payload['format_version']} > {FORMAT_VERSION}); upgrade neuralmap."
+        )
+    if payload.get("class") not in _CLASSES:
+        raise NeuralMapError(
+            f"{path}: unknown map class {payload.get('class')!r}; known: {sorted(_CLASSES)}."
+        )
+    return payload
+
+
+def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
+    """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
+
+    Args:
+        path: A file written by :func:`save_map`.
+
+    Returns:
+        The terrain model; ``.tile_name``, ``.tile_fingerprint``, ``.extent`` and
+        ``.tile_info`` say which tile it was fitted to, ``.metrics`` holds the stored metrics.
+
+    Raises:
+        NeuralMapError: If the file is missing or not a neuralmap export.
+    """
+    payload = load_map_payload(path)
+    config = dict(payload["config"])
+    model = _CLASSES[payload["class"]](**config)
+    model.load_state_dict(payload["state_dict"])
+    model.metrics = payload.get("metrics", {})  # type: ignore[assignment]
+    model.eval()
+    return model

@@ -1,0 +1,309 @@
+"""DemDataModule: the valid nodes of a DEM tile as in-memory training and validation sets.
+
+Every valid (non-void) node of the tile is one training point ``(x, y) -> h``. A seeded
+random fraction is held out for validation; the final evaluation uses every valid node.
+Batches are cut from in-memory tensors (no per-item DataLoader overhead): the training
+dataset's item ``i`` *is* the ``i``-th batch of this epoch's permutation of the training
+nodes, served with ``batch_size=None``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import lightning.pytorch as pl
+import numpy as np
+import torch
+from lightning.pytorch.utilities.rank_zero import rank_zero_info
+from torch.utils.data import DataLoader, Dataset
+
+from neuralmap.dem import load_tile
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.terrain.grid import GridTerrain
+
+#: Seed offset so that the split and the per-epoch shuffles use different streams.
+_SHUFFLE_STREAM = 1_000_003
+
+
+class ShuffledBatches(Dataset):
+    """Map-style dataset whose item ``i`` is the ``i``-th training batch of the epoch.
+
+    The node order is a fresh permutation per epoch, drawn from ``seed`` and the epoch
+    number (so a resumed run and every DDP rank see the same permutation). Lightning's
+    distributed sampler then hands disjoint batch ids to the ranks.
+
+    Args:
+        xy: ``(N, 2)`` float32 node coordinates, metres.
+        heights: ``(N,)`` float32 node heights, metres.
+        batch_size: Points per batch (the last batch of an epoch may be smaller).
+        seed: Base seed of the shuffles.
+        epoch_fn: Returns the current epoch number.
+    """
+
+    def __init__(
+        self,
+        xy: torch.Tensor,
+        heights: torch.Tensor,
+        *,
+        batch_size: int,
+        seed: int,
+        epoch_fn: Callable[[], int],
+    ) -> None:
+        if xy.ndim != 2 or xy.shape[1] != 2 or heights.shape != xy.shape[:1]:
+            raise ValueError(f"xy (N, 2) and heights (N,) expected, got {xy.shape}, {heights.shape}")
+        self.xy = xy
+        self.heights = heights
+        self.batch_size = int(batch_size)
+        self.seed = int(seed)
+        self.epoch_fn = epoch_fn
+        self._cached: tuple[int, torch.Tensor] | None = None
+
+    def __len__(self) -> int:
+        return math.ceil(self.xy.shape[0] / self.batch_size)
+
+    def permutation(self, epoch: int) -> torch.Tensor:
+        """``(N,)`` int64 node order of ``epoch`` (cached for the current epoch)."""
+        if self._cached is None or self._cached[0] != epoch:
+            generator = torch.Generator().manual_seed(self.seed * _SHUFFLE_STREAM + epoch)
+            self._cached = (epoch, torch.randperm(self.xy.shape[0], generator=generator))
+        return self._cached[1]
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        order = self.permutation(int(self.epoch_fn()))
+        take = order[index * self.batch_size : (index + 1) * self.batch_size]
+        return self.xy[take], self.heights[take]
+
+
+class Chunks(Dataset):
+    """Map-style dataset of ``n_chunks`` contiguous slices of aligned tensors.
+
+    Item ``r`` is the ``r``-th slice of every tensor (slices may be empty when there are
+    fewer rows than chunks).
+
+    Args:
+        tensors: Tensors with the same first dimension.
+        n_chunks: Number of slices (≥ 1).
+    """
+
+    def __init__(self, *tensors: torch.Tensor, n_chunks: int) -> None:
+        self.tensors = tensors
+        self.n_chunks = max(1, int(n_chunks))
+
+    def __len__(self) -> int:
+        return self.n_chunks
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, ...]:
+        if not 0 <= index < self.n_chunks:
+            raise IndexError(index)
+        return tuple(torch.tensor_split(t, self.n_chunks)[index] for t in self.tensors)
+
+
+class DemDataModule(pl.LightningDataModule):
+    """The valid nodes of one DEM tile, split into training and validation nodes.
+
+    **Validation rule.** ``n_val = max(1, round(val_fraction * n_valid))`` nodes are drawn
+    uniformly at random without replacement from the valid (non-void) nodes with a
+    ``torch.Generator`` seeded by ``seed``; they are never used for training. Because the
+    held-out nodes sit between training nodes, the validation RMSE measures how well the
+    map interpolates the DEM at nodes it did not see. The **final evaluation** (see
+    :func:`neuralmap.training.evaluation.evaluate_fit`) uses every valid node, training and
+    validation alike. Void nodes are excluded from everything and counted
+    (:attr:`n_void`).
+
+    Training batches are cut from in-memory tensors: item ``i`` of the training dataset is
+    the ``i``-th batch of this epoch's seeded permutation (``batch_size=None`` loader,
+    ``num_workers=0``). Under DDP, Lightning's distributed sampler shards the batch ids over
+    the ranks, so each rank trains on disjoint batches of the same permutation; validation
+    is split into one chunk per rank.
+
+    Args:
+        path: Sample name (``"jacksboro"``, ``"synthetic"``) or DEM file path, as for
+            :func:`neuralmap.dem.load_tile`; from Python also an already loaded
+            :class:`DemTile` (see :meth:`from_tile`).
+        spacing: Grid spacing in metres for files that do not carry it (``.npy``, generic
+            ``.npz``): one number or ``[dx, dy]``.
+        origin: ``[x0, y0]`` metres of node ``[0, 0]`` for such files.
+        name: Tile name (default: from the file or sample); names the run folder.
+        batch_size: Training points per optimisation step.
+        val_fraction: Fraction of valid nodes held out for validation, in ``(0, 0.5]``.
+        seed: Seed of the validation split and of the per-epoch shuffles.
+        eval_batch_size: Points per chunk for validation, testing and the final evaluation.
+
+    Raises:
+        NeuralMapError: Bad path/file (from ``load_tile``), bad batch size or fraction, or
+            a tile with fewer than 2 valid nodes.
+    """
+
+    def __init__(
+        self,
+        path: str = "jacksboro",
+        spacing: float | list[float] | None = None,
+        origin: list[float] | None = None,
+        name: str | None = None,
+        batch_size: int = 8192,
+        val_fraction: float = 0.02,
+        seed: int = 0,
+        eval_batch_size: int = 65536,
+    ) -> None:
+        super().__init__()
+        tile_given = isinstance(path, DemTile)
+        self.save_hyperparameters(ignore=["path"] if tile_given else None)
+        if int(batch_size) < 1:
+            raise NeuralMapError(f"data.batch_size must be >= 1, got {batch_size}.")
+        if int(eval_batch_size) < 1:
+            raise NeuralMapError(f"data.eval_batch_size must be >= 1, got {eval_batch_size}.")
+        if not (math.isfinite(val_fraction) and 0.0 < val_fraction <= 0.5):
+            raise NeuralMapError(
+                f"data.val_fraction must be in (0, 0.5] (fraction of valid nodes held out for "
+                f"validation), got {val_fraction}. Try 0.02."
+            )
+        self.path = (path.source or path.name) if tile_given else str(path)  # type: ignore[union-attr]
+        self.batch_size = int(batch_size)
+        self.val_fraction = float(val_fraction)
+        self.seed = int(seed)
+        self.eval_batch_size = int(eval_batch_size)
+        spacing_arg = None
+        if spacing is not None:
+            spacing_arg = float(spacing) if np.ndim(spacing) == 0 else tuple(spacing)  # type: ignore[arg-type]
+        if tile_given:
+            self.tile: DemTile = path  # type: ignore[assignment]
+        else:
+            self.tile = load_tile(
+                self.path,
+                spacing=spacing_arg,  # type: ignore[arg-type]
+                origin=tuple(origin) if origin is not None else None,  # type: ignore[arg-type]
+                name=name,
+            )
+        self._split()
+        self._val_slopes: torch.Tensor | None = None
+        self._all_slopes: torch.Tensor | None = None
+        rank_zero_info(
+            f"tile '{self.tile.name}': {self.tile.shape[0]} x {self.tile.shape[1]} nodes, "
+            f"{self.n_void} void node(s) excluded; training on {self.n_train} nodes, "
+            f"validating on {self.n_val} held-out nodes"
+        )
+
+    @classmethod
+    def from_tile(cls, tile: DemTile, **kwargs: Any) -> DemDataModule:
+        """Builds the data module around an already loaded tile (no file access).
+
+        Args:
+            tile: The DEM tile.
+            **kwargs: Other constructor arguments (``batch_size``, ``val_fraction``, ...).
+        """
+        return cls(tile, **kwargs)  # type: ignore[arg-type]
+
+    # ------------------------------------------------------------------ split
+    def _split(self) -> None:
+        tile = self.tile
+        valid = tile.valid_mask.reshape(-1)
+        n_valid = int(valid.sum())
+        where = f"tile '{tile.name}' ({self.path})"
+        if n_valid < 2:
+            raise NeuralMapError(
+                f"{where} has only {n_valid} valid node(s); at least 2 are needed to train "
+                "and validate. Check the file's no-data value."
+            )
+        self.node_index = torch.as_tensor(np.flatnonzero(valid), dtype=torch.int64)
+        xy = tile.node_xy().reshape(-1, 2)[valid]
+        self.xy = torch.as_tensor(xy, dtype=torch.float32)
+        self.heights = torch.as_tensor(tile.heights.reshape(-1)[valid], dtype=torch.float32)
+        n_val = min(max(1, round(self.val_fraction * n_valid)), n_valid - 1)
+        generator = torch.Generator().manual_seed(self.seed)
+        order = torch.randperm(n_valid, generator=generator)
+        self.val_index = order[:n_val].sort().values
+        self.train_index = order[n_val:].sort().values
+        self.n_void = tile.n_void
+
+    @property
+    def n_valid(self) -> int:
+        """Number of valid (non-void) nodes."""
+        return int(self.xy.shape[0])
+
+    @property
+    def n_train(self) -> int:
+        """Number of training nodes."""
+        return int(self.train_index.shape[0])
+
+    @property
+    def n_val(self) -> int:
+        """Number of held-out validation nodes."""
+        return int(self.val_index.shape[0])
+
+    @property
+    def experiment_name(self) -> str:
+        """Default experiment (run folder) name: the tile name, made path-safe."""
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in self.tile.name)
+        return safe.strip("._") or Path(self.path).stem or "tile"
+
+    # ------------------------------------------------------------------ reference slopes
+    def _reference_slopes(self, xy: torch.Tensor) -> torch.Tensor:
+        """Bicubic DEM slopes ``(N, 2)`` float32 at ``xy`` (float64 evaluation, chunked).
+
+        Uses :meth:`GridTerrain.height_and_slope`, the closed form of the autograd slope of
+        the Keys bicubic interpolant.
+        """
+        grid = GridTerrain(self.tile, method="bicubic", dtype=torch.float64)
+        parts = [
+            grid.height_and_slope(chunk.to(torch.float64))[1]
+            for chunk in torch.split(xy, self.eval_batch_size)
+        ]
+        return torch.cat(parts).to(torch.float32)
+
+    @property
+    def val_slopes(self) -> torch.Tensor:
+        """``(n_val, 2)`` bicubic DEM slopes at the validation nodes (m/m)."""
+        if self._val_slopes is None:
+            self._val_slopes = self._reference_slopes(self.xy[self.val_index])
+        return self._val_slopes
+
+    @property
+    def all_slopes(self) -> torch.Tensor:
+        """``(n_valid, 2)`` bicubic DEM slopes at every valid node (m/m)."""
+        if self._all_slopes is None:
+            self._all_slopes = self._reference_slopes(self.xy)
+        return self._all_slopes
+
+    # ------------------------------------------------------------------ loaders
+    def _epoch(self) -> int:
+        trainer = self.trainer
+        return int(trainer.current_epoch) if trainer is not None else 0
+
+    def _world_size(self) -> int:
+        trainer = getattr(self, "trainer", None)
+        return int(trainer.world_size) if trainer is not None else 1
+
+    def _chunks(self, *tensors: torch.Tensor) -> Chunks:
+        world = self._world_size()
+        n_chunks = max(1, math.ceil(tensors[0].shape[0] / self.eval_batch_size))
+        n_chunks = math.ceil(n_chunks / world) * world  # same number of chunks on every rank
+        return Chunks(*tensors, n_chunks=n_chunks)
+
+    def train_dataloader(self) -> DataLoader:
+        """Whole shuffled batches ``(xy (B, 2), h (B,))`` of the training nodes."""
+        dataset = ShuffledBatches(
+            self.xy[self.train_index],
+            self.heights[self.train_index],
+            batch_size=self.batch_size,
+            seed=self.seed,
+            epoch_fn=self._epoch,
+        )
+        return DataLoader(dataset, batch_size=None, shuffle=False, num_workers=0)
+
+    def val_dataloader(self) -> DataLoader:
+        """Chunks ``(xy, h, slope_ref)`` of the held-out validation nodes."""
+        dataset = self._chunks(
+            self.xy[self.val_index], self.heights[self.val_index], self.val_slopes
+        )
+        return DataLoader(dataset, batch_size=None, shuffle=False, num_workers=0)
+
+    def test_dataloader(self) -> DataLoader:
+        """Chunks ``(xy, h, slope_ref)`` of every valid node (the final evaluation set)."""
+        dataset = self._chunks(self.xy, self.heights, self.all_slopes)
+        return DataLoader(dataset, batch_size=None, shuffle=False, num_workers=0)

@@ -1,0 +1,279 @@
+"""TerrainFitModule: Lightning training of a BlockwiseTerrainNet on a DEM tile."""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import lightning.pytorch as pl
+import torch
+from lightning.pytorch.utilities.rank_zero import rank_zero_warn
+
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+from neuralmap.training.evaluation import FitAccumulator, height_and_slope
+
+OPTIMIZERS = ("adam", "sgd")
+LR_SCHEDULES = ("cosine", "onecycle", "none")
+
+
+class TerrainFitModule(pl.LightningModule):
+    """Fits a :class:`BlockwiseTerrainNet` to the nodes of a DEM tile.
+
+    The network is built from the data module's tile in :meth:`configure_model` (seeded,
+    so every DDP rank and a resumed run build the same one before weights are loaded).
+
+    Loss (SEEDS 004's ``e``, normalised): ``L = mean((N(x_i, y_i) - h_i)^2) / s^2`` with
+    ``s = net.height_scale`` the tile's height standard deviation, so the loss is unitless.
+    Optimiser: Adam, or SGD with momentum (the paper's back-propagation with momentum).
+    Stopping: optionally when the validation RMSE falls below ``target_rmse`` metres (the
+    paper stops at ``e < rho``; see :class:`neuralmap.training.callbacks.TargetRmseStopping`).
+
+    Logged per epoch: ``train/loss``, ``train/lr``, ``val/rmse_m``, ``val/max_abs_m``,
+    ``val/mean_m`` (metres) and ``val/slope_rmse`` (m/m, RMS norm of the slope error against
+    the bicubic DEM slopes at the validation nodes).
+
+    Args:
+        block_nodes: Block core width in node intervals (``None`` with ``num_blocks``).
+        overlap_nodes: Blending zone width in node intervals.
+        num_blocks: ``[nbx, nby]`` block grid; overrides ``block_nodes``.
+        encoding: ``"fourier"`` or ``"none"``.
+        n_frequencies: Fourier frequencies per block.
+        frequency_scale: Std of the Gaussian frequencies (cycles per block half-width).
+        hidden: Hidden width.
+        depth: Hidden layers.
+        activation: ``sine``, ``tanh``, ``silu`` or ``bipolar_sigmoid``.
+        blend: Smooth blending between blocks (False = the paper's hard gate).
+        optimizer: ``"adam"`` or ``"sgd"``.
+        lr: Learning rate (peak rate for ``onecycle``).
+        momentum: SGD momentum.
+        weight_decay: L2 weight decay.
+        lr_schedule: ``"cosine"`` (to 0 over the run's steps), ``"onecycle"`` or ``"none"``.
+        target_rmse: Stop when the validation RMSE (m) is below this; ``None`` = never.
+        seed: Seed of the network's initial weights and frequencies.
+
+    Raises:
+        NeuralMapError: Unknown optimiser or schedule, non-positive ``lr``, negative
+            ``momentum``/``weight_decay``/``target_rmse``.
+    """
+
+    def __init__(
+        self,
+        block_nodes: int | None = 24,
+        overlap_nodes: float = 4.0,
+        num_blocks: list[int] | None = None,
+        encoding: str = "fourier",
+        n_frequencies: int = 16,
+        frequency_scale: float = 8.0,
+        hidden: int = 32,
+        depth: int = 2,
+        activation: str = "sine",
+        blend: bool = True,
+        optimizer: str = "adam",
+        lr: float = 3e-3,
+        momentum: float = 0.9,
+        weight_decay: float = 0.0,
+        lr_schedule: str = "cosine",
+        target_rmse: float | None = None,
+        seed: int = 0,
+    ) -> None:
+        super().__init__()
+        if optimizer not in OPTIMIZERS:
+            raise NeuralMapError(
+                f"model.optimizer = {optimizer!r} is not supported; choose one of {OPTIMIZERS}."
+            )
+        if lr_schedule not in LR_SCHEDULES:
+            raise NeuralMapError(
+                f"model.lr_schedule = {lr_schedule!r} is not supported; choose one of "
+                f"{LR_SCHEDULES}."
+            )
+        if not (math.isfinite(lr) and lr > 0):
+            raise NeuralMapError(f"model.lr must be finite and > 0, got {lr}.")
+        if momentum < 0 or weight_decay < 0:
+            raise NeuralMapError(
+                f"model.momentum and model.weight_decay must be >= 0, got {momentum}, "
+                f"{weight_decay}."
+            )
+        if target_rmse is not None and not target_rmse > 0:
+            raise NeuralMapError(
+                f"model.target_rmse must be > 0 metres (or null to disable), got {target_rmse}."
+            )
+        if num_blocks is not None and len(num_blocks) != 2:
+            raise NeuralMapError(
+                f"model.num_blocks must be [nbx, nby] (blocks along east, north), got {num_blocks}."
+            )
+        self.save_hyperparameters()
+        self.net: BlockwiseTerrainNet | None = None
+        self.points_seen = 0
+        self.train_time_s = 0.0
+        self._epoch_start: float | None = None
+        self._val = FitAccumulator()
+
+    # ------------------------------------------------------------------ model
+    def net_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of :meth:`BlockwiseTerrainNet.from_tile` from the hparams."""
+        hp = self.hparams
+        return {
+            "block_nodes": hp.block_nodes,
+            "overlap_nodes": hp.overlap_nodes,
+            "num_blocks": tuple(hp.num_blocks) if hp.num_blocks is not None else None,
+            "encoding": hp.encoding,
+            "n_frequencies": hp.n_frequencies,
+            "frequency_scale": hp.frequency_scale,
+            "hidden": hp.hidden,
+            "depth": hp.depth,
+            "activation": hp.activation,
+            "blend": hp.blend,
+            "seed": hp.seed,
+        }
+
+    def build(self, tile: DemTile) -> BlockwiseTerrainNet:
+        """Builds the network for ``tile`` (once; later calls return the same net).
+
+        Raises:
+            NeuralMapError: When the tile cannot feed the requested blocks.
+        """
+        if self.net is None:
+            self.net = BlockwiseTerrainNet.from_tile(tile, **self.net_kwargs())
+        return self.net
+
+    def configure_model(self) -> None:
+        """Builds the net from ``trainer.datamodule.tile`` (before weights are restored)."""
+        if self.net is not None:
+            return
+        datamodule = getattr(self.trainer, "datamodule", None)
+        tile = getattr(datamodule, "tile", None)
+        if not isinstance(tile, DemTile):
+            raise NeuralMapError(
+                "TerrainFitModule needs a DemDataModule (trainer.fit(model, datamodule=...)) "
+                "or a net built beforehand with module.build(tile)."
+            )
+        self.build(tile)
+
+    def configure_callbacks(self) -> list[pl.Callback]:
+        """Adds the target-RMSE stop when ``target_rmse`` is set."""
+        from neuralmap.training.callbacks.target_rmse import TargetRmseStopping
+
+        if self.hparams.target_rmse is None:
+            return []
+        return [TargetRmseStopping(self.hparams.target_rmse)]
+
+    def forward(self, xy: torch.Tensor) -> torch.Tensor:
+        """Heights ``(...)`` in metres at ``xy`` ``(..., 2)``."""
+        assert self.net is not None, "call configure_model() or build(tile) first"
+        return self.net(xy)
+
+    # ------------------------------------------------------------------ training
+    def training_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> torch.Tensor:
+        """One step on a batch ``(xy (B, 2), h (B,))``: normalised MSE (SEEDS 004 ``e``)."""
+        xy, target = batch
+        assert self.net is not None
+        pred = self.net(xy)
+        loss = torch.nn.functional.mse_loss(pred, target) / self.net.height_scale**2
+        self.points_seen += int(target.numel())
+        self.log("train/loss", loss, on_step=False, on_epoch=True, prog_bar=True,
+                 batch_size=int(target.numel()), sync_dist=True)
+        return loss
+
+    def on_train_epoch_start(self) -> None:
+        self._epoch_start = time.perf_counter()
+
+    def on_train_epoch_end(self) -> None:
+        if self._epoch_start is not None:
+            self.train_time_s += time.perf_counter() - self._epoch_start
+            self._epoch_start = None
+        optimizer = self.optimizers(use_pl_optimizer=False)
+        lr = optimizer.param_groups[0]["lr"]  # type: ignore[union-attr]
+        self.log("train/lr", float(lr), on_step=False, on_epoch=True, sync_dist=True)
+
+    # ------------------------------------------------------------------ validation / test
+    def _accumulate(self, batch: tuple[torch.Tensor, ...]) -> None:
+        xy, target, slope_ref = batch
+        if xy.shape[0] == 0:
+            return
+        assert self.net is not None
+        pred, slope = height_and_slope(self.net, xy)
+        self._val.update(pred, target, slope, slope_ref)
+
+    def _reduced_metrics(self) -> dict[str, float]:
+        acc = self._val
+        self._val = FitAccumulator()
+        state = acc.as_tensor().to(self.device)
+        if self.trainer is not None and self.trainer.world_size > 1:
+            sums = self.trainer.strategy.reduce(state.clone(), reduce_op="sum")
+            maxima = self.trainer.strategy.reduce(state.clone(), reduce_op="max")
+            acc = FitAccumulator.from_tensors(sums.cpu(), maxima.cpu())
+        return acc.metrics()
+
+    def on_validation_epoch_start(self) -> None:
+        self._val = FitAccumulator()
+
+    def validation_step(self, batch: tuple[torch.Tensor, ...], batch_idx: int) -> None:
+        """Accumulates errors on a chunk ``(xy (N, 2), h (N,), slope_ref (N, 2))``."""
+        self._accumulate(batch)
+
+    def on_validation_epoch_end(self) -> None:
+        # Already reduced over ranks; sync_dist only keeps Lightning's bookkeeping uniform.
+        m = self._reduced_metrics()
+        self.log_dict({"val/rmse_m": m["rmse_m"], "val/max_abs_m": m["max_abs_m"]},
+                      prog_bar=True, sync_dist=True)
+        self.log_dict({"val/mean_m": m["mean_m"], "val/slope_rmse": m["slope_rmse"]},
+                      sync_dist=True)
+
+    def on_test_epoch_start(self) -> None:
+        self._val = FitAccumulator()
+
+    def test_step(self, batch: tuple[torch.Tensor, ...], batch_idx: int) -> None:
+        """Accumulates errors on a chunk of all valid nodes."""
+        self._accumulate(batch)
+
+    def on_test_epoch_end(self) -> None:
+        m = self._reduced_metrics()
+        keys = ("rmse_m", "max_abs_m", "mean_m", "slope_rmse")
+        self.log_dict({f"test/{key}": m[key] for key in keys}, sync_dist=True)
+
+    # ------------------------------------------------------------------ optimisation
+    def configure_optimizers(self) -> Any:
+        """Adam or SGD with momentum, with a cosine / one-cycle / constant schedule."""
+        assert self.net is not None
+        hp = self.hparams
+        if hp.optimizer == "adam":
+            optimizer: torch.optim.Optimizer = torch.optim.Adam(
+                self.net.parameters(), lr=hp.lr, weight_decay=hp.weight_decay
+            )
+        else:
+            optimizer = torch.optim.SGD(
+                self.net.parameters(), lr=hp.lr, momentum=hp.momentum,
+                weight_decay=hp.weight_decay,
+            )
+        if hp.lr_schedule == "none":
+            return optimizer
+        total = self.trainer.estimated_stepping_batches
+        if not math.isfinite(total) or total < 1:
+            rank_zero_warn(
+                f"lr_schedule={hp.lr_schedule!r} needs a finite run length (trainer.max_epochs "
+                "or trainer.max_steps); using a constant learning rate."
+            )
+            return optimizer
+        total = int(total)
+        if hp.lr_schedule == "cosine":
+            scheduler: torch.optim.lr_scheduler.LRScheduler = (
+                torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total)
+            )
+        else:
+            scheduler = torch.optim.lr_scheduler.OneCycleLR(
+                optimizer, max_lr=hp.lr, total_steps=max(total, 2)
+            )
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+
+    # ------------------------------------------------------------------ checkpoint state
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["neuralmap"] = {"points_seen": self.points_seen,
+                                   "train_time_s": self.train_time_s}
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        state = checkpoint.get("neuralmap", {})
+        self.points_seen = int(state.get("points_seen", 0))
+        self.train_time_s = float(state.get("train_time_s", 0.0))

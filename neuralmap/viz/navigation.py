@@ -1,0 +1,218 @@
+"""Navigation figures: error vs time with the PCRB, trajectories over a hillshade, histograms.
+
+Every function builds a :class:`matplotlib.figure.Figure` without pyplot (no global state,
+no display needed) and can save it atomically as PNG.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+from matplotlib import patheffects
+from matplotlib.figure import Figure
+
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.viz.hillshade import hillshade
+
+
+def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 120) -> Path:
+    """Saves a figure as PNG through a temporary file and :func:`os.replace`.
+
+    Args:
+        fig: The figure.
+        path: Destination ``.png``; its folder must exist.
+        dpi: Resolution.
+
+    Returns:
+        The destination path.
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _curve(values: object, n: int, what: str) -> np.ndarray:
+    array = np.asarray(values, dtype=np.float64).reshape(-1)
+    if array.shape != (n,):
+        raise NeuralMapError(f"{what}: expected {n} values (one per time step), got {array.size}.")
+    return array
+
+
+def plot_error_vs_time(
+    t: object,
+    curves: Mapping[str, object],
+    pcrb_pos: object,
+    *,
+    converged_curves: Mapping[str, object] | None = None,
+    ylabel: str = "horizontal position RMSE [m]",
+    title: str = "Horizontal position error vs time",
+) -> Figure:
+    """RMSE curves of every method with the horizontal PCRB (log scale).
+
+    Args:
+        t: ``(K+1,)`` seconds.
+        curves: Method -> ``(K+1,)`` RMSE over all on-map runs (solid lines).
+        pcrb_pos: ``(K+1,)`` horizontal PCRB, metres (black dashed).
+        converged_curves: Method -> ``(K+1,)`` RMSE over the non-diverged runs (dotted,
+            same colour), optional.
+        ylabel: Y axis label.
+        title: Figure title.
+
+    Returns:
+        The figure.
+    """
+    time = np.asarray(t, dtype=np.float64).reshape(-1)
+    n = time.size
+    fig = Figure(figsize=(8.0, 4.8))
+    ax = fig.add_subplot()
+    colors = [f"C{i}" for i in range(10)]
+    for i, (name, values) in enumerate(curves.items()):
+        color = colors[i % len(colors)]
+        ax.plot(time, _curve(values, n, f"curve '{name}'"), color=color, lw=1.4, label=name)
+        if converged_curves and name in converged_curves:
+            ax.plot(
+                time,
+                _curve(converged_curves[name], n, f"converged curve '{name}'"),
+                color=color,
+                lw=1.0,
+                ls=":",
+            )
+    ax.plot(time, _curve(pcrb_pos, n, "pcrb_pos"), color="k", lw=1.6, ls="--", label="PCRB")
+    positive = [
+        np.asarray(v, dtype=np.float64) for v in [*curves.values(), pcrb_pos]
+    ]
+    if any((v > 0).any() for v in positive):
+        ax.set_yscale("log")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title + ("  (dotted: non-diverged runs)" if converged_curves else ""))
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8, ncol=2)
+    fig.tight_layout()
+    return fig
+
+
+def plot_trajectories(
+    tile: DemTile,
+    truth_xy: object,
+    estimates: Mapping[str, object],
+    *,
+    title: str = "Trajectories over the tile (truth and estimates)",
+) -> Figure:
+    """Truth trajectories and filter estimates over the tile's hillshade.
+
+    Args:
+        tile: The DEM tile (background).
+        truth_xy: ``(M, K+1, 2)`` true horizontal positions, metres (white lines).
+        estimates: Method -> ``(M, K+1, 2)`` estimated positions, metres (coloured).
+
+    Returns:
+        The figure.
+    """
+    truth = np.asarray(truth_xy, dtype=np.float64)
+    if truth.ndim != 3 or truth.shape[-1] != 2:
+        raise NeuralMapError(
+            f"plot_trajectories: truth_xy must have shape (M, K+1, 2), got {truth.shape}."
+        )
+    xmin, xmax, ymin, ymax = tile.extent
+    dx, dy = tile.spacing
+    shade = hillshade(tile.heights, tile.spacing)
+    aspect = (ymax - ymin + dy) / max(xmax - xmin + dx, 1e-9)
+    width = 8.0
+    fig = Figure(figsize=(width, float(np.clip(width * aspect, 3.0, 12.0)) + 0.8))
+    ax = fig.add_subplot()
+    ax.imshow(
+        shade,
+        origin="lower",
+        cmap="gray",
+        extent=(xmin - dx / 2, xmax + dx / 2, ymin - dy / 2, ymax + dy / 2),
+        interpolation="bilinear",
+    )
+    outline = [patheffects.Stroke(linewidth=3.0, foreground="k"), patheffects.Normal()]
+    for m in range(truth.shape[0]):
+        ax.plot(
+            truth[m, :, 0], truth[m, :, 1], color="w", lw=1.6, path_effects=outline,
+            label="truth (o = start)" if m == 0 else None,
+        )
+        ax.plot(truth[m, 0, 0], truth[m, 0, 1], "o", color="w", mec="k", ms=5)
+    for i, (name, values) in enumerate(estimates.items()):
+        est = np.asarray(values, dtype=np.float64)
+        if est.shape != truth.shape:
+            raise NeuralMapError(
+                f"plot_trajectories: estimates['{name}'] has shape {est.shape}, expected "
+                f"{truth.shape} like truth_xy."
+            )
+        for m in range(est.shape[0]):
+            ax.plot(
+                est[m, :, 0], est[m, :, 1], color=f"C{i % 10}", lw=0.9, alpha=0.85,
+                label=name if m == 0 else None,
+            )
+    ax.set_xlim(xmin - dx / 2, xmax + dx / 2)
+    ax.set_ylim(ymin - dy / 2, ymax + dy / 2)
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_title(title)
+    ax.legend(fontsize=8, loc="upper right", framealpha=0.8)
+    fig.tight_layout()
+    return fig
+
+
+def plot_final_error_histogram(
+    final_errors: Mapping[str, object],
+    *,
+    pcrb_final: float | None = None,
+    bins: int = 40,
+    title: str = "Final horizontal position error",
+) -> Figure:
+    """Histogram of the final horizontal error of every method (log-spaced bins).
+
+    Args:
+        final_errors: Method -> ``(N,)`` final horizontal errors in metres (off-map runs
+            already removed; non-finite values are dropped).
+        pcrb_final: Final horizontal PCRB, metres (vertical dashed line), optional.
+        bins: Number of bins.
+        title: Figure title.
+
+    Returns:
+        The figure.
+    """
+    cleaned = {}
+    for name, values in final_errors.items():
+        array = np.asarray(values, dtype=np.float64).reshape(-1)
+        cleaned[name] = array[np.isfinite(array)]
+    everything = np.concatenate([v for v in cleaned.values()] + [np.zeros(0)])
+    fig = Figure(figsize=(8.0, 4.8))
+    ax = fig.add_subplot()
+    if everything.size:
+        low = max(float(everything[everything > 0].min()) if (everything > 0).any() else 1e-3,
+                  1e-3)
+        high = max(float(everything.max()), low * 10)
+        edges = np.geomspace(low, high, bins + 1)
+        for i, (name, values) in enumerate(cleaned.items()):
+            ax.hist(
+                np.clip(values, low, high), bins=edges, histtype="step", lw=1.4,
+                color=f"C{i % 10}", label=f"{name} (n={values.size})",
+            )
+        ax.set_xscale("log")
+    if pcrb_final is not None and np.isfinite(pcrb_final) and pcrb_final > 0:
+        ax.axvline(pcrb_final, color="k", ls="--", lw=1.4, label="final PCRB")
+    ax.set_xlabel("final horizontal error [m]")
+    ax.set_ylabel("runs")
+    ax.set_title(title)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,227 @@
+"""Tests of the evaluation report writer, the claims check, the plots and TensorBoard logging."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.report import (
+    METHOD_KEYS,
+    atomic_write_json,
+    build_results,
+    check_claims,
+    format_table,
+    render_report,
+    to_jsonable,
+)
+
+K1 = 11  # samples (K + 1)
+
+
+def _metrics(sigma: float, *, vel: float = 1.0, rate: float = 0.0, ratio: float = 1.2) -> dict:
+    curve = list(np.linspace(100.0, sigma, K1))
+    return {
+        "rmse_pos_m": sigma * 1.5,
+        "rmse_pos_converged_m": sigma * 1.1,
+        "rmse_vel_mps": vel,
+        "sigma_pos_m": sigma,
+        "sigma_vel_mps": vel * 0.8,
+        "divergence_rate": rate,
+        "nees_in_band": 0.9,
+        "pcrb_ratio": ratio,
+        "final_pos_m": sigma,
+        "n_runs": 100,
+        "n_off_map": 2,
+        "n_diverged": int(rate * 98),
+        "nees_band": [4.0, 6.0],
+        "rmse_pos_curve": curve,
+        "rmse_pos_converged_curve": curve,
+        "rmse_vel_curve": [vel] * K1,
+        "nees_curve": [5.0] * (K1 - 1) + [None],
+        "diverged": [False] * 100,
+        "divergence_rule": "rule",
+    }
+
+
+def _results(neural: float = 20.0, classical: tuple[float, ...] = (60.0, 70.0), **kw) -> dict:
+    metrics = {"neural": _metrics(neural, **kw)}
+    for i, value in enumerate(classical):
+        metrics[f"classic{i}"] = _metrics(value)
+    return build_results(
+        method_metrics=metrics,
+        t=list(range(K1)),
+        pcrb_pos=list(np.linspace(50.0, 10.0, K1)),
+        divergence_rule="A run diverged when ...",
+        config={"n_runs": 100, "seed": 0},
+        off_map={"truth": 1, "per_method": {"neural": 2}},
+    )
+
+
+def test_to_jsonable_makes_strict_json() -> None:
+    data = {
+        "nan": float("nan"),
+        "inf": np.float32("inf"),
+        "t": torch.tensor([1.0, float("nan")]),
+        "a": np.arange(3),
+        "n": np.int64(4),
+        "b": np.bool_(True),
+        "tup": (1, 2.5),
+        "p": Path("x/y"),
+    }
+    out = to_jsonable(data)
+    assert out == {
+        "nan": None, "inf": None, "t": [1.0, None], "a": [0, 1, 2], "n": 4, "b": True,
+        "tup": [1, 2.5], "p": "x/y",
+    }
+    json.dumps(out, allow_nan=False)  # raises on NaN
+
+
+def test_atomic_write_json_leaves_no_temporary(tmp_path: Path) -> None:
+    path = atomic_write_json(tmp_path / "r.json", {"x": float("nan"), "y": [1, 2]})
+    assert json.loads(path.read_text()) == {"x": None, "y": [1, 2]}
+    assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
+
+
+def test_build_results_structure() -> None:
+    results = _results()
+    assert set(results) >= {"methods", "pcrb_pos_m", "divergence_rule", "config", "curves"}
+    for entry in results["methods"].values():
+        assert set(METHOD_KEYS) <= set(entry)
+        assert "diverged" not in entry and "rmse_pos_curve" not in entry
+        assert entry["nees_band"] == [4.0, 6.0]
+    # RMS of the last half of the bound (samples 5..10), independent computation
+    bound = np.linspace(50.0, 10.0, K1)[K1 // 2 :]
+    assert results["pcrb_pos_m"] == pytest.approx(math.sqrt(np.mean(bound**2)), rel=1e-12)
+    assert results["pcrb_pos_final_m"] == pytest.approx(10.0)
+    assert len(results["curves"]["neural"]["rmse_pos_curve"]) == K1
+    assert results["curves"]["neural"]["nees_curve"][-1] is None
+    json.dumps(to_jsonable(results), allow_nan=False)
+
+
+def test_build_results_rejects_missing_keys_and_bad_curves() -> None:
+    bad = _metrics(10.0)
+    del bad["pcrb_ratio"]
+    with pytest.raises(NeuralMapError, match="pcrb_ratio"):
+        build_results(method_metrics={"x": bad}, t=[0.0] * K1, pcrb_pos=[1.0] * K1,
+                      divergence_rule="r", config={})
+    with pytest.raises(NeuralMapError, match="rmse_pos_curve"):
+        build_results(method_metrics={"x": _metrics(10.0)}, t=[0.0] * 5, pcrb_pos=[1.0] * 5,
+                      divergence_rule="r", config={})
+    with pytest.raises(NeuralMapError, match="pcrb_pos"):
+        build_results(method_metrics={"x": _metrics(10.0)}, t=[0.0] * K1, pcrb_pos=[1.0] * 3,
+                      divergence_rule="r", config={})
+
+
+@pytest.mark.parametrize(
+    ("neural", "classical", "verdict"),
+    [
+        (20.0, (60.0, 70.0), "holds"),  # better than all, by 45 m on average
+        (20.0, (25.0, 30.0), "partly"),  # better, but only by 7.5 m on average
+        (20.0, (10.0, 60.0), "partly"),  # mean better, not better than every method
+        (60.0, (20.0, 30.0), "does not hold"),
+    ],
+)
+def test_claims_improvement_verdicts(neural: float, classical: tuple, verdict: str) -> None:
+    checks = check_claims(_results(neural, classical))
+    assert checks[2].verdict == verdict
+    mean_delta = np.mean(classical) - neural
+    assert f"{mean_delta:+.1f}" in checks[2].measured
+
+
+def test_claims_limits_and_targets() -> None:
+    checks = check_claims(_results(20.0, vel=3.0, rate=0.01, ratio=1.4))
+    assert [c.verdict for c in checks] == ["holds"] * 5
+    assert "2.40" in checks[1].measured  # sigma_vel_mps = 0.8 * 3.0 preferred over the RMSE
+    checks = check_claims(_results(55.0, (90.0,), vel=7.0, rate=0.05, ratio=2.0))
+    assert checks[0].verdict == "does not hold"
+    assert checks[1].verdict == "does not hold"  # 5.6 m/s
+    assert checks[3].verdict == "does not hold"
+    assert checks[4].verdict == "does not hold"
+
+
+def test_claims_without_neural_or_with_missing_values() -> None:
+    results = _results()
+    results["methods"].pop("neural")
+    assert {c.verdict for c in check_claims(results)} == {"not checked"}
+    results = _results()
+    results["methods"]["neural"]["sigma_pos_m"] = None
+    checks = check_claims(results)
+    assert checks[0].verdict == "not checked" and checks[2].verdict == "not checked"
+
+
+def test_tables_and_report_text() -> None:
+    results = _results()
+    results["methods"]["classic0"]["pcrb_ratio"] = None
+    text = format_table(results)
+    lines = text.splitlines()
+    assert lines[0].split()[0] == "method" and len(lines) == 2 + 3 + 1  # header, rule, 3, PCRB
+    assert "n/a" in lines[3] and lines[-1].startswith("PCRB")
+    md = format_table(results, markdown=True)
+    assert md.splitlines()[1].startswith("|---|")
+    report = render_report(
+        results, claims=check_claims(results), figures={"Error vs time": "error_vs_time.png"}
+    )
+    assert "A run diverged when ..." in report
+    assert "![Error vs time](error_vs_time.png)" in report
+    assert "position error < 50 m (1σ)" in report and "**holds**" in report
+    assert "1 truth trajectories left the tile" in report
+    assert "nan" not in report.lower().replace("mean", "")
+
+
+def test_plots_and_tensorboard(tmp_path: Path) -> None:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from neuralmap.viz.navigation import (
+        plot_error_vs_time,
+        plot_final_error_histogram,
+        plot_trajectories,
+        save_figure,
+    )
+    from neuralmap.viz.tensorboard_nav import log_navigation
+
+    rng = np.random.default_rng(0)
+    tile = DemTile(rng.normal(size=(20, 30)).cumsum(0), spacing=(30.0, 30.0), name="t")
+    t = np.arange(K1, dtype=float)
+    curves = {"neural": np.linspace(50, 5, K1), "bilinear": np.linspace(50, 8, K1)}
+    conv = {"neural": [None] + list(np.linspace(40, 5, K1 - 1))}
+    fig1 = plot_error_vs_time(t, curves, np.linspace(40, 4, K1), converged_curves=conv)
+    truth = np.stack([np.linspace(100, 800, K1), np.linspace(100, 500, K1)], -1)[None]
+    fig2 = plot_trajectories(tile, truth, {"neural": truth + 5.0})
+    finals = {"neural": rng.gamma(2.0, 5.0, 50), "bilinear": np.append(rng.gamma(2, 9, 49), 1e4)}
+    fig3 = plot_final_error_histogram(finals, pcrb_final=4.0)
+    for name, fig in {"a": fig1, "b": fig2, "c": fig3}.items():
+        path = save_figure(fig, tmp_path / f"{name}.png")
+        assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.png", "b.png", "c.png"]
+    with pytest.raises(NeuralMapError, match="expected"):
+        plot_error_vs_time(t, {"x": np.ones(K1 - 1)}, np.ones(K1))
+    with pytest.raises(NeuralMapError, match="shape"):
+        plot_trajectories(tile, truth, {"neural": truth[:, :-1]})
+
+    log_dir = tmp_path / "tb"
+    log_navigation(
+        log_dir,
+        curves={m: {"rmse_pos_curve": v, "nees_curve": v} for m, v in curves.items()},
+        pcrb_pos=np.linspace(40, 4, K1),
+        final_errors=finals,
+        summary={"neural": {"rmse_pos_m": 3.0, "pcrb_ratio": None}},
+        figures={"err": fig1},
+    )
+    acc = EventAccumulator(str(log_dir), size_guidance={"scalars": 0, "images": 0}).Reload()
+    tags = acc.Tags()
+    assert {"rmse_pos/neural", "rmse_pos/bilinear", "pcrb_pos", "summary/rmse_pos_m/neural"} <= set(
+        tags["scalars"]
+    )
+    assert "summary/pcrb_ratio/neural" not in tags["scalars"]  # None is skipped
+    values = [e.value for e in acc.Scalars("rmse_pos/neural")]
+    np.testing.assert_allclose(values, curves["neural"], rtol=1e-6)
+    assert [e.step for e in acc.Scalars("rmse_pos/neural")] == list(range(K1))
+    assert set(tags["histograms"]) == {"final_pos_error/neural", "final_pos_error/bilinear"}
+    assert tags["images"] == ["figures/err"]

@@ -1,0 +1,194 @@
+"""End-to-end tests of ``python evaluate.py`` (tiny scenario) and the filter benchmark smoke test."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+TINY_CONFIG = REPO_ROOT / "configs" / "evaluate_tiny.yaml"
+METHODS = ["neural", "bilinear", "nine_point", "mean_point", "lsq_adaptive", "lsq_min"]
+
+
+def _load_module(name: str, path: Path) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def evaluate() -> ModuleType:
+    return _load_module("evaluate_under_test", REPO_ROOT / "evaluate.py")
+
+
+@pytest.fixture(scope="module")
+def tiny_tile():  # noqa: ANN201 - DemTile
+    from neuralmap.nav.scenario import load_scenario, scenario_tile
+
+    return scenario_tile(load_scenario("tiny"))
+
+
+def _fit(net: torch.nn.Module, tile, steps: int) -> None:  # noqa: ANN001
+    """A few hundred full-batch Adam steps on the tile's nodes (a rough map is enough)."""
+    xy = torch.as_tensor(tile.node_xy().reshape(-1, 2), dtype=torch.float32)
+    h = torch.as_tensor(tile.heights.reshape(-1), dtype=torch.float32)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    scale = float(net.height_scale)
+    for _ in range(steps):
+        opt.zero_grad()
+        loss = ((net(xy) - h) / scale).square().mean()
+        loss.backward()
+        opt.step()
+
+
+@pytest.fixture(scope="module")
+def runs_with_map(tmp_path_factory: pytest.TempPathFactory, tiny_tile) -> Path:  # noqa: ANN001
+    """A runs/ folder holding a quickly fitted map of the tiny tile, where train.py puts it."""
+    from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+    from neuralmap.terrain.export import save_map
+
+    runs = tmp_path_factory.mktemp("runs")
+    torch.manual_seed(0)
+    net = BlockwiseTerrainNet.from_tile(tiny_tile, block_nodes=48, hidden=32, n_frequencies=8)
+    _fit(net, tiny_tile, 300)
+    path = runs / "fit" / "version_0" / "neural_map.pt"
+    path.parent.mkdir(parents=True)
+    save_map(net, path)
+    return runs
+
+
+def _strict_json(path: Path) -> dict:
+    def no_constant(name: str) -> None:
+        raise AssertionError(f"{path} holds the non-JSON constant {name}")
+
+    return json.loads(path.read_text(), parse_constant=no_constant)
+
+
+def test_evaluate_end_to_end(
+    evaluate: ModuleType, runs_with_map: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = evaluate.main(
+        ["--config", str(TINY_CONFIG), "--runs_dir", str(runs_with_map), "--experiment", "e2e"]
+    )
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    folder = runs_with_map / "e2e" / "version_0"
+    assert out.out.strip().splitlines()[-1] == f"results written to {folder}"
+    for name in ("report.md", "results.json", "config.yaml", "error_vs_time.png",
+                 "trajectories.png", "final_error_hist.png"):
+        assert (folder / name).is_file(), name
+    assert list(folder.glob("events.out.tfevents*")), "no TensorBoard event file"
+    assert not [p for p in (runs_with_map / "e2e").iterdir() if p.name.startswith(".")]
+
+    results = _strict_json(folder / "results.json")
+    assert list(results["methods"]) == METHODS
+    for name, entry in results["methods"].items():
+        for key in ("rmse_pos_m", "rmse_pos_converged_m", "rmse_vel_mps", "sigma_pos_m",
+                    "divergence_rate", "nees_in_band", "pcrb_ratio"):
+            assert key in entry, (name, key)
+        assert entry["n_runs"] == 16
+        assert entry["rmse_pos_m"] is not None and entry["rmse_pos_m"] > 0
+    assert results["pcrb_pos_m"] > 0 and math.isfinite(results["pcrb_pos_m"])
+    assert "diverged" in results["divergence_rule"]
+    assert results["config"]["n_runs"] == 16
+    assert results["config"]["map"].endswith("neural_map.pt")  # the newest map was found
+    assert set(results["off_map"]["per_method"]) == set(METHODS)
+    assert len(results["curves"]["t"]) == 41  # tiny: 40 steps
+    # the run is a real filter: the estimate beats the prior (30 m 1σ per axis, 42 m radial)
+    bilinear = results["methods"]["bilinear"]
+    assert bilinear["rmse_pos_converged_m"] < 30.0
+
+    report = (folder / "report.md").read_text()
+    assert "![" in report and "error_vs_time.png" in report
+    assert "Divergence rule" in report and "position error < 50 m" in report
+    assert " nan " not in report.lower()
+
+    # the saved config parses back to the same options
+    again = evaluate.parse_config(["--config", str(folder / "config.yaml")])
+    assert again.methods == METHODS and again.n_runs == 16 and again.map == results["config"]["map"]
+
+    # a second run gets the next version folder
+    code = evaluate.main(
+        ["--config", str(TINY_CONFIG), "--runs_dir", str(runs_with_map), "--experiment", "e2e",
+         "--n_runs", "4", "--methods", "[bilinear]", "--tensorboard", "false"]
+    )
+    assert code == 0
+    assert (runs_with_map / "e2e" / "version_1" / "results.json").is_file()
+
+
+def test_missing_map_message(
+    evaluate: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = evaluate.main(["--config", str(TINY_CONFIG), "--runs_dir", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "no trained map found under" in err and "python train.py" in err
+    assert "Traceback" not in err
+    assert not (tmp_path / "runs").exists()  # nothing written
+
+    code = evaluate.main(["--config", str(TINY_CONFIG), "--map", str(tmp_path / "nope.pt")])
+    assert code == 2 and "file not found" in capsys.readouterr().err
+
+
+def test_map_of_another_tile_is_rejected(
+    evaluate: ModuleType, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from neuralmap.dem import synthetic_tile
+    from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+    from neuralmap.terrain.export import save_map
+
+    other = synthetic_tile((40, 40), spacing=(30.0, 30.0), seed=99, name="other")
+    path = tmp_path / "other.pt"
+    save_map(BlockwiseTerrainNet.from_tile(other, block_nodes=48, hidden=8), path)
+    code = evaluate.main(
+        ["--config", str(TINY_CONFIG), "--map", str(path), "--runs_dir", str(tmp_path / "runs")]
+    )
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "other" in err and "fingerprint" in err and "--scenario" in err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_bad_options_exit_2(evaluate: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:
+    assert evaluate.main(["--config", str(TINY_CONFIG), "--methods", "[neural,kriging]"]) == 2
+    assert "kriging" in capsys.readouterr().err
+    assert evaluate.main(["--config", str(TINY_CONFIG), "--n_runs", "0"]) == 2
+    assert "--n_runs" in capsys.readouterr().err
+    assert evaluate.main(["--config", str(TINY_CONFIG), "--dtype", "float16"]) == 2
+
+
+def test_find_latest_map_prefers_newest(evaluate: ModuleType, tmp_path: Path) -> None:
+    import os
+
+    assert evaluate.find_latest_map(tmp_path) is None
+    paths = []
+    for i, exp in enumerate(["a", "b", "a"]):
+        path = tmp_path / exp / f"version_{i}" / "neural_map.pt"
+        path.parent.mkdir(parents=True)
+        path.write_bytes(b"x")
+        os.utime(path, (1000 + i, 1000 + i))
+        paths.append(path)
+    assert evaluate.find_latest_map(tmp_path) == paths[2]
+    os.utime(paths[1], (5000, 5000))
+    assert evaluate.find_latest_map(tmp_path) == paths[1]
+
+
+def test_bench_filter_quick(capsys: pytest.CaptureFixture[str]) -> None:
+    bench = _load_module("bench_filter_under_test", REPO_ROOT / "benchmarks" / "bench_filter.py")
+    assert bench.main(["--quick", "--scenario", "tiny", "--runs_dir", "/nonexistent"]) == 0
+    out = capsys.readouterr().out
+    table = [line for line in out.splitlines() if line.startswith("| (")]
+    assert len(table) == 10
+    assert any("FilterPy" in line for line in table) and any("scipy" in line for line in table)
+    cross = next(line for line in out.splitlines() if "cross-check" in line)
+    assert float(cross.rsplit("=", 1)[1]) < 1e-6  # torch and FilterPy solve the same problem

@@ -33,7 +33,7 @@ from jsonargparse import ActionConfigFile, ArgumentParser
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.nav.evaluate_config import KNOWN_METHODS, EvaluateConfig
-from neuralmap.nav.report import atomic_write_json, atomic_write_text
+from neuralmap.nav.report import atomic_write_json, atomic_write_text, default_mode
 
 REPO_ROOT = Path(__file__).resolve().parent
 DEFAULT_CONFIG = REPO_ROOT / "configs" / "evaluate.yaml"
@@ -165,8 +165,24 @@ def check_map_tile(terrain_map: Any, tile: Any, *, map_path: Path, scenario_name
     )
 
 
+def map_fit_variance(terrain_map: Any) -> float:
+    """Square of the fit RMSE recorded in the map file (``metrics["rmse_m"]``), else 0."""
+    metrics = getattr(terrain_map, "metrics", None) or {}
+    rmse = metrics.get("rmse_m") if isinstance(metrics, dict) else None
+    try:
+        rmse = float(rmse)
+    except (TypeError, ValueError):
+        return 0.0
+    return rmse * rmse if np.isfinite(rmse) else 0.0
+
+
 def build_methods(
-    names: list[str], *, tile: Any, terrain_map: Any, device: torch.device
+    names: list[str],
+    *,
+    tile: Any,
+    terrain_map: Any,
+    device: torch.device,
+    fit_variance: float = 0.0,
 ) -> dict[str, Any]:
     """One linearizer per method name (``neural`` = the map with autograd).
 
@@ -175,6 +191,7 @@ def build_methods(
         tile: The scenario's DEM tile (grid and plane-fit methods).
         terrain_map: The loaded neural map.
         device: Device the filters run on.
+        fit_variance: The neural map's fit-error variance (m²), its linearisation variance.
 
     Returns:
         Method name -> :class:`~neuralmap.linearize.base.Linearizer`, in ``names`` order.
@@ -183,15 +200,44 @@ def build_methods(
 
     methods: dict[str, Any] = {}
     for name in names:
-        terrain = terrain_map if name == "neural" else None
-        methods[name] = make_linearizer(name, tile=tile, terrain=terrain).to(device)
+        if name == "neural":
+            linearizer = make_linearizer(
+                name, tile=tile, terrain=terrain_map, fit_variance=fit_variance
+            )
+        else:
+            linearizer = make_linearizer(name, tile=tile)
+        methods[name] = linearizer.to(device)
     return methods
+
+
+def true_terrain_model(tile: Any, truth: Any) -> Any:
+    """The simulator's true terrain: bicubic DEM plus the DEM-making error field, if any.
+
+    Args:
+        tile: The scenario's DEM tile.
+        truth: The simulated truth (its ``dem_error`` field, ``(ny, nx)`` metres, or None).
+
+    Returns:
+        A float64 bicubic :class:`~neuralmap.terrain.grid.GridTerrain`.
+    """
+    from neuralmap.dem.tile import DemTile
+    from neuralmap.terrain.grid import GridTerrain
+
+    dem_error = getattr(truth, "dem_error", None)
+    if dem_error is not None:
+        tile = DemTile(
+            tile.heights + np.asarray(dem_error), spacing=tile.spacing, origin=tile.origin,
+            name=tile.name, source=tile.source,
+        )
+    return GridTerrain(tile, method="bicubic", dtype=torch.float64)
 
 
 def _make_output_dir(root: Path) -> Path:
     """A fresh temporary folder inside ``root`` (renamed into place by :func:`_publish`)."""
     root.mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix=".tmp-version_", dir=root))
+    path = Path(tempfile.mkdtemp(prefix=".tmp-version_", dir=root))
+    os.chmod(path, default_mode(directory=True))
+    return path
 
 
 def _publish(tmp_dir: Path, root: Path) -> Path:
@@ -312,7 +358,6 @@ def run_evaluation(config: EvaluateConfig) -> Path:
     from neuralmap.nav.report import build_results, check_claims, format_table
     from neuralmap.nav.scenario import load_scenario, scenario_tile
     from neuralmap.terrain.export import load_map
-    from neuralmap.terrain.grid import GridTerrain
 
     started = time.perf_counter()
     timing: dict[str, float] = {}
@@ -323,7 +368,15 @@ def run_evaluation(config: EvaluateConfig) -> Path:
     tile = scenario_tile(scenario)
     terrain_map = load_map(map_path)
     check_map_tile(terrain_map, tile, map_path=map_path, scenario_name=scenario.name)
-    methods = build_methods(config.methods, tile=tile, terrain_map=terrain_map, device=device)
+    fit_variance = (
+        map_fit_variance(terrain_map)
+        if config.neural_fit_variance is None
+        else float(config.neural_fit_variance)
+    )
+    methods = build_methods(
+        config.methods, tile=tile, terrain_map=terrain_map, device=device,
+        fit_variance=fit_variance,
+    )
     print(
         f"evaluate: map {map_path} | scenario {scenario.name} (tile {tile.name}, "
         f"{scenario.n_steps} steps of {scenario.dt:g} s) | {config.n_runs} runs | "
@@ -346,8 +399,10 @@ def run_evaluation(config: EvaluateConfig) -> Path:
         timing[f"filter_{name}"] = float(run.elapsed_s)
 
     tick = time.perf_counter()
-    true_terrain = GridTerrain(tile, method="bicubic", dtype=torch.float64)
-    bound = pcrb(truth, scenario, true_terrain)
+    kept = truth.on_map.all(dim=1)  # the metrics drop runs whose truth left the map
+    bound = pcrb(
+        truth, scenario, true_terrain_model(tile, truth), runs=kept if bool(kept.any()) else None
+    )
     pcrb_pos = pcrb_position(bound).detach().to("cpu", torch.float64).numpy()
     timing["pcrb"] = time.perf_counter() - tick
 
@@ -377,6 +432,8 @@ def run_evaluation(config: EvaluateConfig) -> Path:
             "tile_fingerprint": getattr(terrain_map, "tile_fingerprint", ""),
             "model": type(terrain_map).__name__,
             "num_parameters": int(sum(p.numel() for p in terrain_map.parameters())),
+            "fit_metrics": dict(getattr(terrain_map, "metrics", None) or {}),
+            "neural_fit_variance_m2": fit_variance,
         },
         off_map=off_map,
         timing_s=timing,
@@ -397,7 +454,7 @@ def run_evaluation(config: EvaluateConfig) -> Path:
     root = Path(config.runs_dir) / config.experiment
     tmp_dir = _make_output_dir(root)
     try:
-        timing["total"] = time.perf_counter() - started
+        results["timing_s"]["total"] = time.perf_counter() - started
         write_outputs(
             tmp_dir, config=config, config_dump=config_dump, results=results, claims=claims,
             truth=truth, runs=runs, tile=tile, pcrb_pos=pcrb_pos,
@@ -419,14 +476,19 @@ def main(args: list[str] | None = None) -> int:
         0 on success, 2 on bad input (the message goes to stderr), or the exit code of
         ``--help`` / a parse error.
     """
+    previous_threads = torch.get_num_threads()
     try:
         config = parse_config(args)
+        if config.threads is not None:
+            torch.set_num_threads(config.threads)
         out_dir = run_evaluation(config)
     except NeuralMapError as exc:
         print(f"evaluate.py: error: {exc}", file=sys.stderr)
         return 2
     except SystemExit as exc:  # --help, --print_config, jsonargparse parse errors
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    finally:
+        torch.set_num_threads(previous_threads)
     print(f"results written to {out_dir}")
     return 0
 

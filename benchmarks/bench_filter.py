@@ -380,7 +380,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     """Runs the benchmarks and prints the markdown table."""
     args = parse_args(argv)
-    rows = run(args)
+    previous = torch.get_num_threads()
+    try:
+        rows = run(args)
+    finally:
+        torch.set_num_threads(previous)
     print()
     print(format_rows(rows))
     return 0

@@ -52,7 +52,9 @@ def as_float_tensor(
         ) from exc
 
 
-def shape_error(where: str, name: str, expected: str, got: torch.Size | tuple[int, ...]) -> NeuralMapError:
+def shape_error(
+    where: str, name: str, expected: str, got: torch.Size | tuple[int, ...]
+) -> NeuralMapError:
     """Builds the standard shape-mismatch error.
 
     Args:
@@ -102,7 +104,8 @@ def check_matrix_shape(
         m.ndim == 3 and tuple(m.shape) == (batch, n, n)
     )
     if not ok:
-        raise shape_error(where, name, f"({n}, {n}) or (N, {n}, {n}) = ({batch}, {n}, {n})", m.shape)
+        expected = f"({n}, {n}) or (N, {n}, {n}) = ({batch}, {n}, {n})"
+        raise shape_error(where, name, expected, m.shape)
     return m
 
 

@@ -42,6 +42,12 @@ class EvaluateConfig:
         seed: Seed of the truth trajectories and noises; ``None`` = the scenario's seed.
         device: Torch device for the filters (``cpu``, ``cuda``, ``cuda:1``...).
         dtype: Filter precision.
+        neural_fit_variance: Map fit-error variance (m²) the ``neural`` method adds to R
+            as its linearisation variance (SEEDS 004: the fit error is treated as white
+            noise added to R); ``None`` = the square of the fit RMSE recorded in the map
+            file (``metrics["rmse_m"]``, written by ``train.py``), 0 when none is recorded.
+        threads: ``torch.set_num_threads`` for the run (restored afterwards); ``None``
+            keeps torch's setting. 1 is fastest for small runs on a busy machine.
         n_plot_trajectories: Trajectories drawn over the hillshade.
         pcrb_factor: Divergence when the final error exceeds this times the final PCRB.
         sigma_factor: Divergence when the final error exceeds this times the filter's own
@@ -59,6 +65,8 @@ class EvaluateConfig:
     seed: int | None = None
     device: str = "cpu"
     dtype: Literal["float64", "float32"] = "float64"
+    neural_fit_variance: float | None = None
+    threads: int | None = None
     n_plot_trajectories: int = 5
     pcrb_factor: float = 5.0
     sigma_factor: float = 3.0
@@ -86,6 +94,12 @@ class EvaluateConfig:
             )
         if self.seed is not None and self.seed < 0:
             raise NeuralMapError(f"--seed must be >= 0 (or null), got {self.seed}.")
+        if self.neural_fit_variance is not None and not self.neural_fit_variance >= 0:
+            raise NeuralMapError(
+                f"--neural_fit_variance must be >= 0 m^2 (or null), got {self.neural_fit_variance}."
+            )
+        if self.threads is not None and self.threads < 1:
+            raise NeuralMapError(f"--threads must be >= 1 (or null), got {self.threads}.")
         if self.n_plot_trajectories < 0:
             raise NeuralMapError(
                 f"--n_plot_trajectories must be >= 0, got {self.n_plot_trajectories}."

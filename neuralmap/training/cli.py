@@ -62,7 +62,8 @@ class NeuralMapCLI(LightningCLI):
         )
         parser.add_argument(
             "--ckpt_path", type=str | None, default=None,
-            help="Checkpoint to resume from (e.g. runs/<experiment>/version_0/checkpoints/last.ckpt).",
+            help="Checkpoint to resume from, e.g. "
+            "runs/<experiment>/version_0/checkpoints/last.ckpt.",
         )
         parser.add_argument(
             "--threads", type=int | None, default=None,

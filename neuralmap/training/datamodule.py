@@ -54,7 +54,9 @@ class ShuffledBatches(Dataset):
         epoch_fn: Callable[[], int],
     ) -> None:
         if xy.ndim != 2 or xy.shape[1] != 2 or heights.shape != xy.shape[:1]:
-            raise ValueError(f"xy (N, 2) and heights (N,) expected, got {xy.shape}, {heights.shape}")
+            raise ValueError(
+                f"xy (N, 2) and heights (N,) expected, got {xy.shape}, {heights.shape}"
+            )
         self.xy = xy
         self.heights = heights
         self.batch_size = int(batch_size)
@@ -163,14 +165,15 @@ class DemDataModule(pl.LightningDataModule):
                 f"data.val_fraction must be in (0, 0.5] (fraction of valid nodes held out for "
                 f"validation), got {val_fraction}. Try 0.02."
             )
-        self.path = (path.source or path.name) if tile_given else str(path)  # type: ignore[union-attr]
+        # A DemTile passed from Python is recorded by its source (or name).
+        self.path = (path.source or path.name) if tile_given else str(path)  # type: ignore
         self.batch_size = int(batch_size)
         self.val_fraction = float(val_fraction)
         self.seed = int(seed)
         self.eval_batch_size = int(eval_batch_size)
         spacing_arg = None
         if spacing is not None:
-            spacing_arg = float(spacing) if np.ndim(spacing) == 0 else tuple(spacing)  # type: ignore[arg-type]
+            spacing_arg = float(spacing) if np.ndim(spacing) == 0 else tuple(spacing)  # type: ignore
         if tile_given:
             self.tile: DemTile = path  # type: ignore[assignment]
         else:

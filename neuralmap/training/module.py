@@ -16,6 +16,9 @@ from neuralmap.terrain.blockwise import BlockwiseTerrainNet
 from neuralmap.training.evaluation import FitAccumulator, height_and_slope
 
 OPTIMIZERS = ("adam", "sgd")
+#: Hyperparameters that fix the network's shape and initial state (must match on resume).
+ARCHITECTURE_KEYS = ("block_nodes", "overlap_nodes", "num_blocks", "encoding", "n_frequencies",
+                     "frequency_scale", "hidden", "depth", "activation", "blend", "seed")
 LR_SCHEDULES = ("cosine", "onecycle", "none")
 
 
@@ -166,7 +169,9 @@ class TerrainFitModule(pl.LightningModule):
         return self.net(xy)
 
     # ------------------------------------------------------------------ training
-    def training_step(self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int) -> torch.Tensor:
+    def training_step(
+        self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int
+    ) -> torch.Tensor:
         """One step on a batch ``(xy (B, 2), h (B,))``: normalised MSE (SEEDS 004 ``e``)."""
         xy, target = batch
         assert self.net is not None
@@ -263,17 +268,55 @@ class TerrainFitModule(pl.LightningModule):
                 torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total)
             )
         else:
+            # total + 1: the scheduler is stepped after each of the `total` steps, so the
+            # last step lands on the end of the annealing phase (not past it).
             scheduler = torch.optim.lr_scheduler.OneCycleLR(
-                optimizer, max_lr=hp.lr, total_steps=max(total, 2)
+                optimizer, max_lr=hp.lr, total_steps=total + 1
             )
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler, "interval": "step"}}
+        return {
+            "optimizer": optimizer,
+            "lr_scheduler": {"scheduler": scheduler, "interval": "step"},
+        }
 
     # ------------------------------------------------------------------ checkpoint state
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        checkpoint["neuralmap"] = {"points_seen": self.points_seen,
-                                   "train_time_s": self.train_time_s}
+        checkpoint["neuralmap"] = {
+            "points_seen": self.points_seen,
+            "train_time_s": self.train_time_s,
+            "tile_fingerprint": self.net.tile_fingerprint if self.net is not None else "",
+            "tile_name": self.net.tile_name if self.net is not None else "",
+        }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        """Restores the counters; refuses a checkpoint of another tile or architecture.
+
+        Raises:
+            NeuralMapError: When the checkpoint's network settings or tile differ.
+        """
+        saved = checkpoint.get("hyper_parameters", {})
+        differ = [
+            f"{key}: checkpoint {saved[key]!r} vs config {self.hparams[key]!r}"
+            for key in ARCHITECTURE_KEYS
+            if key in saved and _canonical(saved[key]) != _canonical(self.hparams[key])
+        ]
+        if differ:
+            raise NeuralMapError(
+                "--ckpt_path: the checkpoint was trained with other network settings ("
+                + "; ".join(differ) + "). Resume with the run's config.yaml: "
+                "python train.py --config runs/<experiment>/version_N/config.yaml --ckpt_path ..."
+            )
         state = checkpoint.get("neuralmap", {})
+        fingerprint = state.get("tile_fingerprint", "")
+        if self.net is not None and fingerprint and fingerprint != self.net.tile_fingerprint:
+            raise NeuralMapError(
+                f"--ckpt_path: the checkpoint was trained on tile '{state.get('tile_name')}' "
+                f"(fingerprint {fingerprint}), not on '{self.net.tile_name}' "
+                f"({self.net.tile_fingerprint}). Pass the same --data.path as that run."
+            )
         self.points_seen = int(state.get("points_seen", 0))
         self.train_time_s = float(state.get("train_time_s", 0.0))
+
+
+def _canonical(value: Any) -> Any:
+    """Lists and tuples compare equal (YAML gives lists, Python callers may pass tuples)."""
+    return list(value) if isinstance(value, (list, tuple)) else value

@@ -41,20 +41,27 @@ def residual_map_figure(
     extent: tuple[float, float, float, float],
     *,
     title: str = "fit residual",
+    percentile: float = 99.5,
 ) -> Figure:
     """Map of ``fitted - DEM`` in metres, diverging colours with symmetric limits.
+
+    The colour limits are ``±`` the ``percentile``-th percentile of ``|residual|`` (so a
+    few outlier nodes do not wash out the map; they saturate, and the colourbar shows
+    arrows); the title gives the true maximum.
 
     Args:
         residual: ``(ny, nx)`` metres, NaN at voids (drawn grey), row 0 south.
         extent: ``(xmin, xmax, ymin, ymax)`` metres.
         title: Axes title.
+        percentile: Percentile of ``|residual|`` used as the colour limit (100 = max).
 
     Returns:
         The figure (one axes and a colourbar).
     """
     finite = residual[np.isfinite(residual)]
-    limit = float(np.abs(finite).max()) if finite.size else 1.0
-    limit = limit if limit > 0 else 1.0
+    largest = float(np.abs(finite).max()) if finite.size else 0.0
+    limit = float(np.percentile(np.abs(finite), percentile)) if finite.size else 1.0
+    limit = limit if limit > 0 else (largest or 1.0)
     ny, nx = residual.shape
     aspect_hw = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9)
     figure = Figure(figsize=(7.0, max(3.0, min(9.0, 5.5 * aspect_hw + 0.8))))
@@ -63,10 +70,10 @@ def residual_map_figure(
         np.ma.masked_invalid(residual), origin="lower", extent=_km_extent(extent),
         cmap=_diverging_cmap(), vmin=-limit, vmax=limit, interpolation="nearest",
     )
-    colourbar = figure.colorbar(image, ax=ax)
+    colourbar = figure.colorbar(image, ax=ax, extend="both" if largest > limit else "neither")
     colourbar.set_label("fitted − DEM (m)")
     rms = math.sqrt(float(np.mean(finite**2))) if finite.size else float("nan")
-    ax.set_title(f"{title}: RMSE {rms:.2f} m, max |e| {limit:.2f} m ({nx} × {ny} nodes)")
+    ax.set_title(f"{title} ({nx} × {ny} nodes)\nRMSE {rms:.2f} m, max |e| {largest:.2f} m")
     ax.set_xlabel("east (km)")
     ax.set_ylabel("north (km)")
     figure.tight_layout()
@@ -130,12 +137,13 @@ def residual_histogram_figure(residual: np.ndarray, *, bins: int = 100) -> Figur
             normal = values.size * width * np.exp(-0.5 * ((centres - mean) / std) ** 2) / (
                 std * math.sqrt(2 * math.pi)
             )
+            normal = np.where(normal >= 0.1, normal, np.nan)  # keep the log axis readable
             ax.plot(centres, normal, color="tab:red", lw=1.2, label="normal, same mean/std")
         ax.set_yscale("log")
-        ax.set_ylim(bottom=0.5)
+        ax.set_ylim(0.5, 2.0 * max(float(counts.max()), 1.0))
         ax.set_title(
-            f"residuals: mean {mean:.3f} m, std {std:.3f} m, max |e| "
-            f"{float(np.abs(values).max()):.2f} m, n = {values.size}"
+            f"fit residuals (n = {values.size})\nmean {mean:.3f} m, std {std:.3f} m, "
+            f"max |e| {float(np.abs(values).max()):.2f} m"
         )
         ax.legend()
     ax.set_xlabel("fitted − DEM (m)")

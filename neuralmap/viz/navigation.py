@@ -17,6 +17,7 @@ from matplotlib.figure import Figure
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.report import default_mode
 from neuralmap.viz.hillshade import hillshade
 
 
@@ -36,6 +37,7 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 120) ->
     os.close(fd)
     try:
         fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+        os.chmod(tmp, default_mode())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -174,7 +176,7 @@ def plot_final_error_histogram(
     final_errors: Mapping[str, object],
     *,
     pcrb_final: float | None = None,
-    bins: int = 40,
+    bins: int | None = None,
     title: str = "Final horizontal position error",
 ) -> Figure:
     """Histogram of the final horizontal error of every method (log-spaced bins).
@@ -183,7 +185,7 @@ def plot_final_error_histogram(
         final_errors: Method -> ``(N,)`` final horizontal errors in metres (off-map runs
             already removed; non-finite values are dropped).
         pcrb_final: Final horizontal PCRB, metres (vertical dashed line), optional.
-        bins: Number of bins.
+        bins: Number of bins; ``None`` = ``2·sqrt(N)`` clipped to ``[10, 40]``.
         title: Figure title.
 
     Returns:
@@ -200,6 +202,9 @@ def plot_final_error_histogram(
         low = max(float(everything[everything > 0].min()) if (everything > 0).any() else 1e-3,
                   1e-3)
         high = max(float(everything.max()), low * 10)
+        if bins is None:
+            n_max = max(v.size for v in cleaned.values())
+            bins = int(np.clip(2 * np.sqrt(n_max), 10, 40))
         edges = np.geomspace(low, high, bins + 1)
         for i, (name, values) in enumerate(cleaned.items()):
             ax.hist(

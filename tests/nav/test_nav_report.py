@@ -125,6 +125,7 @@ def test_build_results_rejects_missing_keys_and_bad_curves() -> None:
         (20.0, (60.0, 70.0), "holds"),  # better than all, by 45 m on average
         (20.0, (25.0, 30.0), "partly"),  # better, but only by 7.5 m on average
         (20.0, (10.0, 60.0), "partly"),  # mean better, not better than every method
+        (20.0, (19.0, 23.0), "does not hold"),  # 1 m better on average: not meaningful
         (60.0, (20.0, 30.0), "does not hold"),
     ],
 )

@@ -13,6 +13,8 @@ import pytest
 import torch
 import yaml
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+from tensorboard.plugins.custom_scalar import layout_pb2
+from tensorboard.plugins.hparams import plugin_data_pb2
 
 from neuralmap.dem import load_tile, synthetic_tile
 from neuralmap.terrain.export import load_map
@@ -98,11 +100,23 @@ def test_event_files_hold_dashboard_tags(trained: tuple[Path, str, Path]) -> Non
     for tag in IMAGE_TAGS:
         assert tag in tags["images"], tag
     assert HISTOGRAM_TAG in tags["histograms"]
-    assert "custom_scalars" in events.PluginTagToContent("custom_scalars").values().__iter__().__next__().decode(
-        errors="ignore") or events.PluginTagToContent("custom_scalars")
-    assert events.PluginTagToContent("hparams")
-    # the layout groups every scalar it names under the four categories
-    assert set(SCALAR_LAYOUT) == {"loss", "accuracy", "slope", "lr"}
+    # custom-scalars layout: the four categories, naming only logged scalar tags
+    proto = events.Tensors("custom_scalars__config__")[0].tensor_proto
+    layout = layout_pb2.Layout()
+    layout.ParseFromString(proto.string_val[0])
+    assert [c.title for c in layout.category] == ["loss", "accuracy", "slope", "lr"]
+    named = {tag for c in layout.category for ch in c.chart for tag in ch.multiline.tag}
+    assert named == {t for group in SCALAR_LAYOUT.values() for _, (_, ts) in group.items()
+                     for t in ts}
+    assert named <= set(tags["scalars"])
+    # hparams with the final metrics
+    content = events.PluginTagToContent("hparams")["_hparams_/experiment"]
+    hparams = plugin_data_pb2.HParamsPluginData()
+    hparams.ParseFromString(content)
+    metric_tags = {m.name.tag for m in hparams.experiment.metric_infos}
+    assert {"final/rmse_m", "final/max_abs_m", "final/slope_rmse"} <= metric_tags
+    names = {h.name for h in hparams.experiment.hparam_infos}
+    assert {"model/hidden", "model/lr", "data/batch_size", "tile"} <= names
 
 
 def test_exported_map_reproduces_the_reported_metrics(
@@ -129,6 +143,18 @@ def test_resume_from_last_checkpoint(trained: tuple[Path, str, Path], tile_path:
     assert metrics["epochs"] == 4
     assert metrics["global_step"] > first["global_step"]
     assert metrics["train_points"] > first["train_points"]  # counter restored, not reset
+
+
+def test_resume_with_other_network_settings_is_refused(
+    trained: tuple[Path, str, Path], tile_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path, _, runs = trained
+    last = path.parent / "checkpoints" / "last.ckpt"
+    with pytest.raises(SystemExit) as exit_info:
+        main(_args(tile_path, runs, "--model.hidden", "24", "--ckpt_path", str(last)))
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert "hidden: checkpoint 16 vs config 24" in err and "Traceback" not in err
 
 
 def test_fast_dev_run_exports(tile_path: Path, tmp_path: Path) -> None:

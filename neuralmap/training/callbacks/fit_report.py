@@ -49,6 +49,8 @@ def _tensorboard(trainer: pl.Trainer) -> TensorBoardLogger | None:
 def _flat_hparams(params: dict[str, Any], prefix: str) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for key, value in params.items():
+        if key.startswith("_"):  # e.g. LightningCLI's "_instantiator"
+            continue
         if isinstance(value, (bool, int, float, str)) or value is None:
             out[f"{prefix}{key}"] = "None" if value is None else value
         else:
@@ -160,8 +162,8 @@ class FitReport(pl.Callback):
             self._log_tensorboard(logger, trainer, pl_module, figures, evaluation, metrics)
 
         extra = {
-            "hparams": dict(pl_module.hparams),
-            "data": {k: v for k, v in dict(datamodule.hparams).items()},
+            "hparams": {k: v for k, v in pl_module.hparams.items() if not k.startswith("_")},
+            "data": {k: v for k, v in datamodule.hparams.items() if not k.startswith("_")},
             "run_dir": str(run_dir),
         }
         self.map_path = export_map(net, run_dir, metrics, extra=extra)
@@ -196,7 +198,8 @@ class FitReport(pl.Callback):
             if key in metrics and np.isfinite(float(metrics[key]))
         }
         params = _flat_hparams(dict(pl_module.hparams), "model/")
-        params.update(_flat_hparams(dict(trainer.datamodule.hparams), "data/"))  # type: ignore[attr-defined]
+        datamodule = trainer.datamodule  # type: ignore[attr-defined]
+        params.update(_flat_hparams(dict(datamodule.hparams), "data/"))
         params["tile"] = str(metrics["tile"])
         params["num_parameters"] = int(metrics["num_parameters"])
         logger.log_hyperparams(params, metrics=final, step=step)

@@ -368,11 +368,10 @@ def run_evaluation(config: EvaluateConfig) -> Path:
     tile = scenario_tile(scenario)
     terrain_map = load_map(map_path)
     check_map_tile(terrain_map, tile, map_path=map_path, scenario_name=scenario.name)
-    fit_variance = (
-        map_fit_variance(terrain_map)
-        if config.neural_fit_variance is None
-        else float(config.neural_fit_variance)
-    )
+    if config.neural_fit_variance is None:
+        fit_variance = max(map_fit_variance(terrain_map) - scenario.fit_variance_m2, 0.0)
+    else:
+        fit_variance = float(config.neural_fit_variance)
     methods = build_methods(
         config.methods, tile=tile, terrain_map=terrain_map, device=device,
         fit_variance=fit_variance,
@@ -433,7 +432,7 @@ def run_evaluation(config: EvaluateConfig) -> Path:
             "model": type(terrain_map).__name__,
             "num_parameters": int(sum(p.numel() for p in terrain_map.parameters())),
             "fit_metrics": dict(getattr(terrain_map, "metrics", None) or {}),
-            "neural_fit_variance_m2": fit_variance,
+            "neural_extra_variance_m2": fit_variance,
         },
         off_map=off_map,
         timing_s=timing,

@@ -34,7 +34,7 @@ CONFIGS: dict[str, list[str]] = {
 
 def _row(label: str, metrics: dict, wall_s: float) -> str:
     return (
-        f"| {label} | {metrics['num_parameters']:,} | {metrics['bytes_ratio']:.2f}× "
+        f"| {label} | {metrics['num_parameters']:,} | {metrics['bytes_ratio']:.3g}× "
         f"({metrics['param_bytes'] / 1024:.0f} KiB vs {metrics['raw_grid_bytes'] / 1024:.0f} KiB) "
         f"| {metrics['rmse_m']:.3f} m | {metrics['max_abs_m']:.2f} m "
         f"| {metrics['slope_rmse']:.4f} | {metrics['train_time_s']:.1f} s "
@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> str:
     from neuralmap.training.cli import main as train_main
 
     rows, header = [], (
-        "| config | parameters | bytes vs raw float32 grid | RMSE | max |error| "
+        "| config | parameters | bytes vs raw float32 grid | RMSE | max error "
         "| slope RMSE (m/m) | train time | points/s | wall time |\n"
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|"
     )

@@ -113,7 +113,8 @@ def test_evaluate_end_to_end(
     assert results["config"]["n_runs"] == 16
     assert results["config"]["map"].endswith("neural_map.pt")  # the newest map was found
     fit_rmse = results["map"]["fit_metrics"]["rmse_m"]
-    assert results["map"]["neural_fit_variance_m2"] == pytest.approx(fit_rmse**2)
+    uncovered = fit_rmse**2 - results["scenario"]["fit_variance_m2"]
+    assert results["map"]["neural_extra_variance_m2"] == pytest.approx(max(uncovered, 0.0))
     assert set(results["off_map"]["per_method"]) == set(METHODS)
     assert len(results["curves"]["t"]) == 41  # tiny: 40 steps
     # the run is a real filter: the estimate beats the prior's radial RMS error

@@ -42,10 +42,13 @@ class EvaluateConfig:
         seed: Seed of the truth trajectories and noises; ``None`` = the scenario's seed.
         device: Torch device for the filters (``cpu``, ``cuda``, ``cuda:1``...).
         dtype: Filter precision.
-        neural_fit_variance: Map fit-error variance (m²) the ``neural`` method adds to R
-            as its linearisation variance (SEEDS 004: the fit error is treated as white
-            noise added to R); ``None`` = the square of the fit RMSE recorded in the map
-            file (``metrics["rmse_m"]``, written by ``train.py``), 0 when none is recorded.
+        neural_fit_variance: Extra variance (m²) the ``neural`` method adds to R as its
+            linearisation variance, on top of the scenario's ``fit_variance_m2`` that every
+            method gets (SEEDS 004: the fit error is treated as white noise added to R).
+            ``None`` = whatever the scenario's value leaves uncovered of the map's measured
+            fit error: ``max(rmse² − fit_variance_m2, 0)`` with ``rmse`` the fit RMSE
+            recorded in the map file (``metrics["rmse_m"]``, written by ``train.py``; 0
+            when none is recorded).
         threads: ``torch.set_num_threads`` for the run (restored afterwards); ``None``
             keeps torch's setting. 1 is fastest for small runs on a busy machine.
         n_plot_trajectories: Trajectories drawn over the hillshade.

@@ -541,10 +541,10 @@ def render_report(
     fit = map_info.get("fit_metrics", {}) or {}
     if _finite(fit.get("rmse_m")):
         setup.append(("map fit RMSE (from training)", f"{fit['rmse_m']:.2f} m"))
-    if _finite(map_info.get("neural_fit_variance_m2")):
+    if _finite(map_info.get("neural_extra_variance_m2")):
         setup.append(
-            ("fit variance added to R for the neural map",
-             f"{map_info['neural_fit_variance_m2']:.2f} m²")
+            ("extra variance added to R for the neural map (beyond scenario.fit_variance_m2)",
+             f"{map_info['neural_extra_variance_m2']:.2f} m²")
         )
     for key in ("dt", "speed_mps", "altimeter_sigma_m", "init_pos_sigma_m", "R_m2",
                 "fit_variance_m2"):

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -136,18 +137,12 @@ def main(args: list[str] | None = None) -> Path | None:
     }
     callbacks, report = _trainer_callbacks()
     try:
-        cli = NeuralMapCLI(
-            TerrainFitModule,
-            DemDataModule,
-            run=False,
-            args=args,
-            seed_everything_default=0,
-            auto_configure_optimizers=False,
-            save_config_kwargs={"overwrite": True},
-            parser_kwargs=parser_kwargs,
-            trainer_defaults={"callbacks": callbacks},
-        )
-        cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=cli.config.get("ckpt_path"))
+        with warnings.catch_warnings():
+            # main(args) from Python (tests, benchmarks) is the intended use of `args`.
+            warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
+            cli = _build_cli(args, parser_kwargs, callbacks)
+        ckpt_path = cli.config.get("ckpt_path")
+        cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path)
     except NeuralMapError as error:
         sys.stdout.flush()
         print(f"error: {error}", file=sys.stderr, flush=True)
@@ -156,3 +151,20 @@ def main(args: list[str] | None = None) -> Path | None:
         sys.stderr.flush()
         print(os.fspath(report.map_path), flush=True)
     return report.map_path
+
+
+def _build_cli(
+    args: list[str] | None, parser_kwargs: dict[str, Any], callbacks: list[Any]
+) -> NeuralMapCLI:
+    """Parses the arguments and instantiates data module, model and trainer."""
+    return NeuralMapCLI(
+        TerrainFitModule,
+        DemDataModule,
+        run=False,
+        args=args,
+        seed_everything_default=0,
+        auto_configure_optimizers=False,
+        save_config_kwargs={"overwrite": True},
+        parser_kwargs=parser_kwargs,
+        trainer_defaults={"callbacks": callbacks},
+    )

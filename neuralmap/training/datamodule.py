@@ -171,9 +171,10 @@ class DemDataModule(pl.LightningDataModule):
         self.val_fraction = float(val_fraction)
         self.seed = int(seed)
         self.eval_batch_size = int(eval_batch_size)
-        spacing_arg = None
+        spacing_arg: float | tuple[float, ...] | None = None
         if spacing is not None:
-            spacing_arg = float(spacing) if np.ndim(spacing) == 0 else tuple(spacing)  # type: ignore
+            scalar = np.ndim(spacing) == 0
+            spacing_arg = float(spacing) if scalar else tuple(spacing)  # type: ignore[arg-type]
         if tile_given:
             self.tile: DemTile = path  # type: ignore[assignment]
         else:

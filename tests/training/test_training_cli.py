@@ -33,6 +33,14 @@ MODEL_ARGS = [
 ]
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _restore_threads() -> object:
+    """main() applies the config's `threads: 1`; give other test modules their setting back."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture(scope="module")
 def tile_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("tile") / "tiny.npy"

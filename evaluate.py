@@ -156,12 +156,27 @@ def check_map_tile(terrain_map: Any, tile: Any, *, map_path: Path, scenario_name
     if found == expected:
         return
     map_tile = getattr(terrain_map, "tile_name", "") or "unknown"
+    info = getattr(terrain_map, "tile_info", None) or {}
+    differences = [
+        f"{key} {info[key]} vs {now}"
+        for key, now in (("shape", list(tile.shape)), ("spacing", list(tile.spacing)),
+                         ("origin", list(tile.origin)))
+        if key in info and list(info[key]) != now
+    ]
+    hint = ""
+    if map_tile == tile.name:
+        hint = (
+            " Same tile name, different content: the DEM file or its reader changed since "
+            "the map was trained"
+            + (f" ({'; '.join(differences)})" if differences else "")
+            + ", so retrain it (python train.py)."
+        )
     raise NeuralMapError(
         f"--map {map_path}: the map was exported from tile '{map_tile}' (fingerprint "
         f"{found or 'none'}), but scenario '{scenario_name}' flies over tile '{tile.name}' "
-        f"(fingerprint {expected}). Train a map on the scenario's tile (python train.py with "
-        "that tile), pass the matching --map, or pick the scenario of the map's tile "
-        "(--scenario)."
+        f"(fingerprint {expected})."
+        + (hint or " Train a map on the scenario's tile (python train.py with that tile), "
+           "pass the matching --map, or pick the scenario of the map's tile (--scenario).")
     )
 
 

@@ -306,7 +306,16 @@ def run(args: argparse.Namespace) -> list[Row]:
     print(f"# bench_filter: torch {torch.__version__}, {torch.get_num_threads()} threads, "
           f"{platform.processor() or platform.machine()}; scenario {scenario_name} "
           f"(tile {tile.name} {tile.shape[0]}x{tile.shape[1]}), {args.steps} steps")
+    clock = time.perf_counter()
+
+    def stage(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        print(f"#   {name}: {now - clock:.1f} s", flush=True)
+        clock = now
+
     truth = simulate(scenario, tile, n_runs=max(n, n_neural), seed=0, dtype=torch.float64)
+    stage("simulate")
     rows: list[Row] = []
 
     for dtype in (torch.float32, torch.float64):
@@ -315,6 +324,7 @@ def run(args: argparse.Namespace) -> list[Row]:
         rows.append(Row("(a) TAN step", f"torch bilinear Taylor ({str(dtype)[6:]})", rate, best,
                         "traj-steps/s", f"N = {n}, {args.steps} steps"))
 
+    stage("(a) bilinear TAN step")
     neural, neural_what = neural_map_for(tile, Path(args.runs_dir))
     lin = make_linearizer("neural", tile=tile, terrain=neural)
     sub = _subset(truth, n_neural)
@@ -324,6 +334,7 @@ def run(args: argparse.Namespace) -> list[Row]:
                         rate, best, "traj-steps/s", f"N = {n_neural}, {args.steps} steps; "
                         f"{neural_what}"))
 
+    stage("(b) neural TAN step")
     fp_rate, fp_final = filterpy_tan(truth, scenario, tile, n_runs=args.n_filterpy)
     rows.append(Row("(c) TAN step", "FilterPy EKF loop + scipy RGI linear (float64)", fp_rate,
                     fp_rate, "traj-steps/s", f"N = {args.n_filterpy}, {args.steps} steps"))
@@ -332,8 +343,10 @@ def run(args: argparse.Namespace) -> list[Row]:
     print(f"# cross-check: max |torch float64 - FilterPy| over the final states of "
           f"{args.n_filterpy} runs = {deviation:.2e}")
 
+    stage("(c) FilterPy + cross-check")
     rows += bench_queries(tile, neural, n_points=args.n_queries, n_scipy=args.n_scipy,
                           repeats=args.repeats)
+    stage("(d) queries")
     return rows
 
 

@@ -172,6 +172,13 @@ def test_map_of_another_tile_is_rejected(
     assert "other" in err and "fingerprint" in err and "--scenario" in err
     assert not (tmp_path / "runs").exists()
 
+    # same name as the scenario's tile, other content (e.g. a changed reader): say so
+    same_name = synthetic_tile((96, 96), spacing=(30.0, 30.0), seed=4)
+    save_map(BlockwiseTerrainNet.from_tile(same_name, block_nodes=48, hidden=8), path)
+    code = evaluate.main(["--config", str(TINY_CONFIG), "--map", str(path)])
+    err = capsys.readouterr().err
+    assert code == 2 and "Same tile name, different content" in err and "retrain" in err
+
 
 def test_bad_options_exit_2(evaluate: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:
     assert evaluate.main(["--config", str(TINY_CONFIG), "--methods", "[neural,kriging]"]) == 2

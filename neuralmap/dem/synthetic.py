@@ -25,6 +25,26 @@ def _as_pair(value: object, what: str, cast: type) -> tuple:
     return tuple(cast(v) for v in arr)
 
 
+def _fast_length(n: int) -> int:
+    """Smallest 5-smooth integer ≥ n (fast FFT length; unchanged when n already is one)."""
+    best = 2 * n
+    p2 = 1
+    while p2 < best:
+        p3 = p2
+        while p3 < best:
+            p5 = p3
+            while p5 < n:
+                p5 *= 5
+            best = min(best, p5)
+            p3 *= 3
+            if p3 >= n:
+                best = min(best, p3)
+        p2 *= 2
+        if p2 >= n:
+            best = min(best, p2)
+    return best
+
+
 def fractal_surface(
     shape: tuple[int, int], *, hurst: float = 0.8, seed: int = 0
 ) -> np.ndarray:
@@ -33,7 +53,8 @@ def fractal_surface(
     Each Fourier coefficient gets a complex Gaussian amplitude with power spectral density
     ``S(k) ∝ |k|^-(2H + 2)`` (fractional Brownian surface of Hurst exponent ``H``, fractal
     dimension ``3 - H``; Voss 1988). The field is synthesised on a grid padded to twice the
-    requested size and cropped, so it is not periodic across the tile's edges.
+    requested size (rounded up to a fast FFT length) and cropped, so it is not periodic
+    across the tile's edges.
 
     Args:
         shape: ``(ny, nx)`` node counts, each ≥ 2.
@@ -44,7 +65,7 @@ def fractal_surface(
         ``(ny, nx)`` float64 array scaled to ``[0, 1]``.
     """
     ny, nx = shape
-    py, px = 2 * ny, 2 * nx
+    py, px = _fast_length(2 * ny), _fast_length(2 * nx)
     rng = np.random.default_rng(seed)
     ky = np.fft.fftfreq(py)[:, None]
     kx = np.fft.rfftfreq(px)[None, :]

@@ -16,31 +16,52 @@ class GeoReference:
     """How a geographic (lon/lat degrees) grid was converted to local metres.
 
     Equirectangular projection about the tile centre:
-    ``x = (lon - lon0) * m_per_deg_lon``, ``y = (lat - lat0) * m_per_deg_lat``.
+    ``x = x0 + (lon - lon0) * m_per_deg_lon``, ``y = y0 + (lat - lat0) * m_per_deg_lat``,
+    where ``(x0, y0)`` are the tile-frame metric coordinates of the centre ``(lon0, lat0)``
+    (so ``to_metric`` lands in the same frame as ``DemTile.node_xy()``). The Earth model
+    (``neuralmap.dem.geo``: WGS-84 radii of curvature at ``lat0``) is named in ``model``.
 
     Attributes:
         lon0: Longitude of the projection centre, degrees.
         lat0: Latitude of the projection centre, degrees.
         m_per_deg_lon: Metres per degree of longitude at ``lat0``.
         m_per_deg_lat: Metres per degree of latitude at ``lat0``.
+        x0: Metric x of ``(lon0, lat0)`` in the tile frame (0 for a centred frame).
+        y0: Metric y of ``(lon0, lat0)`` in the tile frame.
+        model: Human-readable Earth model used for the metres-per-degree factors.
     """
 
     lon0: float
     lat0: float
     m_per_deg_lon: float
     m_per_deg_lat: float
+    x0: float = 0.0
+    y0: float = 0.0
+    model: str = ""
 
     def to_metric(self, lon: np.ndarray, lat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Converts degrees to local metres (x east, y north)."""
-        return (np.asarray(lon) - self.lon0) * self.m_per_deg_lon, (
+        """Converts degrees to tile-frame metres (x east, y north); any matching shapes."""
+        return self.x0 + (np.asarray(lon) - self.lon0) * self.m_per_deg_lon, self.y0 + (
             np.asarray(lat) - self.lat0
         ) * self.m_per_deg_lat
 
     def to_geographic(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Converts local metres back to degrees (lon, lat)."""
-        return self.lon0 + np.asarray(x) / self.m_per_deg_lon, self.lat0 + np.asarray(
-            y
+        """Converts tile-frame metres back to degrees (lon, lat); inverse of ``to_metric``."""
+        return self.lon0 + (np.asarray(x) - self.x0) / self.m_per_deg_lon, self.lat0 + (
+            np.asarray(y) - self.y0
         ) / self.m_per_deg_lat
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-serialisable summary (all fields)."""
+        return {
+            "lon0": self.lon0,
+            "lat0": self.lat0,
+            "m_per_deg_lon": self.m_per_deg_lon,
+            "m_per_deg_lat": self.m_per_deg_lat,
+            "x0": self.x0,
+            "y0": self.y0,
+            "model": self.model,
+        }
 
 
 @dataclass
@@ -153,4 +174,5 @@ class DemTile:
             "fingerprint": self.fingerprint(),
             "n_void": self.n_void,
             "height_range": [float(np.nanmin(self.heights)), float(np.nanmax(self.heights))],
+            "geo": None if self.geo is None else self.geo.describe(),
         }

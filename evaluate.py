@@ -159,8 +159,11 @@ def check_map_tile(terrain_map: Any, tile: Any, *, map_path: Path, scenario_name
     info = getattr(terrain_map, "tile_info", None) or {}
     differences = [
         f"{key} {info[key]} vs {now}"
-        for key, now in (("shape", list(tile.shape)), ("spacing", list(tile.spacing)),
-                         ("origin", list(tile.origin)))
+        for key, now in (
+            ("shape", list(tile.shape)),
+            ("spacing", list(tile.spacing)),
+            ("origin", list(tile.origin)),
+        )
         if key in info and list(info[key]) != now
     ]
     hint = ""
@@ -175,8 +178,11 @@ def check_map_tile(terrain_map: Any, tile: Any, *, map_path: Path, scenario_name
         f"--map {map_path}: the map was exported from tile '{map_tile}' (fingerprint "
         f"{found or 'none'}), but scenario '{scenario_name}' flies over tile '{tile.name}' "
         f"(fingerprint {expected})."
-        + (hint or " Train a map on the scenario's tile (python train.py with that tile), "
-           "pass the matching --map, or pick the scenario of the map's tile (--scenario).")
+        + (
+            hint
+            or " Train a map on the scenario's tile (python train.py with that tile), "
+            "pass the matching --map, or pick the scenario of the map's tile (--scenario)."
+        )
     )
 
 
@@ -241,8 +247,11 @@ def true_terrain_model(tile: Any, truth: Any) -> Any:
     dem_error = getattr(truth, "dem_error", None)
     if dem_error is not None:
         tile = DemTile(
-            tile.heights + np.asarray(dem_error), spacing=tile.spacing, origin=tile.origin,
-            name=tile.name, source=tile.source,
+            tile.heights + np.asarray(dem_error),
+            spacing=tile.spacing,
+            origin=tile.origin,
+            name=tile.name,
+            source=tile.source,
         )
     return GridTerrain(tile, method="bicubic", dtype=torch.float64)
 
@@ -388,7 +397,10 @@ def run_evaluation(config: EvaluateConfig) -> Path:
     else:
         fit_variance = float(config.neural_fit_variance)
     methods = build_methods(
-        config.methods, tile=tile, terrain_map=terrain_map, device=device,
+        config.methods,
+        tile=tile,
+        terrain_map=terrain_map,
+        device=device,
         fit_variance=fit_variance,
     )
     print(
@@ -422,8 +434,10 @@ def run_evaluation(config: EvaluateConfig) -> Path:
 
     method_metrics = {
         name: navigation_metrics(
-            run, torch.as_tensor(pcrb_pos),
-            pcrb_factor=config.pcrb_factor, sigma_factor=config.sigma_factor,
+            run,
+            torch.as_tensor(pcrb_pos),
+            pcrb_factor=config.pcrb_factor,
+            sigma_factor=config.sigma_factor,
         )
         for name, run in runs.items()
     }
@@ -470,8 +484,15 @@ def run_evaluation(config: EvaluateConfig) -> Path:
     try:
         results["timing_s"]["total"] = time.perf_counter() - started
         write_outputs(
-            tmp_dir, config=config, config_dump=config_dump, results=results, claims=claims,
-            truth=truth, runs=runs, tile=tile, pcrb_pos=pcrb_pos,
+            tmp_dir,
+            config=config,
+            config_dump=config_dump,
+            results=results,
+            claims=claims,
+            truth=truth,
+            runs=runs,
+            tile=tile,
+            pcrb_pos=pcrb_pos,
         )
         out_dir = _publish(tmp_dir, root)
     except BaseException:

@@ -150,7 +150,13 @@ def bench_tan_step(
         with torch.no_grad():
             for k in range(1, k_steps + 1):
                 tan_filter_step(
-                    ekf, ins_pos[:, k], radar[:, k], linearizer, F=F, Q=Q, R=R,
+                    ekf,
+                    ins_pos[:, k],
+                    radar[:, k],
+                    linearizer,
+                    F=F,
+                    Q=Q,
+                    R=R,
                     extent=truth.extent,
                 )
 
@@ -240,8 +246,14 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
     with torch.no_grad():
         for k in range(1, truth.n_steps + 1):
             tan_filter_step(
-                ekf, truth.ins_pos[:n_runs, k].double(), truth.radar[:n_runs, k].double(), lin,
-                F=F, Q=Q, R=scenario.R_m2 + scenario.fit_variance_m2, extent=truth.extent,
+                ekf,
+                truth.ins_pos[:n_runs, k].double(),
+                truth.radar[:n_runs, k].double(),
+                lin,
+                F=F,
+                Q=Q,
+                R=scenario.R_m2 + scenario.fit_variance_m2,
+                extent=truth.extent,
             )
     return ekf.x.numpy()
 
@@ -265,16 +277,32 @@ def bench_queries(
 
     lin = AutogradLinearizer(neural)
     rate, best = _rates(n_points, timed(lambda: lin(xy32), repeats=repeats))
-    rows.append(Row("(d) queries", "neural map, autograd (float32)", rate, best, "queries/s",
-                    f"{n_points} points"))
+    rows.append(
+        Row(
+            "(d) queries",
+            "neural map, autograd (float32)",
+            rate,
+            best,
+            "queries/s",
+            f"{n_points} points",
+        )
+    )
     for method in ("bilinear", "bicubic"):
         for dtype, xy in ((torch.float32, xy32), (torch.float64, xy64)):
             grid = GridTerrain(tile, method=method, dtype=dtype)
             rate, best = _rates(
                 n_points, timed(lambda g=grid, p=xy: g.height_and_slope(p), repeats=repeats)
             )
-            rows.append(Row("(d) queries", f"torch {method} grid, analytic ({str(dtype)[6:]})",
-                            rate, best, "queries/s", f"{n_points} points"))
+            rows.append(
+                Row(
+                    "(d) queries",
+                    f"torch {method} grid, analytic ({str(dtype)[6:]})",
+                    rate,
+                    best,
+                    "queries/s",
+                    f"{n_points} points",
+                )
+            )
 
     heights = fill_voids_nearest(tile.heights, tile.spacing)
     ny, nx = tile.shape
@@ -289,8 +317,16 @@ def bench_queries(
         rgi(pts, nu=(0, 1))
 
     rate, best = _rates(n_scipy, timed(scipy_query, repeats=repeats))
-    rows.append(Row("(d) queries", "scipy RegularGridInterpolator cubic (float64)", rate, best,
-                    "queries/s", f"{n_scipy} points; slope from its derivatives nu"))
+    rows.append(
+        Row(
+            "(d) queries",
+            "scipy RegularGridInterpolator cubic (float64)",
+            rate,
+            best,
+            "queries/s",
+            f"{n_scipy} points; slope from its derivatives nu",
+        )
+    )
     return rows
 
 
@@ -303,9 +339,11 @@ def run(args: argparse.Namespace) -> list[Row]:
     scenario, tile, scenario_name = load_bench_tile(args.scenario)
     scenario = dataclasses.replace(scenario, duration_s=args.steps * scenario.dt)
     n, n_neural = args.n, args.n_neural
-    print(f"# bench_filter: torch {torch.__version__}, {torch.get_num_threads()} threads, "
-          f"{platform.processor() or platform.machine()}; scenario {scenario_name} "
-          f"(tile {tile.name} {tile.shape[0]}x{tile.shape[1]}), {args.steps} steps")
+    print(
+        f"# bench_filter: torch {torch.__version__}, {torch.get_num_threads()} threads, "
+        f"{platform.processor() or platform.machine()}; scenario {scenario_name} "
+        f"(tile {tile.name} {tile.shape[0]}x{tile.shape[1]}), {args.steps} steps"
+    )
     clock = time.perf_counter()
 
     def stage(name: str) -> None:
@@ -321,8 +359,16 @@ def run(args: argparse.Namespace) -> list[Row]:
     for dtype in (torch.float32, torch.float64):
         lin = make_linearizer("bilinear", tile=tile, dtype=dtype)
         rate, best = bench_tan_step(truth, scenario, lin, dtype=dtype, repeats=args.repeats)
-        rows.append(Row("(a) TAN step", f"torch bilinear Taylor ({str(dtype)[6:]})", rate, best,
-                        "traj-steps/s", f"N = {n}, {args.steps} steps"))
+        rows.append(
+            Row(
+                "(a) TAN step",
+                f"torch bilinear Taylor ({str(dtype)[6:]})",
+                rate,
+                best,
+                "traj-steps/s",
+                f"N = {n}, {args.steps} steps",
+            )
+        )
 
     stage("(a) bilinear TAN step")
     neural, neural_what = neural_map_for(tile, Path(args.runs_dir))
@@ -330,22 +376,40 @@ def run(args: argparse.Namespace) -> list[Row]:
     sub = _subset(truth, n_neural)
     for dtype in (torch.float32, torch.float64):
         rate, best = bench_tan_step(sub, scenario, lin, dtype=dtype, repeats=args.repeats)
-        rows.append(Row("(b) TAN step", f"torch neural map, autograd ({str(dtype)[6:]} filter)",
-                        rate, best, "traj-steps/s", f"N = {n_neural}, {args.steps} steps; "
-                        f"{neural_what}"))
+        rows.append(
+            Row(
+                "(b) TAN step",
+                f"torch neural map, autograd ({str(dtype)[6:]} filter)",
+                rate,
+                best,
+                "traj-steps/s",
+                f"N = {n_neural}, {args.steps} steps; {neural_what}",
+            )
+        )
 
     stage("(b) neural TAN step")
     fp_rate, fp_final = filterpy_tan(truth, scenario, tile, n_runs=args.n_filterpy)
-    rows.append(Row("(c) TAN step", "FilterPy EKF loop + scipy RGI linear (float64)", fp_rate,
-                    fp_rate, "traj-steps/s", f"N = {args.n_filterpy}, {args.steps} steps"))
+    rows.append(
+        Row(
+            "(c) TAN step",
+            "FilterPy EKF loop + scipy RGI linear (float64)",
+            fp_rate,
+            fp_rate,
+            "traj-steps/s",
+            f"N = {args.n_filterpy}, {args.steps} steps",
+        )
+    )
     torch_final = torch_final_states(truth, scenario, tile, n_runs=args.n_filterpy)
     deviation = float(np.abs(torch_final - fp_final).max())
-    print(f"# cross-check: max |torch float64 - FilterPy| over the final states of "
-          f"{args.n_filterpy} runs = {deviation:.2e}")
+    print(
+        f"# cross-check: max |torch float64 - FilterPy| over the final states of "
+        f"{args.n_filterpy} runs = {deviation:.2e}"
+    )
 
     stage("(c) FilterPy + cross-check")
-    rows += bench_queries(tile, neural, n_points=args.n_queries, n_scipy=args.n_scipy,
-                          repeats=args.repeats)
+    rows += bench_queries(
+        tile, neural, n_points=args.n_queries, n_scipy=args.n_scipy, repeats=args.repeats
+    )
     stage("(d) queries")
     return rows
 

@@ -94,8 +94,14 @@ def test_evaluate_end_to_end(
     assert code == 0, out.err
     folder = runs_with_map / "e2e" / "version_0"
     assert out.out.strip().splitlines()[-1] == f"results written to {folder}"
-    for name in ("report.md", "results.json", "config.yaml", "error_vs_time.png",
-                 "trajectories.png", "final_error_hist.png"):
+    for name in (
+        "report.md",
+        "results.json",
+        "config.yaml",
+        "error_vs_time.png",
+        "trajectories.png",
+        "final_error_hist.png",
+    ):
         assert (folder / name).is_file(), name
     assert list(folder.glob("events.out.tfevents*")), "no TensorBoard event file"
     assert not [p for p in (runs_with_map / "e2e").iterdir() if p.name.startswith(".")]
@@ -103,8 +109,15 @@ def test_evaluate_end_to_end(
     results = _strict_json(folder / "results.json")
     assert list(results["methods"]) == METHODS
     for name, entry in results["methods"].items():
-        for key in ("rmse_pos_m", "rmse_pos_converged_m", "rmse_vel_mps", "sigma_pos_m",
-                    "divergence_rate", "nees_in_band", "pcrb_ratio"):
+        for key in (
+            "rmse_pos_m",
+            "rmse_pos_converged_m",
+            "rmse_vel_mps",
+            "sigma_pos_m",
+            "divergence_rate",
+            "nees_in_band",
+            "pcrb_ratio",
+        ):
             assert key in entry, (name, key)
         assert entry["n_runs"] == 16
         assert entry["rmse_pos_m"] is not None and entry["rmse_pos_m"] > 0
@@ -132,9 +145,22 @@ def test_evaluate_end_to_end(
 
     # a second run gets the next version folder
     code = evaluate.main(
-        ["--config", str(TINY_CONFIG), "--runs_dir", str(runs_with_map), "--experiment", "e2e",
-         "--n_runs", "4", "--methods", "[bilinear]", "--tensorboard", "false",
-         "--dtype", "float32"]
+        [
+            "--config",
+            str(TINY_CONFIG),
+            "--runs_dir",
+            str(runs_with_map),
+            "--experiment",
+            "e2e",
+            "--n_runs",
+            "4",
+            "--methods",
+            "[bilinear]",
+            "--tensorboard",
+            "false",
+            "--dtype",
+            "float32",
+        ]
     )
     assert code == 0
     assert (runs_with_map / "e2e" / "version_1" / "results.json").is_file()

@@ -270,9 +270,7 @@ def build_results(
                         f"build_results: curve '{key}' of method '{name}' has {len(value)} "
                         f"values, expected {n_steps} (one per time step)."
                     )
-                curves.setdefault(name, {})[key] = [
-                    None if v is None else float(v) for v in value
-                ]
+                curves.setdefault(name, {})[key] = [None if v is None else float(v) for v in value]
             elif isinstance(value, (bool, int, float, str, np.integer, np.floating)) or (
                 value is None
             ):
@@ -407,8 +405,7 @@ def check_claims(
                 claim,
                 "n/a",
                 "not checked",
-                "needs the neural method and at least one classical method with a "
-                "finite 1σ",
+                "needs the neural method and at least one classical method with a finite 1σ",
             )
         )
     else:
@@ -484,14 +481,20 @@ def format_table(results: Mapping[str, Any], *, markdown: bool = False) -> str:
         lines += ["| " + " | ".join(row) + " |" for row in rows]
         return "\n".join(lines)
     widths = [max(len(row[i]) for row in [headers, *rows]) for i in range(len(headers))]
-    out = ["  ".join(h.ljust(w) if i == 0 else h.rjust(w) for i, (h, w) in enumerate(
-        zip(headers, widths, strict=True)))]
+    out = [
+        "  ".join(
+            h.ljust(w) if i == 0 else h.rjust(w)
+            for i, (h, w) in enumerate(zip(headers, widths, strict=True))
+        )
+    ]
     out.append("  ".join("-" * w for w in widths))
     for row in rows:
-        out.append("  ".join(
-            v.ljust(w) if i == 0 else v.rjust(w)
-            for i, (v, w) in enumerate(zip(row, widths, strict=True))
-        ))
+        out.append(
+            "  ".join(
+                v.ljust(w) if i == 0 else v.rjust(w)
+                for i, (v, w) in enumerate(zip(row, widths, strict=True))
+            )
+        )
     return "\n".join(out)
 
 
@@ -529,8 +532,11 @@ def render_report(
     lines.append("")
     setup = [
         ("map", map_info.get("path", config.get("map", "n/a"))),
-        ("tile", f"{map_info.get('tile_name', 'n/a')} (fingerprint "
-                 f"{map_info.get('tile_fingerprint', 'n/a')})"),
+        (
+            "tile",
+            f"{map_info.get('tile_name', 'n/a')} (fingerprint "
+            f"{map_info.get('tile_fingerprint', 'n/a')})",
+        ),
         ("scenario", scenario.get("name", config.get("scenario", "n/a"))),
         ("Monte Carlo runs", config.get("n_runs", "n/a")),
         ("time steps", max(len(results.get("curves", {}).get("t", [])) - 1, 0)),
@@ -543,11 +549,19 @@ def render_report(
         setup.append(("map fit RMSE (from training)", f"{fit['rmse_m']:.2f} m"))
     if _finite(map_info.get("neural_extra_variance_m2")):
         setup.append(
-            ("extra variance added to R for the neural map (beyond scenario.fit_variance_m2)",
-             f"{map_info['neural_extra_variance_m2']:.2f} m²")
+            (
+                "extra variance added to R for the neural map (beyond scenario.fit_variance_m2)",
+                f"{map_info['neural_extra_variance_m2']:.2f} m²",
+            )
         )
-    for key in ("dt", "speed_mps", "altimeter_sigma_m", "init_pos_sigma_m", "R_m2",
-                "fit_variance_m2"):
+    for key in (
+        "dt",
+        "speed_mps",
+        "altimeter_sigma_m",
+        "init_pos_sigma_m",
+        "R_m2",
+        "fit_variance_m2",
+    ):
         if key in scenario:
             setup.append((f"scenario.{key}", scenario[key]))
     lines += [f"- **{key}**: {value}" for key, value in setup]

@@ -42,6 +42,10 @@ class ShuffledBatches(Dataset):
         batch_size: Points per batch (the last batch of an epoch may be smaller).
         seed: Base seed of the shuffles.
         epoch_fn: Returns the current epoch number.
+        full: Optional ``(xy, heights)`` of every valid node, used instead of the training
+            nodes in the epochs where ``full_fn(epoch)`` is true (the refit phase). The
+            number of batches per epoch stays the same; batches grow slightly instead.
+        full_fn: Whether an epoch trains on ``full``.
     """
 
     def __init__(
@@ -52,6 +56,8 @@ class ShuffledBatches(Dataset):
         batch_size: int,
         seed: int,
         epoch_fn: Callable[[], int],
+        full: tuple[torch.Tensor, torch.Tensor] | None = None,
+        full_fn: Callable[[int], bool] | None = None,
     ) -> None:
         if xy.ndim != 2 or xy.shape[1] != 2 or heights.shape != xy.shape[:1]:
             raise ValueError(
@@ -62,24 +68,37 @@ class ShuffledBatches(Dataset):
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.epoch_fn = epoch_fn
+        self.full = full
+        self.full_fn = full_fn
         self._cached: tuple[int, torch.Tensor] | None = None
 
     def __len__(self) -> int:
         return math.ceil(self.xy.shape[0] / self.batch_size)
 
+    def _source(self, epoch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        if self.full is not None and self.full_fn is not None and self.full_fn(epoch):
+            return self.full
+        return self.xy, self.heights
+
     def permutation(self, epoch: int) -> torch.Tensor:
-        """``(N,)`` int64 node order of ``epoch`` (cached for the current epoch)."""
+        """Node order of ``epoch`` over that epoch's node set (cached for the epoch)."""
         if self._cached is None or self._cached[0] != epoch:
             generator = torch.Generator().manual_seed(self.seed * _SHUFFLE_STREAM + epoch)
-            self._cached = (epoch, torch.randperm(self.xy.shape[0], generator=generator))
+            n = self._source(epoch)[0].shape[0]
+            self._cached = (epoch, torch.randperm(n, generator=generator))
         return self._cached[1]
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
         if not 0 <= index < len(self):
             raise IndexError(index)
-        order = self.permutation(int(self.epoch_fn()))
-        take = order[index * self.batch_size : (index + 1) * self.batch_size]
-        return self.xy[take], self.heights[take]
+        epoch = int(self.epoch_fn())
+        order = self.permutation(epoch)
+        size = self.batch_size
+        if order.shape[0] != self.xy.shape[0]:  # refit phase: same batch count, all nodes
+            size = math.ceil(order.shape[0] / len(self))
+        take = order[index * size : (index + 1) * size]
+        xy, heights = self._source(epoch)
+        return xy[take], heights[take]
 
 
 class Chunks(Dataset):
@@ -152,6 +171,7 @@ class DemDataModule(pl.LightningDataModule):
         val_fraction: float = 0.02,
         seed: int = 0,
         eval_batch_size: int = 65536,
+        refit_epochs: int = 0,
     ) -> None:
         super().__init__()
         tile_given = isinstance(path, DemTile)
@@ -171,6 +191,9 @@ class DemDataModule(pl.LightningDataModule):
         self.val_fraction = float(val_fraction)
         self.seed = int(seed)
         self.eval_batch_size = int(eval_batch_size)
+        if int(refit_epochs) < 0:
+            raise NeuralMapError(f"data.refit_epochs must be >= 0, got {refit_epochs}.")
+        self.refit_epochs = int(refit_epochs)
         spacing_arg: float | tuple[float, ...] | None = None
         if spacing is not None:
             scalar = np.ndim(spacing) == 0
@@ -289,14 +312,36 @@ class DemDataModule(pl.LightningDataModule):
         n_chunks = math.ceil(n_chunks / world) * world  # same number of chunks on every rank
         return Chunks(*tensors, n_chunks=n_chunks)
 
+    @property
+    def refit_start_epoch(self) -> int | None:
+        """First epoch of the refit phase (training on every valid node), or None."""
+        trainer = getattr(self, "trainer", None)
+        max_epochs = getattr(trainer, "max_epochs", None) if trainer is not None else None
+        if self.refit_epochs <= 0 or max_epochs is None or max_epochs < 0:
+            return None
+        return max(0, int(max_epochs) - self.refit_epochs)
+
+    def in_refit(self, epoch: int) -> bool:
+        """Whether ``epoch`` trains on every valid node (held-out ones included)."""
+        start = self.refit_start_epoch
+        return start is not None and epoch >= start
+
     def train_dataloader(self) -> DataLoader:
-        """Whole shuffled batches ``(xy (B, 2), h (B,))`` of the training nodes."""
+        """Whole shuffled batches ``(xy (B, 2), h (B,))`` of the training nodes.
+
+        With ``refit_epochs = R > 0`` the last R epochs draw their batches from every valid
+        node, the held-out ones included: validation numbers logged before that phase are
+        the held-out generalisation error; the exported map has then seen every node
+        (train, monitor, then refit on all data).
+        """
         dataset = ShuffledBatches(
             self.xy[self.train_index],
             self.heights[self.train_index],
             batch_size=self.batch_size,
             seed=self.seed,
             epoch_fn=self._epoch,
+            full=(self.xy, self.heights) if self.refit_epochs > 0 else None,
+            full_fn=self.in_refit,
         )
         return DataLoader(dataset, batch_size=None, shuffle=False, num_workers=0)
 

@@ -110,6 +110,7 @@ class TerrainFitModule(pl.LightningModule):
         self.save_hyperparameters()
         self.net: BlockwiseTerrainNet | None = None
         self.points_seen = 0
+        self.heldout_metrics: dict[str, float] = {}
         self.train_time_s = 0.0
         self._epoch_start: float | None = None
         self._val = FitAccumulator()
@@ -222,6 +223,11 @@ class TerrainFitModule(pl.LightningModule):
     def on_validation_epoch_end(self) -> None:
         # Already reduced over ranks; sync_dist only keeps Lightning's bookkeeping uniform.
         m = self._reduced_metrics()
+        datamodule = getattr(self.trainer, "datamodule", None)
+        in_refit = getattr(datamodule, "in_refit", None)
+        if in_refit is None or not in_refit(int(self.current_epoch)):
+            # Last validation on truly held-out nodes (before any refit on all nodes).
+            self.heldout_metrics = {"epoch": int(self.current_epoch), **m}
         self.log_dict({"val/rmse_m": m["rmse_m"], "val/max_abs_m": m["max_abs_m"]},
                       prog_bar=True, sync_dist=True)
         self.log_dict({"val/mean_m": m["mean_m"], "val/slope_rmse": m["slope_rmse"]},

@@ -93,9 +93,7 @@ def plot_error_vs_time(
                 ls=":",
             )
     ax.plot(time, _curve(pcrb_pos, n, "pcrb_pos"), color="k", lw=1.6, ls="--", label="PCRB")
-    positive = [
-        np.asarray(v, dtype=np.float64) for v in [*curves.values(), pcrb_pos]
-    ]
+    positive = [np.asarray(v, dtype=np.float64) for v in [*curves.values(), pcrb_pos]]
     if any((v > 0).any() for v in positive):
         ax.set_yscale("log")
     ax.set_xlabel("time [s]")
@@ -146,7 +144,11 @@ def plot_trajectories(
     outline = [patheffects.Stroke(linewidth=3.0, foreground="k"), patheffects.Normal()]
     for m in range(truth.shape[0]):
         ax.plot(
-            truth[m, :, 0], truth[m, :, 1], color="w", lw=1.6, path_effects=outline,
+            truth[m, :, 0],
+            truth[m, :, 1],
+            color="w",
+            lw=1.6,
+            path_effects=outline,
             label="truth (o = start)" if m == 0 else None,
         )
         ax.plot(truth[m, 0, 0], truth[m, 0, 1], "o", color="w", mec="k", ms=5)
@@ -159,7 +161,11 @@ def plot_trajectories(
             )
         for m in range(est.shape[0]):
             ax.plot(
-                est[m, :, 0], est[m, :, 1], color=f"C{i % 10}", lw=0.9, alpha=0.85,
+                est[m, :, 0],
+                est[m, :, 1],
+                color=f"C{i % 10}",
+                lw=0.9,
+                alpha=0.85,
                 label=name if m == 0 else None,
             )
     ax.set_xlim(xmin - dx / 2, xmax + dx / 2)
@@ -179,7 +185,7 @@ def plot_final_error_histogram(
     bins: int | None = None,
     title: str = "Final horizontal position error",
 ) -> Figure:
-    """Histogram of the final horizontal error of every method (log-spaced bins).
+    """Histogram of the final horizontal error of every method (log-spaced bins, log counts).
 
     Args:
         final_errors: Method -> ``(N,)`` final horizontal errors in metres (off-map runs
@@ -199,8 +205,7 @@ def plot_final_error_histogram(
     fig = Figure(figsize=(8.0, 4.8))
     ax = fig.add_subplot()
     if everything.size:
-        low = max(float(everything[everything > 0].min()) if (everything > 0).any() else 1e-3,
-                  1e-3)
+        low = max(float(everything[everything > 0].min()) if (everything > 0).any() else 1e-3, 1e-3)
         high = max(float(everything.max()), low * 10)
         if bins is None:
             n_max = max(v.size for v in cleaned.values())
@@ -208,10 +213,16 @@ def plot_final_error_histogram(
         edges = np.geomspace(low, high, bins + 1)
         for i, (name, values) in enumerate(cleaned.items()):
             ax.hist(
-                np.clip(values, low, high), bins=edges, histtype="step", lw=1.4,
-                color=f"C{i % 10}", label=f"{name} (n={values.size})",
+                np.clip(values, low, high),
+                bins=edges,
+                histtype="step",
+                lw=1.4,
+                color=f"C{i % 10}",
+                label=f"{name} (n={values.size})",
             )
         ax.set_xscale("log")
+        ax.set_yscale("log")  # keeps the few diverged runs of the tail visible
+        ax.set_ylim(bottom=0.7)
     if pcrb_final is not None and np.isfinite(pcrb_final) and pcrb_final > 0:
         ax.axvline(pcrb_final, color="k", ls="--", lw=1.4, label="final PCRB")
     ax.set_xlabel("final horizontal error [m]")

@@ -77,8 +77,14 @@ def test_to_jsonable_makes_strict_json() -> None:
     }
     out = to_jsonable(data)
     assert out == {
-        "nan": None, "inf": None, "t": [1.0, None], "a": [0, 1, 2], "n": 4, "b": True,
-        "tup": [1, 2.5], "p": "x/y",
+        "nan": None,
+        "inf": None,
+        "t": [1.0, None],
+        "a": [0, 1, 2],
+        "n": 4,
+        "b": True,
+        "tup": [1, 2.5],
+        "p": "x/y",
     }
     json.dumps(out, allow_nan=False)  # raises on NaN
 
@@ -109,14 +115,29 @@ def test_build_results_rejects_missing_keys_and_bad_curves() -> None:
     bad = _metrics(10.0)
     del bad["pcrb_ratio"]
     with pytest.raises(NeuralMapError, match="pcrb_ratio"):
-        build_results(method_metrics={"x": bad}, t=[0.0] * K1, pcrb_pos=[1.0] * K1,
-                      divergence_rule="r", config={})
+        build_results(
+            method_metrics={"x": bad},
+            t=[0.0] * K1,
+            pcrb_pos=[1.0] * K1,
+            divergence_rule="r",
+            config={},
+        )
     with pytest.raises(NeuralMapError, match="rmse_pos_curve"):
-        build_results(method_metrics={"x": _metrics(10.0)}, t=[0.0] * 5, pcrb_pos=[1.0] * 5,
-                      divergence_rule="r", config={})
+        build_results(
+            method_metrics={"x": _metrics(10.0)},
+            t=[0.0] * 5,
+            pcrb_pos=[1.0] * 5,
+            divergence_rule="r",
+            config={},
+        )
     with pytest.raises(NeuralMapError, match="pcrb_pos"):
-        build_results(method_metrics={"x": _metrics(10.0)}, t=[0.0] * K1, pcrb_pos=[1.0] * 3,
-                      divergence_rule="r", config={})
+        build_results(
+            method_metrics={"x": _metrics(10.0)},
+            t=[0.0] * K1,
+            pcrb_pos=[1.0] * 3,
+            divergence_rule="r",
+            config={},
+        )
 
 
 @pytest.mark.parametrize(

@@ -77,6 +77,33 @@ def test_train_batches_cover_training_nodes_once_per_epoch_and_reshuffle() -> No
     assert _rows(xy1) == _rows(xy0) and not torch.equal(xy1, xy0)
 
 
+def test_refit_epochs_train_on_every_valid_node_with_same_batch_count() -> None:
+    tile = _tile()
+    dm = DemDataModule.from_tile(tile, val_fraction=0.1, batch_size=100, seed=0, refit_epochs=2)
+
+    class _Trainer:
+        max_epochs = 5
+
+    dm.trainer = _Trainer()  # type: ignore[assignment]
+    assert dm.refit_start_epoch == 3
+    assert [dm.in_refit(e) for e in range(5)] == [False, False, False, True, True]
+    dataset = dm.train_dataloader().dataset
+    epoch = {"e": 2}
+    dataset.epoch_fn = lambda: epoch["e"]
+    n_batches = len(dataset)
+    before = torch.cat([dataset[i][0] for i in range(n_batches)])
+    assert _rows(before) == _rows(dm.xy[dm.train_index])  # held-out nodes unseen
+    epoch["e"] = 3
+    during = [dataset[i] for i in range(n_batches)]
+    xy = torch.cat([b[0] for b in during])
+    assert xy.shape[0] == dm.n_valid and _rows(xy) == _rows(dm.xy)  # all nodes, each once
+    lookup = {tuple(p): h for p, h in zip(dm.xy.tolist(), dm.heights.tolist(), strict=True)}
+    h = torch.cat([b[1] for b in during])
+    assert all(lookup[tuple(p)] == v for p, v in zip(xy.tolist(), h.tolist(), strict=True))
+    with pytest.raises(NeuralMapError, match="refit_epochs"):
+        DemDataModule.from_tile(tile, refit_epochs=-1)
+
+
 def test_distributed_sampler_gives_ranks_disjoint_batches() -> None:
     tile = _tile(voids=False)
     dm = DemDataModule.from_tile(tile, val_fraction=0.05, batch_size=62, seed=0)

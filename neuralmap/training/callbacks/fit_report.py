@@ -137,9 +137,18 @@ class FitReport(pl.Callback):
                 "world_size": int(trainer.world_size),
             }
         )
-        for key in ("val/rmse_m", "val/max_abs_m", "val/slope_rmse"):
-            if key in trainer.callback_metrics:
-                metrics[key.replace("/", "_")] = float(trainer.callback_metrics[key])
+        heldout = getattr(pl_module, "heldout_metrics", None)
+        if heldout:
+            # Held-out nodes, last validation before any refit on every node.
+            metrics["val_rmse_m"] = float(heldout["rmse_m"])
+            metrics["val_max_abs_m"] = float(heldout["max_abs_m"])
+            metrics["val_slope_rmse"] = float(heldout["slope_rmse"])
+            metrics["val_epoch"] = int(heldout["epoch"])
+        else:
+            for key in ("val/rmse_m", "val/max_abs_m", "val/slope_rmse"):
+                if key in trainer.callback_metrics:
+                    metrics[key.replace("/", "_")] = float(trainer.callback_metrics[key])
+        metrics["refit_epochs"] = int(getattr(datamodule, "refit_epochs", 0))
         self.metrics = metrics
 
         figures = {

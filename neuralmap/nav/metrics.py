@@ -4,9 +4,10 @@ Definitions (the report quotes them; ``e`` is the error of the corrected estimat
 
 - Horizontal error of run n at step k: ``e_{n,k} = ||p̂_{n,k} − p_{n,k}||`` (m); velocity
   error ``||v̂ − v||`` (m/s).
-- Included runs: off-map runs (truth or estimate left the map at any step) are excluded
-  from every metric and counted in ``n_off_map``; runs with non-finite errors likewise
-  (``n_nonfinite``).
+- Included runs: off-map runs (the truth left the map at some step) are excluded from
+  every metric and counted in ``n_off_map``; runs with non-finite errors likewise
+  (``n_nonfinite``). A run whose *estimate* left the map stays included and counts as
+  diverged (``n_estimate_left_map``).
 - RMSE curve: ``sqrt(mean_n e_{n,k}²)`` per step. Time-averaged RMSE: root of the mean of
   ``e²`` over the runs and the **last half** of the samples (indices ``(K+1)//2 … K``).
   Final: the RMSE at the last sample.
@@ -18,7 +19,8 @@ Definitions (the report quotes them; ``e`` is the error of the corrected estimat
 - NEES (Bar-Shalom): ``ε_{n,k} = errᵀ P⁻¹ err`` on the 5-state error; per step the average
   ``ε̄_k`` over the M converged runs; ``M·ε̄_k ~ χ²(5M)`` for a consistent filter, so
   ``nees_in_band`` is the fraction of the K+1 samples with ``ε̄_k`` inside the two-sided
-  95 % band ``[χ²_{0.025}(5M)/M, χ²_{0.975}(5M)/M]``.
+  95 % band ``[χ²_{0.025}(5M)/M, χ²_{0.975}(5M)/M]``. ``nees_in_band_all`` is the same
+  over every included run, diverged ones too (the stricter figure).
 - ``pcrb_ratio``: converged time-averaged RMSE divided by the time-averaged (RMS over the
   last half) PCRB position bound.
 
@@ -41,8 +43,9 @@ DIVERGENCE_RULE = (
     "A run diverged when its final horizontal position error exceeds 5x the final PCRB "
     "position bound sqrt(J^-1_xx + J^-1_yy), or exceeds 3x the filter's own final 3-sigma "
     "horizontal bound 3*sqrt(P_xx + P_yy); a run whose filter became unhealthy (covariance "
-    "non-finite or not positive definite) also counts as diverged. Runs whose truth or "
-    "estimate left the map are excluded from every metric and counted as off-map."
+    "non-finite or not positive definite) or whose estimate left the map also counts as "
+    "diverged. Runs whose truth left the map are excluded from every metric and counted as "
+    "off-map."
 )
 
 
@@ -59,6 +62,23 @@ def divergence_rule(pcrb_factor: float = 5.0, sigma_factor: float = 3.0) -> str:
     return DIVERGENCE_RULE.replace("5x the final PCRB", f"{pcrb_factor:g}x the final PCRB").replace(
         "exceeds 3x the filter's", f"exceeds {sigma_factor:g}x the filter's"
     )
+
+
+def _nees_in_band(
+    err: torch.Tensor, P: torch.Tensor, n_states: int, confidence: float
+) -> tuple[float, torch.Tensor, float, float]:
+    """Fraction of samples whose run-averaged NEES lies in the two-sided χ² band.
+
+    Returns:
+        ``(fraction, eps_bar (K+1,), lo, hi)``.
+    """
+    m = err.shape[0]
+    eps_bar = nees(err, P).mean(dim=0)
+    alpha = 1.0 - confidence
+    lo = chi2_quantile(0.5 * alpha, n_states * m) / m
+    hi = chi2_quantile(1.0 - 0.5 * alpha, n_states * m) / m
+    inside = torch.isfinite(eps_bar) & (eps_bar >= lo) & (eps_bar <= hi)
+    return float(inside.sum()) / eps_bar.shape[0], eps_bar, lo, hi
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -191,7 +211,8 @@ def navigation_metrics(
     bound3 = 3.0 * (P[:, -1, 0, 0] + P[:, -1, 1, 1]).clamp(min=0.0).sqrt()
     pcrb_final = float(pcrb_pos[-1])
     too_far = (final_e > pcrb_factor * pcrb_final) | (final_e > sigma_factor * bound3)
-    diverged = included & (too_far | ~healthy)
+    est_left = ~run.est_on_map.detach().cpu().bool().all(dim=1)
+    diverged = included & (too_far | ~healthy | est_left)
     converged = included & ~diverged
     n_included, n_conv = int(included.sum()), int(converged.sum())
 
@@ -200,6 +221,7 @@ def navigation_metrics(
         "n_off_map": int(off_map.sum()),
         "n_nonfinite": int((~off_map & ~finite).sum()),
         "n_unhealthy": int((included & ~healthy).sum()),
+        "n_estimate_left_map": int((included & est_left).sum()),
         "n_included": n_included,
         "n_diverged": int(diverged.sum()),
         "n_converged": n_conv,
@@ -225,15 +247,17 @@ def navigation_metrics(
     out["rmse_vel_curve"] = _curve(e_vel2[included], n_samples)
 
     n_states = err.shape[-1]
+    out["nees_in_band_all"] = (
+        _nees_in_band(err[included], P[included], n_states, nees_confidence)[0]
+        if n_included
+        else None
+    )
     if n_conv:
-        eps_bar = nees(err[converged], P[converged]).mean(dim=0)  # (K+1,)
-        dof = n_states * n_conv
-        alpha = 1.0 - nees_confidence
-        lo = chi2_quantile(0.5 * alpha, dof) / n_conv
-        hi = chi2_quantile(1.0 - 0.5 * alpha, dof) / n_conv
+        fraction, eps_bar, lo, hi = _nees_in_band(
+            err[converged], P[converged], n_states, nees_confidence
+        )
         good = torch.isfinite(eps_bar)
-        inside = good & (eps_bar >= lo) & (eps_bar <= hi)
-        out["nees_in_band"] = float(inside.sum()) / n_samples
+        out["nees_in_band"] = fraction
         out["nees_mean"] = _none_if_bad(float(eps_bar[good].mean())) if good.any() else None
         out["nees_band"] = [lo, hi]
         out["nees_curve"] = [_none_if_bad(v) for v in eps_bar.tolist()]

@@ -316,7 +316,15 @@ def pcrb(
     if not isinstance(dt, (int, float)) or not dt > 0:
         raise NeuralMapError(f"{where}: scenario.dt must be a number > 0, got {dt!r}.")
     if model == "truth" and callable(getattr(scenario, "init_error_sigma", None)):
-        P0 = _diag([s * s for s in scenario.init_error_sigma()], "init_error_sigma()")
+        # A component with zero initial spread (a fixed initial error, as in the paper
+        # scenario) would make the prior exact and the bound 0 at t = 0; the filter does not
+        # know that error, so such components take the filter's prior variance P0 instead.
+        spread = [s * s for s in scenario.init_error_sigma()]
+        p0_filter = getattr(scenario, "P0_diag", None) or [0.0] * len(spread)
+        P0 = _diag(
+            [v if v > 0 else float(f) for v, f in zip(spread, p0_filter, strict=False)],
+            "init_error_sigma()",
+        )
     else:
         P0 = _diag(getattr(scenario, "P0_diag", None), "P0_diag")
     if model == "truth" and callable(getattr(scenario, "truth_process_noise", None)):

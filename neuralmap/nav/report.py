@@ -77,7 +77,8 @@ _TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("final_pos_m", "final pos [m]", "{:.1f}"),
     ("pcrb_ratio", "RMSE/PCRB", "{:.2f}"),
     ("divergence_rate", "diverged", "{:.1%}"),
-    ("nees_in_band", "NEES in 95% band", "{:.1%}"),
+    ("nees_in_band", "NEES in band (conv)", "{:.1%}"),
+    ("nees_in_band_all", "NEES in band (all)", "{:.1%}"),
     ("n_off_map", "off-map", "{:d}"),
 )
 

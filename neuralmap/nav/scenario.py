@@ -256,10 +256,10 @@ class Scenario:
         self.init_error_mean = vector("init_error_mean", self.init_error_mean, 5)
         self.P0_diag = vector("P0_diag", self.P0_diag, 5)
         self.Q_diag = vector("Q_diag", self.Q_diag, 5)
-        for key in ("P0_diag", "Q_diag"):
-            values = getattr(self, key)
-            if any(v <= 0.0 for v in values):
-                raise bad(key, values, "5 variances > 0 (the matrix must be positive definite)")
+        if any(v <= 0.0 for v in self.P0_diag):
+            raise bad("P0_diag", self.P0_diag, "5 variances > 0 (P0 must be positive definite)")
+        if any(v < 0.0 for v in self.Q_diag):
+            raise bad("Q_diag", self.Q_diag, "5 variances >= 0 (Q must be positive semi-definite)")
         if self.start_xy is not None:
             self.start_xy = vector("start_xy", self.start_xy, 2)
         if self.waypoints is not None:

@@ -19,17 +19,6 @@ from neuralmap.filters.ekf import positive_definite_batchlast
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _single_torch_thread():
-    """FilterPy (NumPy BLAS threads) interleaved with torch's OpenMP/MKL threads on a
-    2-core machine makes tiny torch.linalg calls ~1000x slower (both pools spin-wait);
-    one torch thread keeps these small reference comparisons fast."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def _random_F(
     gen: torch.Generator, n: int, *, dense: bool, batch: int | None = None
 ) -> torch.Tensor:

@@ -144,3 +144,22 @@ def test_bad_pcrb_shape() -> None:
         navigation_metrics(run, torch.ones(3))
     with pytest.raises(NeuralMapError, match="pcrb_factor"):
         navigation_metrics(run, torch.ones(4), pcrb_factor=0.0)
+
+
+def test_estimate_leaving_the_map_counts_as_diverged_not_excluded() -> None:
+    run, pcrb = build_run()
+    run.est_on_map[0, 2] = False  # run 0's estimate wandered off the tile at one step
+    m = navigation_metrics(run, pcrb)
+    assert m["diverged"] == [True, False, True, True, False, True]
+    assert m["n_included"] == 5 and m["n_estimate_left_map"] == 1
+    assert m["divergence_rate"] == pytest.approx(4 / 5)
+    assert "estimate left the map" in m["divergence_rule"]
+
+
+def test_nees_over_all_runs_is_reported_beside_converged() -> None:
+    run, pcrb = build_run()
+    m = navigation_metrics(run, pcrb)
+    eps = nees(run.err[[0, 1, 2, 3, 5]], run.P[[0, 1, 2, 3, 5]]).mean(0)
+    lo, hi = chi2.ppf(0.025, 25) / 5, chi2.ppf(0.975, 25) / 5
+    expected = float(((eps >= lo) & (eps <= hi)).double().mean())
+    assert m["nees_in_band_all"] == pytest.approx(expected)

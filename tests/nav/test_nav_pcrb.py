@@ -30,17 +30,6 @@ from neuralmap.terrain.grid import GridTerrain
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _single_torch_thread():
-    """FilterPy (NumPy BLAS threads) interleaved with torch's OpenMP/MKL threads on a
-    2-core machine makes tiny torch.linalg calls ~1000x slower (both pools spin-wait);
-    one torch thread keeps these small reference comparisons fast."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 def _riccati(P0: np.ndarray, F: np.ndarray, Q: np.ndarray, H: np.ndarray, R: np.ndarray,
              steps: int, skip: set[int] = frozenset()) -> np.ndarray:
     """Kalman covariances P_0 … P_K: predict then (Joseph) update at steps 1 … K."""
@@ -252,3 +241,24 @@ def test_bad_inputs() -> None:
                        torch.zeros(3, 2, 2))
     with pytest.raises(NeuralMapError, match=r"\(K\+1, n, n\)"):
         pcrb_position(torch.zeros(3, 5))
+
+
+def test_fixed_initial_error_takes_the_filter_prior() -> None:
+    """Zero initial spread (paper scenario) must not give a zero bound at t = 0."""
+    import dataclasses
+
+    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.nav.simulator import simulate
+    from neuralmap.terrain.grid import GridTerrain
+
+    scenario = load_scenario("tiny")
+    fixed = dataclasses.replace(
+        scenario, init_pos_sigma_m=0.0, init_alt_sigma_m=0.0, init_vel_sigma_mps=0.0
+    )
+    tile = scenario_tile(fixed)
+    truth = simulate(fixed, tile, n_runs=4, seed=0)
+    bound = pcrb(truth, fixed, GridTerrain(tile, method="bicubic"))
+    torch.testing.assert_close(
+        torch.diagonal(bound[0]), torch.tensor(fixed.P0_diag, dtype=bound.dtype)
+    )
+    assert pcrb_position(bound)[-1] > 0

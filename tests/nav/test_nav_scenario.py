@@ -63,7 +63,7 @@ def test_unknown_key_lists_valid_keys(tmp_path) -> None:
         ("dt", 0.0, "> 0"),
         ("P0_diag", [1.0, 1.0, 0.0, 1.0, 1.0], "positive definite"),
         ("Q_diag", [1.0, 1.0, 1.0], "5 numbers"),
-        ("Q_diag", [1.0, 1.0, 1.0, -1.0, 1.0], "positive definite"),
+        ("Q_diag", [1.0, 1.0, 1.0, -1.0, 1.0], "positive semi-definite"),
         ("altimeter_sigma_m", -2.0, ">= 0"),
         ("outlier_prob", 1.5, "[0, 1]"),
         ("speed_mps", "fast", "a number"),

@@ -577,9 +577,10 @@ def render_report(
         "half of the flight. RMSE pos conv: the same over the runs that did not diverge. "
         "1σ pos conv: standard deviation of the converged horizontal error (the papers' "
         "figure). RMSE/PCRB: converged RMSE over the PCRB, both time-averaged over the last "
-        "half. NEES in 95% band: fraction of the time steps whose NEES, averaged over the "
+        "half. NEES in band (conv): fraction of the time steps whose NEES, averaged over the "
         "non-diverged runs, lies inside the two-sided 95 % χ² band (1.0 = consistent "
-        "filter). Time averages are root mean squares over the last half of the samples. "
+        "filter); NEES in band (all): the same over every on-map run, diverged ones "
+        "included. Time averages are root mean squares over the last half of the samples. "
         "The PCRB row gives the horizontal bound (time-averaged, and final)."
     )
     lines.append("")
@@ -589,7 +590,7 @@ def render_report(
     lines.append(
         "**Off-map runs** (excluded from every metric): "
         + (f"{n_truth} truth trajectories left the tile; " if n_truth is not None else "")
-        + f"per method (truth or estimate left the map): {off_text}."
+        + f"per method (truth left the map; an estimate that left it counts as diverged): {off_text}."
     )
     lines.append("")
 

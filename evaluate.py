@@ -221,7 +221,7 @@ def build_methods(
 
     methods: dict[str, Any] = {}
     for name in names:
-        if name == "neural":
+        if name in ("neural", "neural_region"):
             linearizer = make_linearizer(
                 name, tile=tile, terrain=terrain_map, fit_variance=fit_variance
             )

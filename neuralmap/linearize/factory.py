@@ -22,6 +22,7 @@ from neuralmap.terrain.grid import GridTerrain
 #: Every name :func:`make_linearizer` accepts.
 LINEARIZER_NAMES = (
     "neural",
+    "neural_region",
     "bilinear",
     "bicubic",
     "nine_point",
@@ -34,6 +35,10 @@ LINEARIZER_NAMES = (
 
 _DESCRIPTIONS = {
     "neural": "autograd on the given terrain model (neural map), variance = fit_variance",
+    "neural_region": (
+        "autograd on the neural map, variance = fit_variance + the tangent plane's mean "
+        "squared miss over the position uncertainty (Gauss-Hermite)"
+    ),
     "bilinear": "first-order Taylor on the bilinear DEM grid",
     "bicubic": "autograd on the bicubic DEM grid",
     "nine_point": "least-squares plane through the 3 x 3 nodes around the estimate",
@@ -101,21 +106,23 @@ def make_linearizer(
             f"make_linearizer: unknown linearisation method {name!r}; choose one of "
             f"{', '.join(LINEARIZER_NAMES)}."
         )
-    if name == "neural":
+    if name in ("neural", "neural_region"):
         if terrain is None:
             raise NeuralMapError(
-                "make_linearizer('neural'): pass terrain=<the neural map> (load it with "
+                f"make_linearizer('{name}'): pass terrain=<the neural map> (load it with "
                 "neuralmap.terrain.load_map(path))."
             )
         fingerprint = getattr(terrain, "tile_fingerprint", "")
         if tile is not None and fingerprint and fingerprint != tile.fingerprint():
             raise NeuralMapError(
-                f"make_linearizer('neural'): the map was fitted to tile "
+                f"make_linearizer('{name}'): the map was fitted to tile "
                 f"'{getattr(terrain, 'tile_name', '?')}' (fingerprint {fingerprint}), not to "
                 f"tile '{tile.name}' (fingerprint {tile.fingerprint()}). Fit a map to this "
                 "tile with `python train.py --data.path ...` or pick the matching tile."
             )
         _check_kwargs(name, AutogradLinearizer, kw, {"terrain", "fit_variance"})
+        if name == "neural_region":
+            kw.setdefault("region_variance", True)
         return AutogradLinearizer(terrain, fit_variance=fit_variance, **kw)
     if not isinstance(tile, DemTile):
         raise NeuralMapError(

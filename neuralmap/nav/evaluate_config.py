@@ -10,6 +10,7 @@ from neuralmap.exceptions import NeuralMapError
 #: Methods evaluated when ``--methods`` is not given (issue 3 §5).
 DEFAULT_METHODS: tuple[str, ...] = (
     "neural",
+    "neural_region",
     "bilinear",
     "nine_point",
     "mean_point",

@@ -158,3 +158,38 @@ def test_bad_inputs() -> None:
 
     with pytest.raises(NeuralMapError, match="differentiabl"):
         AutogradLinearizer(Detached())(points(3))
+
+
+def test_region_variance_is_exact_on_a_quadratic() -> None:
+    """E[(½ dᵀ H d)²] = ¼ (2 tr((HΣ)²) + tr(HΣ)²) for d ~ N(0, Σ) (Gaussian moments)."""
+
+    class Quadratic(torch.nn.Module):
+        def forward(self, xy: torch.Tensor) -> torch.Tensor:
+            x, y = xy[..., 0], xy[..., 1]
+            return 0.01 * x**2 + 0.02 * x * y - 0.005 * y**2 + 3.0 * x - 2.0 * y
+
+    hessian = torch.tensor([[0.02, 0.02], [0.02, -0.01]], dtype=torch.float64)
+    cov = torch.tensor([[400.0, 100.0], [100.0, 900.0]], dtype=torch.float64)
+    hs = hessian @ cov
+    exact = 0.25 * (2.0 * torch.trace(hs @ hs) + torch.trace(hs) ** 2)
+    lin = AutogradLinearizer(Quadratic(), region_variance=True, fit_variance=6.0)
+    xy = torch.randn(7, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 300
+    out = lin(xy, cov.expand(7, 2, 2))
+    torch.testing.assert_close(out.variance, torch.full((7,), float(exact) + 6.0, dtype=torch.float64))
+    with pytest.raises(NeuralMapError, match="pos_cov"):
+        lin(xy)
+
+
+def test_region_variance_matches_monte_carlo_on_a_sinusoid() -> None:
+    class Wave(torch.nn.Module):
+        def forward(self, xy: torch.Tensor) -> torch.Tensor:
+            return 40.0 * torch.sin(xy[..., 0] / 300.0) * torch.cos(xy[..., 1] / 500.0)
+
+    terrain = Wave()
+    cov = torch.tensor([[30.0**2, 0.0], [0.0, 50.0**2]], dtype=torch.float64)
+    xy = torch.tensor([[200.0, -100.0]], dtype=torch.float64)
+    out = AutogradLinearizer(terrain, region_variance=True)(xy, cov.unsqueeze(0))
+    d = torch.randn(400_000, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    d = d @ torch.linalg.cholesky(cov).T
+    miss = terrain(xy + d) - terrain(xy) - d @ out.slope[0]
+    torch.testing.assert_close(out.variance[0], miss.square().mean(), rtol=0.03, atol=0.0)

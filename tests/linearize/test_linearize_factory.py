@@ -34,6 +34,7 @@ def test_every_name_builds_and_runs() -> None:
     cov = (torch.eye(2, dtype=torch.float64) * 150.0**2).expand(2, 2, 2)
     expected = {
         "neural": AutogradLinearizer,
+        "neural_region": AutogradLinearizer,
         "bilinear": TaylorLinearizer,
         "bicubic": AutogradLinearizer,
         "nine_point": NinePointLinearizer,

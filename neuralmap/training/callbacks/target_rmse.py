@@ -14,7 +14,8 @@ class TargetRmseStopping(pl.Callback):
     SEEDS 004 trains each BP net until the summed squared error ``e`` falls below a
     threshold ``rho``; here the threshold is on the validation RMSE in metres, which does
     not depend on the number of nodes. Every DDP rank sees the same all-reduced metric, so
-    all ranks stop together.
+    all ranks stop together. During a refit phase (``data.refit_epochs``) the validation
+    nodes are trained on, so the rule is not applied there.
 
     Args:
         target_m: RMSE threshold in metres (> 0).
@@ -38,6 +39,9 @@ class TargetRmseStopping(pl.Callback):
     def on_validation_end(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         if trainer.sanity_checking or self.monitor not in trainer.callback_metrics:
             return
+        in_refit = getattr(getattr(trainer, "datamodule", None), "in_refit", None)
+        if in_refit is not None and in_refit(int(trainer.current_epoch)):
+            return  # the held-out nodes are being trained on: no longer a held-out metric
         value = float(trainer.callback_metrics[self.monitor])
         if value < self.target_m and self.stopped_epoch is None:
             self.stopped_epoch = trainer.current_epoch

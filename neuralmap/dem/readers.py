@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from neuralmap.dem.geo import geographic_grid, geographic_reference, looks_geographic
-from neuralmap.dem.tile import DemTile
+from neuralmap.dem.tile import DemTile, broadcast_pair
 from neuralmap.exceptions import NeuralMapError
 
 #: Built-in tile names accepted by :func:`load_tile` (see :mod:`neuralmap.dem.samples`).
@@ -145,13 +145,7 @@ def load_tile(
 
 def as_pair(value: Any, what: str, where: str, *, positive: bool) -> tuple[float, float]:
     """Broadcasts a scalar or length-2 value to a finite float pair, or raises."""
-    try:
-        arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (2,))
-    except (TypeError, ValueError) as exc:
-        raise NeuralMapError(
-            f"{where}: {what} must be one number or a pair (x, y), got {value!r}."
-        ) from exc
-    pair = (float(arr[0]), float(arr[1]))
+    pair = broadcast_pair(value, what, where)
     if not all(math.isfinite(v) for v in pair) or (positive and min(pair) <= 0.0):
         need = "finite and > 0 metres" if positive else "finite"
         hint = f" {_SPACING_HINT}" if positive else ""

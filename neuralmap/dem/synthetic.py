@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from neuralmap.dem.tile import DemTile
+from neuralmap.dem.tile import DemTile, broadcast_pair
 from neuralmap.exceptions import NeuralMapError
 
 #: Mean height added to the synthetic relief, metres (the surface spans
@@ -15,14 +15,8 @@ SYNTHETIC_BASE_HEIGHT = 500.0
 
 
 def _as_pair(value: object, what: str, cast: type) -> tuple:
-    """Broadcasts a scalar or a length-2 sequence to a pair, or raises NeuralMapError."""
-    try:
-        arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (2,))
-    except (TypeError, ValueError) as exc:
-        raise NeuralMapError(
-            f"synthetic_tile: {what} must be a number or a pair (ny, nx)/(dx, dy), got {value!r}."
-        ) from exc
-    return tuple(cast(v) for v in arr)
+    """Broadcasts a scalar or a length-2 sequence to a pair of ``cast``, or raises."""
+    return tuple(cast(v) for v in broadcast_pair(value, what, "synthetic_tile"))
 
 
 def _fast_length(n: int) -> int:

@@ -11,6 +11,23 @@ import numpy as np
 from neuralmap.exceptions import NeuralMapError
 
 
+def broadcast_pair(value: Any, what: str, where: str) -> tuple[float, float]:
+    """Broadcasts a scalar or length-2 value to a float pair, or raises NeuralMapError.
+
+    Args:
+        value: A number or a pair.
+        what: Name of the value, for the message (e.g. ``"spacing"``).
+        where: Where it came from (file, function), for the message.
+    """
+    try:
+        arr = np.broadcast_to(np.asarray(value, dtype=np.float64), (2,))
+    except (TypeError, ValueError) as exc:
+        raise NeuralMapError(
+            f"{where}: {what} must be one number or a pair, got {value!r}."
+        ) from exc
+    return float(arr[0]), float(arr[1])
+
+
 @dataclass(frozen=True)
 class GeoReference:
     """How a geographic (lon/lat degrees) grid was converted to local metres.

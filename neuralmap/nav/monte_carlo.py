@@ -23,6 +23,7 @@ from neuralmap.linearize.base import Linearizer
 from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
 from neuralmap.nav.simulator import Truth, simulate
 from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+from neuralmap.terrain.base import inside_extent
 
 
 @dataclass
@@ -160,7 +161,7 @@ def run_filter(
     est_on_map = torch.ones(n, k_steps + 1, dtype=torch.bool, device=device)
     err[:, 0] = truth.ins_error[:, 0] - ekf.x
     P_hist[:, 0] = ekf.P
-    est_on_map[:, 0] = _inside(truth.ins_pos[:, 0, :2], truth.extent)
+    est_on_map[:, 0] = inside_extent(truth.ins_pos[:, 0, :2], truth.extent)
 
     bar, own_bar = None, False
     if progress is True:
@@ -199,12 +200,6 @@ def run_filter(
         updated=updated, est_on_map=est_on_map, off_map=off_map,
         healthy=ekf.healthy.clone(), elapsed_s=elapsed,
     )
-
-
-def _inside(xy: torch.Tensor, extent: tuple[float, float, float, float]) -> torch.Tensor:
-    """``(N,)`` bool: points ``(N, 2)`` inside ``extent``."""
-    xmin, xmax, ymin, ymax = extent
-    return (xy[:, 0] >= xmin) & (xy[:, 0] <= xmax) & (xy[:, 1] >= ymin) & (xy[:, 1] <= ymax)
 
 
 def run_monte_carlo(

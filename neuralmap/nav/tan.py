@@ -23,6 +23,7 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.base import Linearizer
+from neuralmap.terrain.base import inside_extent
 
 #: Number of states of the TAN error model.
 N_STATES = 5
@@ -177,9 +178,7 @@ def tan_filter_step(
         use = torch.ones(n, dtype=torch.bool, device=x.device) if mask is None else mask
         on_map = use if mask is None else torch.ones_like(mask)
     else:
-        xmin, xmax, ymin, ymax = extent
-        px, py = p_hat[:, 0], p_hat[:, 1]
-        on_map = (px >= xmin) & (px <= xmax) & (py >= ymin) & (py <= ymax)
+        on_map = inside_extent(p_hat, extent)
         use = on_map if mask is None else on_map & mask
     residual = (ins_pos[:, 2] - x[:, 2]) - height - radar
     r_total = lin_var + R

@@ -6,6 +6,26 @@ import torch
 from torch import nn
 
 
+def inside_extent(
+    xy: torch.Tensor, extent: tuple[float, float, float, float], margin: float = 0.0
+) -> torch.Tensor:
+    """Whether points lie inside ``extent = (xmin, xmax, ymin, ymax)`` shrunk by ``margin``.
+
+    Args:
+        xy: ``(..., 2)`` metric points.
+        extent: Metric bounds.
+        margin: Distance kept from the border, metres.
+
+    Returns:
+        ``(...)`` bool.
+    """
+    xmin, xmax, ymin, ymax = extent
+    x, y = xy[..., 0], xy[..., 1]
+    return (x >= xmin + margin) & (x <= xmax - margin) & (y >= ymin + margin) & (
+        y <= ymax - margin
+    )
+
+
 class TerrainModel(nn.Module):
     """A terrain height field ``h(x, y)`` in metres over a metric east-north frame.
 
@@ -43,8 +63,4 @@ class TerrainModel(nn.Module):
         Returns:
             ``(...)`` bool.
         """
-        xmin, xmax, ymin, ymax = self.extent
-        x, y = xy[..., 0], xy[..., 1]
-        return (x >= xmin + margin) & (x <= xmax - margin) & (y >= ymin + margin) & (
-            y <= ymax - margin
-        )
+        return inside_extent(xy, self.extent, margin)

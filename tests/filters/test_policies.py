@@ -341,14 +341,14 @@ def test_variational_inside_compose_matches_alone() -> None:
 
 
 # ---------------------------------------------------------------- P stays SPD
-def _all_policies() -> list:  # type: ignore[type-arg]
-    return [
-        IGG3(1.5, 4.5), Huber(), ChiSquareGate(0.99), YangAdaptive(1.0, 3.0),
-        YangAdaptive(1.0, segments=2), RobustAdaptive(), InnovationInflation(1.2),
-        SageHusa(0.95, 0.01, 100.0), SageHusa(0.95, 0.01, 100.0, adapt_Q=True),
-        SageHusa(0.95, 0.01, 100.0, diagonal=False),
-        VariationalAdaptive(iterations=3), Compose(IGG3(), InnovationInflation()),
-    ]
+_all_policies = [
+    lambda: IGG3(1.5, 4.5), lambda: Huber(), lambda: ChiSquareGate(0.99),
+    lambda: YangAdaptive(1.0, 3.0), lambda: YangAdaptive(1.0, segments=2),
+    lambda: RobustAdaptive(), lambda: InnovationInflation(1.2),
+    lambda: SageHusa(0.95, 0.01, 100.0), lambda: SageHusa(0.95, 0.01, 100.0, adapt_Q=True),
+    lambda: SageHusa(0.95, 0.01, 100.0, diagonal=False),
+    lambda: VariationalAdaptive(iterations=3), lambda: Compose(IGG3(), InnovationInflation()),
+]
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
@@ -356,7 +356,8 @@ def test_policies_keep_P_symmetric_positive_definite(dtype: torch.dtype) -> None
     rng = np.random.default_rng(7)
     zs, mask = _measurements(batch=16, steps=12, seed=7)
     zs = zs + (rng.random(zs.shape) < 0.15) * rng.normal(scale=50.0, size=zs.shape)
-    for policy in _all_policies():
+    for make in _all_policies:
+        policy = make()
         ekf, _ = _run_torch(policy, zs, mask, dtype=dtype)
         P = ekf.P
         assert P.dtype == dtype
@@ -364,3 +365,40 @@ def test_policies_keep_P_symmetric_positive_definite(dtype: torch.dtype) -> None
         assert bool((torch.linalg.cholesky_ex(P.double()).info == 0).all()), policy.name
         assert bool(ekf.healthy.all()), policy.name
         assert bool(torch.isfinite(ekf.x).all()), policy.name
+
+
+# ---------------------------------------------------------------- scalar fast path
+@pytest.mark.parametrize("shared_h", [False, True])
+def test_scalar_policy_fast_path_equals_dense_path(shared_h: bool) -> None:
+    """m = 1: the entry-by-entry policy path against the (N, m, m) one, every policy."""
+    zs, mask = _measurements(batch=12, steps=8, seed=11)
+    rng = np.random.default_rng(11)
+    zs = zs + (rng.random(zs.shape) < 0.2) * rng.normal(scale=30.0, size=zs.shape)
+    F, Q, H2, _ = (torch.tensor(a, dtype=D) for a in _linear_system())
+    H = H2[:1]
+    for make in _all_policies:
+        fast_policy, dense_policy = make(), make()
+        fast = BatchedEKF(torch.zeros(12, 4, dtype=D), 4.0 * torch.eye(4, dtype=D))
+        dense = BatchedEKF(torch.zeros(12, 4, dtype=D), 4.0 * torch.eye(4, dtype=D))
+        for s in range(zs.shape[0]):
+            fast.predict(F, Q, policy=fast_policy)
+            dense.predict(F, Q, policy=dense_policy)
+            m_s = torch.tensor(mask[s])
+            z = torch.tensor(zs[s, :, :1], dtype=D)
+            h_b = H.expand(12, 1, 4) * (1.0 + 0.1 * s)
+            h_in = h_b[0] if shared_h else h_b  # shared (1, n) or per-sample (N, 1, n)
+            r_fast = z - torch.einsum("bmn,bn->bm", h_b, fast.x)
+            d_fast = fast.update(r_fast, h_in, 0.7, mask=m_s, policy=fast_policy)
+            # the dense path on the same (sanitised) inputs
+            r_d, h_d = dense._parse_measurement(z - torch.einsum("bmn,bn->bm", h_b, dense.x),
+                                                h_in)[:2]
+            R_d = dense._parse_noise(0.7, 1, m_s)
+            r_d, h_d, R_d = dense._sanitise(r_d, h_d, R_d, m_s)
+            d_dense = dense._update_policy_dense(r_d, h_d, R_d, m_s, dense_policy)
+            assert torch.equal(d_fast.applied, d_dense.applied), fast_policy.name
+            for key, value in d_dense.policy_info.items():
+                torch.testing.assert_close(d_fast.policy_info[key], value, rtol=1e-10,
+                                           atol=1e-10, msg=f"{fast_policy.name} {key}")
+        torch.testing.assert_close(fast.x, dense.x, rtol=1e-10, atol=1e-10)
+        torch.testing.assert_close(fast.P, dense.P, rtol=1e-10, atol=1e-10)
+        assert torch.equal(fast.P, fast.P.transpose(1, 2))

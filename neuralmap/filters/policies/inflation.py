@@ -58,5 +58,7 @@ class InnovationInflation(FilterPolicy):
         if Q is None:
             return Adaptation(p_scale=alpha, info=info)
         a = alpha.reshape(-1, 1, 1)
-        P = a * context.P_prior - (a - 1.0) * Q
-        return Adaptation(P_prior=0.5 * (P + P.transpose(1, 2)), info=info)
+        # α P⁻ − (α − 1) Q: exactly symmetric for symmetric P⁻ and Q (entry (i, j) and
+        # (j, i) see the same operands), and P⁻ itself where α = 1
+        P = torch.addcmul(a * context.P_prior, a - 1.0, Q, value=-1.0)
+        return Adaptation(P_prior=P, info=info)

@@ -13,9 +13,11 @@ predicts (through :meth:`SageHusa.process_noise`). d_0 = 1, so the first estimat
 the starting value.
 
 Clamps keep the estimates positive definite: by default (``diagonal=True``) each
-variance ``R̂_ii`` is clipped to ``[R_min_i, R_max_i]`` and the covariances are dropped;
-with ``diagonal=False`` the full matrix recursion is kept and its eigenvalues are clipped
-to ``[min R_min, max R_max]``. Q̂'s eigenvalues are clipped to ``≥ Q_min``.
+variance ``R̂_ii`` is clipped to ``[R_min_i, R_max_i]``, each ``Q̂_ii`` to ``≥ Q_min``, and
+the covariances are dropped (the usual practice, e.g. PSINS); with ``diagonal=False`` the
+full matrix recursions are kept and their eigenvalues clipped (R̂ to
+``[min R_min, max R_max]``, Q̂ to ``≥ Q_min``; an ``eigh`` per sample, several times
+dearer).
 """
 
 from __future__ import annotations
@@ -75,7 +77,7 @@ class SageHusa(FilterPolicy):
         R_min: Smallest variance: scalar or ``(m,)`` per component, > 0.
         R_max: Largest variance, ≥ R_min (same forms).
         adapt_Q: Also estimate Q (used by ``predict(..., policy=this)``).
-        diagonal: Estimate variances only (default); False keeps the full matrix.
+        diagonal: Estimate variances only (default); False keeps the full matrices.
         Q_min: Eigenvalue floor of Q̂ (≥ 0).
 
     State: ``R̂`` ``(N, m, m)``, the per-sample update count, ``Q̂`` ``(N, n, n)``; only
@@ -195,7 +197,11 @@ class SageHusa(FilterPolicy):
             else:
                 prev = torch.where(self._Q_known.reshape(-1, 1, 1), self._Q_hat, Q_used)
                 known = self._Q_known | applied
-            Q_new = _clamp_eigen((1.0 - dd) * prev + dd * sample, self.Q_min, None)
+            Q_new = (1.0 - dd) * prev + dd * sample
+            if self.diagonal:
+                Q_new = torch.diag_embed(diagonal(Q_new).clamp_min(self.Q_min))
+            else:
+                Q_new = _clamp_eigen(Q_new, self.Q_min, None)
             self._Q_hat = torch.where(a3, Q_new, prev)
             self._Q_known = known
         self._count = self._count + applied.to(torch.long)

@@ -7,7 +7,15 @@
 Lightning trainer flag work as usual; ``--ckpt_path`` resumes. Outputs go to
 ``runs/<experiment>/version_N/`` (experiment = tile name unless ``--experiment``): TensorBoard
 events, ``config.yaml``, checkpoints, PNG figures, ``metrics.json`` and ``neural_map.pt``,
-whose path is the last line printed on stdout.
+whose path is the last line printed on stdout. Every run gets its own ``version_N``, also
+with ``--trainer.logger false`` (then reserved here).
+
+Exit codes: 0 with the map path as the last stdout line; 2 for bad input (a one-line
+``error:`` message on stderr, checked before training where possible: ``max_epochs 0``,
+an ``--experiment`` leaving ``--runs_dir``, a ``--runs_dir`` that is a file, an unusable
+or exhausted ``--ckpt_path``, an accelerator that is not there); 1 when a run ends without
+exporting a map (including Ctrl-C, which prints the command that resumes from
+``last.ckpt``). A failed run leaves no empty ``version_N`` behind.
 """
 
 from __future__ import annotations

@@ -193,3 +193,14 @@ def test_ctrl_c_says_how_to_resume(
     last = tmp_path / "small" / "version_0" / "checkpoints" / "last.ckpt"
     assert last.is_file()
     assert f"--ckpt_path {last}" in err and "python train.py --config" in err
+
+
+def test_run_that_exports_nothing_exits_1(
+    tile_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from neuralmap.training.callbacks.fit_report import FitReport
+
+    monkeypatch.setattr(FitReport, "on_train_end", lambda self, trainer, module: None)
+    err = _fails(_args(tile_path, tmp_path, "--trainer.fast_dev_run", "true"), capsys, code=1)
+    assert "without exporting a map" in err

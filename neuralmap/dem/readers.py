@@ -298,14 +298,16 @@ def screen_heights(
     Raises:
         NeuralMapError: Implausible heights with ``"refuse"``, or no valid node left.
     """
-    heights = tile.heights.copy()
+    heights = tile.heights
     where = f"DEM '{tile.source or tile.name}'"
     meta = dict(tile.meta)
     n_nodata = 0
     for value in nodata:
         mask = nodata_mask(heights, value) & np.isfinite(heights)
-        n_nodata += int(mask.sum())
-        heights[mask] = np.nan
+        if mask.any():
+            heights = heights.copy() if heights is tile.heights else heights
+            heights[mask] = np.nan
+            n_nodata += int(mask.sum())
     if nodata:
         meta["nodata_option"] = list(nodata)
         meta["n_nodata_option"] = n_nodata
@@ -327,6 +329,7 @@ def screen_heights(
                 "height_check='void' (--data.height_check void), or keep them with "
                 "height_check='off'."
             )
+        heights = heights.copy() if heights is tile.heights else heights
         heights[bad] = np.nan
         meta["n_implausible"] = n_bad
         meta["implausible_note"] = (

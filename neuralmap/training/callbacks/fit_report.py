@@ -188,6 +188,9 @@ class FitReport(pl.Callback):
         extra = {
             "hparams": {k: v for k, v in pl_module.hparams.items() if not k.startswith("_")},
             "data": {k: v for k, v in datamodule.hparams.items() if not k.startswith("_")},
+            # units decision, no-data counts and, for metric files, the absolute position
+            # of the tile frame (tile.projected): the map's coordinates are tile-local
+            "tile": tile.describe(),
             "run_dir": str(run_dir),
         }
         self.map_path = export_map(net, run_dir, metrics, extra=extra)

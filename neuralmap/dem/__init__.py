@@ -8,7 +8,6 @@ from neuralmap.dem.readers import (
 )
 from neuralmap.dem.synthetic import synthetic_tile
 from neuralmap.dem.tile import DemTile, GeoReference, ProjectedReference
-from neuralmap.dem.yamlio import load_yaml
 
 __all__ = [
     "PLAUSIBLE_HEIGHT_M",
@@ -18,6 +17,5 @@ __all__ = [
     "GeoReference",
     "ProjectedReference",
     "load_tile",
-    "load_yaml",
     "synthetic_tile",
 ]

@@ -21,7 +21,6 @@ exporting a map (including Ctrl-C, which prints the command that resumes from
 from __future__ import annotations
 
 import os
-import re
 import shutil
 import sys
 import warnings
@@ -35,6 +34,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import check_writable_dir, next_version_dir
 from neuralmap.training.callbacks import DashboardLayout, FitReport, ResumeHint
 from neuralmap.training.datamodule import DemDataModule
 from neuralmap.training.module import TerrainFitModule
@@ -46,25 +46,6 @@ EXIT_BAD_INPUT = 2
 EXIT_NO_MAP = 1
 #: Environment variable through which DDP worker processes learn rank 0's run folder.
 RUN_DIR_ENV = "NEURALMAP_RUN_DIR"
-_VERSION_RE = re.compile(r"^version_(\d+)$")
-
-
-def reserve_version_dir(experiment_dir: Path) -> Path:
-    """Creates and returns the next free ``version_N`` folder (atomic ``mkdir``).
-
-    Used when no logger picks a version folder (``--trainer.logger false``), so that a
-    second run never overwrites the first run's map, metrics and figures.
-    """
-    experiment_dir.mkdir(parents=True, exist_ok=True)
-    while True:
-        taken = [int(m.group(1)) for p in experiment_dir.iterdir()
-                 if (m := _VERSION_RE.match(p.name))]
-        candidate = experiment_dir / f"version_{max(taken, default=-1) + 1}"
-        try:
-            candidate.mkdir()
-            return candidate
-        except FileExistsError:  # another run took it between the listing and the mkdir
-            continue
 
 
 def check_experiment_name(name: str) -> None:
@@ -74,24 +55,6 @@ def check_experiment_name(name: str) -> None:
             f"--experiment {name!r} must be a plain folder name inside --runs_dir (no '/', "
             "'\\', '.' or '..'); choose the parent folder with --runs_dir instead."
         )
-
-
-def check_runs_dir(runs_dir: Path) -> None:
-    """Refuses a ``runs_dir`` that is a file or cannot be created, before any training."""
-    if runs_dir.exists() and not runs_dir.is_dir():
-        raise NeuralMapError(
-            f"--runs_dir {runs_dir} is a file, not a folder; pass a folder for the runs "
-            "(it is created if missing)."
-        )
-    try:
-        runs_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise NeuralMapError(
-            f"--runs_dir {runs_dir} cannot be created ({exc.strerror or exc}); pass a writable "
-            "folder."
-        ) from None
-    if not os.access(runs_dir, os.W_OK | os.X_OK):
-        raise NeuralMapError(f"--runs_dir {runs_dir} is not writable; pass a writable folder.")
 
 
 def default_config_path() -> Path | None:
@@ -141,7 +104,7 @@ class NeuralMapCLI(LightningCLI):
         experiment = self.config.get("experiment")
         if experiment is not None:
             check_experiment_name(str(experiment))
-        check_runs_dir(Path(self.config.get("runs_dir") or "runs"))
+        check_writable_dir(Path(self.config.get("runs_dir") or "runs"), option="--runs_dir")
         max_epochs = self.config.get("trainer.max_epochs")
         max_steps = self.config.get("trainer.max_steps")
         if max_epochs == 0 or max_steps == 0:
@@ -178,7 +141,7 @@ class NeuralMapCLI(LightningCLI):
                 if worker and os.environ.get(RUN_DIR_ENV):
                     run_dir = Path(os.environ[RUN_DIR_ENV])
                 else:
-                    run_dir = reserve_version_dir(runs_dir / experiment)
+                    run_dir = next_version_dir(runs_dir / experiment)
                     self.reserved_dir = run_dir
                     os.environ[RUN_DIR_ENV] = str(run_dir)
                 kwargs["default_root_dir"] = str(run_dir)

@@ -10,7 +10,6 @@ import pytest
 
 from neuralmap.dem import DemTile, load_tile
 from neuralmap.dem.geo import metres_per_degree
-from neuralmap.dem.yamlio import load_yaml
 from neuralmap.exceptions import NeuralMapError
 
 
@@ -204,7 +203,7 @@ def test_load_tile_of_none() -> None:
         load_tile(None)  # type: ignore[arg-type]
 
 
-# --------------------------------------------------------------------------- voids, YAML
+# --------------------------------------------------------------------------- voids
 
 
 @pytest.mark.parametrize("halo", [0, 1])
@@ -225,12 +224,3 @@ def test_void_under_matches_a_plain_loop(halo: int) -> None:
         j, i = min(int(u), nx - 2), min(int(v), ny - 2)
         block = heights[max(i - halo, 0): i + 2 + halo, max(j - halo, 0): j + 2 + halo]
         assert got[k] == bool(np.isnan(block).any()), (k, x, y)
-
-
-def test_yaml_exponent_floats() -> None:
-    data = load_yaml("p0: 1.0e20\nq: 9e0\nr: 1e-3\nn: 12\ns: '1e3'\nt: 1.5\n")
-    assert data == {"p0": 1e20, "q": 9.0, "r": 1e-3, "n": 12, "s": "1e3", "t": 1.5}
-    assert isinstance(data["n"], int) and isinstance(data["q"], float)
-    assert load_yaml("") is None
-    with pytest.raises(NeuralMapError, match="line 2"):
-        load_yaml("a: 1\nb: ]\n")

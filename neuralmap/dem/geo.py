@@ -134,36 +134,6 @@ def geographic_grid(
     return spacing, origin_m, geo
 
 
-def looks_geographic(
-    x_first: float, y_first: float, dx: float, dy: float, shape: tuple[int, int]
-) -> bool:
-    """Heuristic: do a grid's coordinates look like lon/lat degrees rather than metres?
-
-    Rule: the cell size is at most 0.1 (0.1° ≈ 11 km; a metric DEM with cells ≤ 0.1 m is
-    rare) and the whole node extent lies within longitude ``[-180, 360]`` and latitude
-    ``[-90, 90]``. Projected grids (UTM eastings of 10⁵–10⁶ m) and local metric grids with
-    cells above 0.1 m are metric. Callers override the rule with ``geographic=True/False``.
-
-    Args:
-        x_first: x (or lon) of the first node.
-        y_first: y (or lat) of the first node.
-        dx: Cell size along x.
-        dy: Cell size along y.
-        shape: ``(ny, nx)`` node counts.
-
-    Returns:
-        True when the grid is taken as geographic.
-    """
-    ny, nx = shape
-    x_last = x_first + (nx - 1) * dx
-    y_last = y_first + (ny - 1) * dy
-    return bool(
-        max(dx, dy) <= 0.1
-        and -180.0 <= min(x_first, x_last) <= max(x_first, x_last) <= 360.0
-        and -90.0 <= min(y_first, y_last) <= max(y_first, y_last) <= 90.0
-    )
-
-
 #: Accepted spellings of the two coordinate units of a grid file.
 UNIT_NAMES = {"metres": "metres", "meters": "metres", "metre": "metres", "meter": "metres",
               "m": "metres", "degrees": "degrees", "degree": "degrees", "deg": "degrees"}
@@ -206,7 +176,8 @@ def decide_units(
     :data:`MAX_DEGREE_CELL` (1°); a metric grid is implausible when its cell is below
     :data:`MIN_METRE_CELL` (1 cm). So:
 
-    * not possible as degrees → metres (e.g. UTM eastings, or 30 m cells);
+    * not possible as degrees → metres (e.g. UTM eastings, or 30 m cells), unless the cell
+      would then be sub-centimetre too: neither reading fits, refused;
     * possible as degrees and a sub-centimetre cell if metres → degrees (1″ = 0.000278);
     * possible both ways (e.g. 0.1 m lidar at origin (0, 0) vs 0.1° cells) → refused:
       the two readings differ by a factor of ~10⁵ in cell size.
@@ -242,6 +213,12 @@ def decide_units(
             why.append(f"y {min(y_first, y_last):.6g}..{max(y_first, y_last):.6g} is no latitude")
         if cell > MAX_DEGREE_CELL:
             why.append(f"a cell of {cell:.6g} would be over 1 degree")
+        if min(dx, dy) < MIN_METRE_CELL:
+            raise NeuralMapError(
+                f"{where}: neither metres nor degrees fit: as degrees "
+                + "; ".join(why) + f", and as metres the cells ({dx:.6g} x {dy:.6g}) would be "
+                "sub-centimetre. Check the header (corner and cellsize). " + UNITS_HINT
+            )
         return "metres", "the coordinates cannot be lon/lat degrees (" + "; ".join(why) + ")"
     m_lon, m_lat = metres_per_degree(min(max(0.5 * (y_first + y_last), -90.0), 90.0))
     as_degrees = f"{dx * m_lon:.4g} m x {dy * m_lat:.4g} m cells"
@@ -271,6 +248,5 @@ __all__ = [
     "WGS84_F",
     "geographic_grid",
     "geographic_reference",
-    "looks_geographic",
     "metres_per_degree",
 ]

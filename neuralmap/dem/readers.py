@@ -102,9 +102,9 @@ def load_tile(
         spacing: ``(dx, dy)`` or one value, metres. Required for generic ``.npy``/``.npz``
             grids, optional for ``"synthetic"``; refused for sources that carry their own
             georeferencing (the two could disagree).
-        origin: Metric ``(x0, y0)`` of node ``[0, 0]`` (the south-west node). Default
-            ``(0, 0)``, except metric ``.asc``/GeoTIFF files, which keep their own
-            coordinates of that node.
+        origin: Tile-frame ``(x0, y0)`` metres of node ``[0, 0]`` (the south-west node),
+            default ``(0, 0)`` for every source. A metric file's own coordinates of that
+            node are kept in ``tile.projected`` (``to_projected``/``to_tile`` convert).
         name: Tile name; defaults to the sample name or the file stem.
         geographic: Older spelling of ``units``: True = ``"degrees"``, False = ``"metres"``.
         units: For ``.asc`` and GeoTIFF without a CRS: ``"metres"`` or ``"degrees"``;

@@ -276,10 +276,17 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     )
     for name, filter_run in runs.items():
         timing[f"filter_{name}"] = float(filter_run.elapsed_s)
+    kept = truth.on_map.all(dim=1)  # the metrics drop runs whose truth left the map
+    if not bool(kept.any()):
+        raise NeuralMapError(
+            f"no run could be scored: all {config.n_runs} truth trajectories left the tile "
+            f"{tile.name!r} (extent {tuple(round(e) for e in tile.extent)} m) or started off "
+            "it. Move the scenario's start_xy/waypoints inside the tile, shorten duration_s, "
+            "or lower start_spread_m."
+        )
 
     tick = time.perf_counter()
-    kept = truth.on_map.all(dim=1)  # the metrics drop runs whose truth left the map
-    bound = pcrb(truth, scenario, truth_terrain.model, runs=kept if bool(kept.any()) else None)
+    bound = pcrb(truth, scenario, truth_terrain.model, runs=kept)
     pcrb_pos = pcrb_position(bound).detach().to("cpu", torch.float64).numpy()
     timing["pcrb"] = time.perf_counter() - tick
 
@@ -335,12 +342,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
                              tile=tile, pcrb_pos=pcrb_pos)
     outputs.results.update(results)
     outputs.set_report(render_report(results, claims=claims, figures=figures))
-    if not any((m.get("n_included") or 0) > 0 for m in results["methods"].values()):
-        raise NeuralMapError(
-            "no run could be scored: every truth trajectory left the tile (or started off "
-            "it). Move the scenario's start/waypoints inside the tile, shorten the flight, "
-            "or lower start_spread_m."
-        )
 
 
 def _as_claim(check: Any) -> Any:

@@ -1,0 +1,53 @@
+"""Wind-field estimation and track correction (SEEDS 002).
+
+* :mod:`.turbulence`, :mod:`.simulator`: batched wind simulator (random-walk mean wind
+  plus exactly discretised first-order turbulence, shear steps, gusts);
+* :mod:`.measurement`, :mod:`.faults`: airspeed-derived wind with random-walk noise,
+  outlier patches and spikes;
+* :mod:`.tvar_model`, :mod:`.correlated`, :mod:`.filtering`: the paper's time-varying AR
+  model with differenced measurements and a correlated-noise EKF; the LTI first-order
+  Markov model for comparison;
+* :mod:`.track`: dead reckoning with and without the wind correction.
+"""
+
+from neuralmap.wind.correlated import CorrelatedUpdate, correlated_predict, correlated_update
+from neuralmap.wind.faults import FaultConfig, draw_faults
+from neuralmap.wind.filtering import (
+    UpdateAdapter,
+    WindEstimate,
+    estimate_wind,
+    run_lti_filter,
+    run_tvar_filter,
+)
+from neuralmap.wind.lti_model import LTIWindModel
+from neuralmap.wind.measurement import MeasurementConfig, WindMeasurement, measure_wind
+from neuralmap.wind.simulator import WindSimConfig, WindTruth, simulate_wind
+from neuralmap.wind.track import TrackConfig, TrackResult, dead_reckon
+from neuralmap.wind.turbulence import TurbulenceCoefficients, turbulence_coefficients
+from neuralmap.wind.tvar_model import TVARWindModel
+
+__all__ = [
+    "CorrelatedUpdate",
+    "FaultConfig",
+    "LTIWindModel",
+    "MeasurementConfig",
+    "TVARWindModel",
+    "TrackConfig",
+    "TrackResult",
+    "TurbulenceCoefficients",
+    "UpdateAdapter",
+    "WindEstimate",
+    "WindMeasurement",
+    "WindSimConfig",
+    "WindTruth",
+    "correlated_predict",
+    "correlated_update",
+    "dead_reckon",
+    "draw_faults",
+    "estimate_wind",
+    "measure_wind",
+    "run_lti_filter",
+    "run_tvar_filter",
+    "simulate_wind",
+    "turbulence_coefficients",
+]

@@ -10,10 +10,9 @@
 * :mod:`.track`: dead reckoning with and without the wind correction.
 """
 
-from neuralmap.wind.correlated import CorrelatedUpdate, correlated_predict, correlated_update
+from neuralmap.wind.correlated import CorrelatedNoiseEKF, DecorrelatedTransition, decorrelate
 from neuralmap.wind.faults import FaultConfig, draw_faults
 from neuralmap.wind.filtering import (
-    UpdateAdapter,
     WindEstimate,
     estimate_wind,
     run_lti_filter,
@@ -27,7 +26,8 @@ from neuralmap.wind.turbulence import TurbulenceCoefficients, turbulence_coeffic
 from neuralmap.wind.tvar_model import TVARWindModel
 
 __all__ = [
-    "CorrelatedUpdate",
+    "CorrelatedNoiseEKF",
+    "DecorrelatedTransition",
     "FaultConfig",
     "LTIWindModel",
     "MeasurementConfig",
@@ -35,13 +35,11 @@ __all__ = [
     "TrackConfig",
     "TrackResult",
     "TurbulenceCoefficients",
-    "UpdateAdapter",
     "WindEstimate",
     "WindMeasurement",
     "WindSimConfig",
     "WindTruth",
-    "correlated_predict",
-    "correlated_update",
+    "decorrelate",
     "dead_reckon",
     "draw_faults",
     "estimate_wind",

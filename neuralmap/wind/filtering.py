@@ -15,48 +15,25 @@ differenced measurement is one sample late by construction). The start is
 Markov model on the raw measurement (white-noise assumption).
 
 Both take scalar series ``(N, T)`` (one wind axis per row; :func:`estimate_wind` folds
-the two axes into the batch) and an optional :class:`UpdateAdapter` that may reweight
-``R`` and inflate ``P⁻`` at each update (robust / adaptive filtering).
+the two axes into the batch) and an optional
+:class:`~neuralmap.filters.policy.FilterPolicy` (robust / adaptive filtering: it may
+reweight ``R``, scale ``P⁻`` and adapt ``Q`` at each step; for the TVAR filter it sees the
+decorrelated system ``F*``, ``Q*``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol
 
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.wind.correlated import correlated_predict, correlated_update
+from neuralmap.filters import BatchedEKF, FilterPolicy
+from neuralmap.wind.correlated import CorrelatedNoiseEKF
 from neuralmap.wind.lti_model import LTIWindModel
 from neuralmap.wind.tvar_model import TVARWindModel
 
-__all__ = ["UpdateAdapter", "WindEstimate", "run_tvar_filter", "run_lti_filter",
-           "estimate_wind"]
-
-
-class UpdateAdapter(Protocol):
-    """Hook of a robust or adaptive filter into the update of a wind filter.
-
-    ``adjust`` returns the prior covariance and measurement-noise covariance to use for
-    this update (``P⁻/α`` for an adaptive factor, ``R/weight`` for robust weights, an
-    estimated ``R̂`` for Sage-Husa) and ``(Q, R)`` overrides for the next predict.
-    """
-
-    def adjust(
-        self, step: int, residual: torch.Tensor, A: torch.Tensor, P: torch.Tensor,
-        R: torch.Tensor,
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Returns ``(P_eff (N, n, n), R_eff (N, m, m))`` for the update at ``step``."""
-        ...
-
-    def observe(
-        self, step: int, residual: torch.Tensor, A: torch.Tensor, P_prior: torch.Tensor,
-        P_post: torch.Tensor, gain: torch.Tensor, P_prev_post: torch.Tensor,
-        F: torch.Tensor,
-    ) -> None:
-        """Sees the update's result (for noise-statistics estimation)."""
-        ...
+__all__ = ["WindEstimate", "run_tvar_filter", "run_lti_filter", "estimate_wind"]
 
 
 @dataclass
@@ -89,7 +66,7 @@ def run_tvar_filter(
     z: torch.Tensor,
     model: TVARWindModel,
     *,
-    adapter: UpdateAdapter | None = None,
+    policy: FilterPolicy | None = None,
     correlated: bool = True,
 ) -> WindEstimate:
     """The paper's estimator on ``(N, T)`` measured-wind series (see module docstring).
@@ -97,7 +74,7 @@ def run_tvar_filter(
     Args:
         z: ``(N, T)`` measured wind of one axis per row.
         model: TVAR model parameters (validated here).
-        adapter: Optional robust/adaptive hook.
+        policy: Optional robust/adaptive filter policy (reset here).
         correlated: Handle the cross-covariance of the differenced measurement noise and
             the process noise (default). False drops it (a plain EKF predict; for
             comparison only: the filter is then inconsistent when ``direct_noise``).
@@ -111,48 +88,43 @@ def run_tvar_filter(
     batch, steps = z.shape
     dtype = z.dtype
     Q, R, C = model.noise_covariances(dtype=dtype)
-    x, P = model.initial(z[:, 0])
-    wind = [x[:, 0]]
-    var = [P[:, 0, 0]]
-    coef = [x[:, 1]]
+    if policy is not None:
+        policy.reset()
+    x0, P0 = model.initial(z[:, 0])
+    filt = CorrelatedNoiseEKF(x0, P0)
+    wind = [x0[:, 0]]
+    var = [P0[:, 0, 0]]
+    coef = [x0[:, 1]]
     nis = [torch.full((batch,), float("nan"), dtype=dtype)]
-    P_prev_post = P
     for k in range(steps - 1):
         L = (z[:, k + 1] - z[:, k]).unsqueeze(-1)
-        hx, A = model.measurement(x)
-        residual = L - hx
-        R_k = R.expand(batch, 1, 1)
-        P_eff = P
-        if adapter is not None:
-            P_eff, R_k = adapter.adjust(k, residual, A, P, R_k)
-        x_post, P_post, diag = correlated_update(x, P_eff, residual=residual, A=A, R=R_k)
+        hx, A = model.measurement(filt.x)
+        diag = filt.update(L - hx, A, R, policy=policy)
+        x_post = filt.x
         fx, F = model.transition(x_post)
-        if adapter is not None:
-            adapter.observe(k, residual, A, P_eff, P_post, diag.gain, P_prev_post, F)
-        hx_post, A_post = model.measurement(x_post)  # linearised at x⁺ for F* = F − J A
         if correlated:
-            x, P = correlated_predict(x_post, P_post, fx=fx, F=F, Q=Q, C=C, R=R,
-                                      A=A_post, residual=L - hx_post)
+            hx_post, A_post = model.measurement(x_post)  # linearised at x⁺: F* = F − J A
+            filt.predict(fx=fx, F=F, Q=Q, C=C, R=R, A=A_post, residual=L - hx_post,
+                         policy=policy)
         else:
-            x, P = correlated_predict(x_post, P_post, fx=fx, F=F, Q=Q)
-        P_prev_post = P_post
-        wind.append(x[:, 0])
-        var.append(P[:, 0, 0])
-        coef.append(x[:, 1])
+            filt.predict(fx=fx, F=F, Q=Q, policy=policy)
+        wind.append(filt.x[:, 0])
+        var.append(filt.P[:, 0, 0])
+        coef.append(filt.x[:, 1])
         nis.append(diag.nis)
     return WindEstimate(torch.stack(wind, 1), torch.stack(var, 1), torch.stack(nis, 1),
                         torch.stack(coef, 1))
 
 
 def run_lti_filter(
-    z: torch.Tensor, model: LTIWindModel, *, adapter: UpdateAdapter | None = None
+    z: torch.Tensor, model: LTIWindModel, *, policy: FilterPolicy | None = None
 ) -> WindEstimate:
     """Kalman filter of the LTI first-order Markov model on the raw measurement.
 
     Args:
         z: ``(N, T)`` measured wind of one axis per row.
         model: LTI model parameters (validated here).
-        adapter: Optional robust/adaptive hook.
+        policy: Optional robust/adaptive filter policy (reset here).
 
     Returns:
         :class:`WindEstimate` with ``(N, T)`` tensors (the filtered ``x⁺_k``).
@@ -164,26 +136,18 @@ def run_lti_filter(
     dtype = z.dtype
     F = torch.full((1, 1), model.phi, dtype=dtype)
     Q = torch.full((1, 1), model.process_var, dtype=dtype)
-    R = torch.full((batch, 1, 1), model.meas_var, dtype=dtype)
-    A = torch.ones(batch, 1, 1, dtype=dtype)
-    x, P = model.initial(z[:, 0])
-    P_prev_post = P
+    H = torch.ones(1, 1, dtype=dtype)
+    if policy is not None:
+        policy.reset()
+    x0, P0 = model.initial(z[:, 0])
+    ekf = BatchedEKF(x0, P0)
     wind, var, nis = [], [], []
     for k in range(steps):
         if k > 0:
-            x, P = correlated_predict(x, P, fx=x * model.phi, F=F, Q=Q)
-        residual = z[:, k : k + 1] - x
-        P_eff, R_k = P, R
-        if adapter is not None:
-            P_eff, R_k = adapter.adjust(k, residual, A, P, R)
-        x, P_post, diag = correlated_update(x, P_eff, residual=residual, A=A, R=R_k)
-        if adapter is not None:
-            adapter.observe(k, residual, A, P_eff, P_post, diag.gain, P_prev_post,
-                            F.expand(batch, 1, 1))
-        P = P_post
-        P_prev_post = P_post
-        wind.append(x[:, 0])
-        var.append(P[:, 0, 0])
+            ekf.predict(F, Q, policy=policy)
+        diag = ekf.update(z[:, k : k + 1] - ekf.x, H, model.meas_var, policy=policy)
+        wind.append(ekf.x[:, 0])
+        var.append(ekf.P[:, 0, 0])
         nis.append(diag.nis)
     coef = torch.full((batch, steps), model.phi, dtype=dtype)
     return WindEstimate(torch.stack(wind, 1), torch.stack(var, 1), torch.stack(nis, 1), coef)
@@ -193,7 +157,7 @@ def estimate_wind(
     z: torch.Tensor,
     model: TVARWindModel | LTIWindModel,
     *,
-    adapter: UpdateAdapter | None = None,
+    policy: FilterPolicy | None = None,
 ) -> WindEstimate:
     """Runs the filter of ``model`` on both axes of ``(N, T, 2)`` measured wind.
 
@@ -202,7 +166,7 @@ def estimate_wind(
     Args:
         z: ``(N, T, 2)`` measured wind (east, north).
         model: :class:`TVARWindModel` (the paper's estimator) or :class:`LTIWindModel`.
-        adapter: Optional robust/adaptive hook (sees the ``2N`` folded rows).
+        policy: Optional robust/adaptive policy (sees the ``2N`` folded rows).
 
     Returns:
         :class:`WindEstimate` with ``(N, T, 2)`` tensors.
@@ -213,9 +177,9 @@ def estimate_wind(
     n, t, _ = z.shape
     rows = z.permute(0, 2, 1).reshape(2 * n, t)
     if isinstance(model, TVARWindModel):
-        est = run_tvar_filter(rows, model, adapter=adapter)
+        est = run_tvar_filter(rows, model, policy=policy)
     elif isinstance(model, LTIWindModel):
-        est = run_lti_filter(rows, model, adapter=adapter)
+        est = run_lti_filter(rows, model, policy=policy)
     else:
         raise NeuralMapError(
             f"estimate_wind: 'model' must be a TVARWindModel or LTIWindModel, got "

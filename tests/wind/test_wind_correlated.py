@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.wind import correlated_predict, correlated_update
+from neuralmap.wind import CorrelatedNoiseEKF, decorrelate
 
 
 def _random_system(rng, batch, n, m, steps):
@@ -45,22 +45,21 @@ def _numpy_one_step_predictor(F, A, Q, C, R, y, x0, P0):
 
 def _torch_filter(F, A, Q, C, R, y, x0, P0, with_c=True):
     t = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
-    x, P = t(x0), t(P0)
+    filt = CorrelatedNoiseEKF(t(x0), t(P0))
     Qt, Ct, Rt = t(Q), t(C), t(R)
     xs, Ps = [], []
     for k in range(y.shape[0]):
         Fk, Ak, yk = t(F[k]), t(A[k]), t(y[k])
-        r = yk - (Ak @ x.unsqueeze(-1)).squeeze(-1)
-        x_post, P_post, _ = correlated_update(x, P, residual=r, A=Ak, R=Rt)
+        filt.update(yk - (Ak @ filt.x.unsqueeze(-1)).squeeze(-1), Ak, Rt)
+        x_post = filt.x
         fx = (Fk @ x_post.unsqueeze(-1)).squeeze(-1)
         r_post = yk - (Ak @ x_post.unsqueeze(-1)).squeeze(-1)
         if with_c:
-            x, P = correlated_predict(x_post, P_post, fx=fx, F=Fk, Q=Qt, C=Ct, R=Rt, A=Ak,
-                                      residual=r_post)
+            filt.predict(fx=fx, F=Fk, Q=Qt, C=Ct, R=Rt, A=Ak, residual=r_post)
         else:
-            x, P = correlated_predict(x_post, P_post, fx=fx, F=Fk, Q=Qt)
-        xs.append(x)
-        Ps.append(P)
+            filt.predict(fx=fx, F=Fk, Q=Qt)
+        xs.append(filt.x)
+        Ps.append(filt.P)
     return torch.stack(xs, 1).numpy(), torch.stack(Ps, 1).numpy()
 
 
@@ -92,20 +91,28 @@ def test_zero_cross_covariance_is_plain_kalman_filter():
     assert np.allclose(x, x_ref, atol=1e-10) and np.allclose(P, P_ref, atol=1e-10)
 
 
-def test_mask_keeps_prior_and_shapes_are_checked():
-    x = torch.zeros(3, 2, dtype=torch.float64)
-    P = torch.eye(2, dtype=torch.float64).expand(3, 2, 2)
-    r = torch.ones(3, 1, dtype=torch.float64)
-    A = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
-    R = torch.eye(1, dtype=torch.float64)
-    mask = torch.tensor([True, False, True])
-    x1, P1, diag = correlated_update(x, P, residual=r, A=A, R=R, mask=mask)
-    assert torch.equal(x1[1], x[1]) and torch.equal(P1[1], P[1])
-    assert x1[0, 0].item() == pytest.approx(0.5) and P1[0, 0, 0].item() == pytest.approx(0.5)
-    assert diag.applied.tolist() == [True, False, True]
-    with pytest.raises(NeuralMapError, match="'A' has shape"):
-        correlated_update(x, P, residual=r, A=torch.ones(3, 1, 3, dtype=torch.float64), R=R)
+def test_decorrelated_noise_is_uncorrelated_and_errors():
+    rng = np.random.default_rng(11)
+    B = rng.normal(size=(5, 5))
+    joint = B @ B.T + np.eye(5)
+    Q, C, R = (torch.as_tensor(a) for a in (joint[:3, :3], joint[:3, 3:], joint[3:, 3:]))
+    x = torch.zeros(2, 3, dtype=torch.float64)
+    dec = decorrelate(fx=x, F=torch.eye(3, dtype=torch.float64), Q=Q, C=C, R=R,
+                      A=torch.zeros(2, 3, dtype=torch.float64),
+                      residual=torch.zeros(2, 2, dtype=torch.float64))
+    # cov(u − J e, e) = C − J R = 0 and Q* = Q − C R⁻¹ Cᵀ (Schur complement), PSD
+    assert torch.allclose(C - dec.gain @ R, torch.zeros(3, 2, dtype=torch.float64),
+                          atol=1e-12)
+    assert torch.allclose(dec.Q, Q - C @ torch.linalg.solve(R, C.T), atol=1e-12)
+    assert torch.linalg.eigvalsh(dec.Q).min() > 0
+    with pytest.raises(NeuralMapError, match="inconsistent shapes"):
+        decorrelate(fx=x, F=torch.eye(3, dtype=torch.float64), Q=Q, C=C.T, R=R,
+                    A=torch.zeros(2, 3, dtype=torch.float64),
+                    residual=torch.zeros(2, 2, dtype=torch.float64))
+    with pytest.raises(NeuralMapError, match="not positive definite"):
+        decorrelate(fx=x, F=torch.eye(3, dtype=torch.float64), Q=Q, C=C, R=-R,
+                    A=torch.zeros(2, 3, dtype=torch.float64),
+                    residual=torch.zeros(2, 2, dtype=torch.float64))
+    filt = CorrelatedNoiseEKF(x, torch.eye(3, dtype=torch.float64))
     with pytest.raises(NeuralMapError, match="pass 'R', 'A' and 'residual'"):
-        correlated_predict(x, P, fx=x, F=torch.eye(2, dtype=torch.float64),
-                           Q=torch.eye(2, dtype=torch.float64),
-                           C=torch.ones(2, 1, dtype=torch.float64))
+        filt.predict(fx=x, F=torch.eye(3, dtype=torch.float64), Q=Q, C=C)

@@ -45,12 +45,15 @@ class WindEstimate:
         variance: Same shape, estimated variance of the wind component.
         nis: Same shape, NIS of the update that produced the estimate (NaN where none).
         coefficient: Same shape, AR coefficient estimate (TVAR) or the fixed φ (LTI).
+        healthy: ``(N,)`` bool, False where the filter flagged the run (both axes for
+            ``(N, T, 2)``) as numerically broken and froze it.
     """
 
     wind: torch.Tensor
     variance: torch.Tensor
     nis: torch.Tensor
     coefficient: torch.Tensor
+    healthy: torch.Tensor
 
 
 def _check_series(z: torch.Tensor, where: str) -> torch.Tensor:
@@ -113,7 +116,7 @@ def run_tvar_filter(
         coef.append(filt.x[:, 1])
         nis.append(diag.nis)
     return WindEstimate(torch.stack(wind, 1), torch.stack(var, 1), torch.stack(nis, 1),
-                        torch.stack(coef, 1))
+                        torch.stack(coef, 1), filt.healthy.clone())
 
 
 def run_lti_filter(
@@ -150,7 +153,8 @@ def run_lti_filter(
         var.append(ekf.P[:, 0, 0])
         nis.append(diag.nis)
     coef = torch.full((batch, steps), model.phi, dtype=dtype)
-    return WindEstimate(torch.stack(wind, 1), torch.stack(var, 1), torch.stack(nis, 1), coef)
+    return WindEstimate(torch.stack(wind, 1), torch.stack(var, 1), torch.stack(nis, 1), coef,
+                        ekf.healthy.clone())
 
 
 def estimate_wind(
@@ -158,6 +162,7 @@ def estimate_wind(
     model: TVARWindModel | LTIWindModel,
     *,
     policy: FilterPolicy | None = None,
+    correlated: bool = True,
 ) -> WindEstimate:
     """Runs the filter of ``model`` on both axes of ``(N, T, 2)`` measured wind.
 
@@ -167,6 +172,7 @@ def estimate_wind(
         z: ``(N, T, 2)`` measured wind (east, north).
         model: :class:`TVARWindModel` (the paper's estimator) or :class:`LTIWindModel`.
         policy: Optional robust/adaptive policy (sees the ``2N`` folded rows).
+        correlated: TVAR only; see :func:`run_tvar_filter`.
 
     Returns:
         :class:`WindEstimate` with ``(N, T, 2)`` tensors.
@@ -177,7 +183,7 @@ def estimate_wind(
     n, t, _ = z.shape
     rows = z.permute(0, 2, 1).reshape(2 * n, t)
     if isinstance(model, TVARWindModel):
-        est = run_tvar_filter(rows, model, policy=policy)
+        est = run_tvar_filter(rows, model, policy=policy, correlated=correlated)
     elif isinstance(model, LTIWindModel):
         est = run_lti_filter(rows, model, policy=policy)
     else:
@@ -190,4 +196,4 @@ def estimate_wind(
         return v.reshape(n, 2, t).permute(0, 2, 1)
 
     return WindEstimate(unfold(est.wind), unfold(est.variance), unfold(est.nis),
-                        unfold(est.coefficient))
+                        unfold(est.coefficient), est.healthy.reshape(n, 2).all(-1))

@@ -68,8 +68,14 @@ def decorrelate(
     R: torch.Tensor,
     A: torch.Tensor,
     residual: torch.Tensor,
+    keep: torch.Tensor | None = None,
 ) -> DecorrelatedTransition:
     """Rewrites ``x' = f(x) + u`` with the measurement so that its noise is uncorrelated.
+
+    ``R`` is the covariance the update actually used: after a robust down-weighting
+    (``R/weight``) the rewrite uses that inflated ``R`` so that an outlier enters neither
+    the update nor the predict; a rejected measurement (``keep`` False) gives ``J = 0``
+    (the plain predict).
 
     Args:
         fx: ``(N, n)`` ``f(x⁺)``.
@@ -79,6 +85,7 @@ def decorrelate(
         R: ``(m, m)`` or ``(N, m, m)`` ``cov e`` (positive definite).
         A: ``(N, m, n)`` or ``(m, n)`` ``∂h/∂x`` at ``x⁺``.
         residual: ``(N, m)`` post-fit residual ``y − h(x⁺)``.
+        keep: ``(N,)`` bool, False where the update rejected the measurement.
 
     Returns:
         :class:`DecorrelatedTransition` (``J`` by a Cholesky solve ``R Jᵀ = Cᵀ``).
@@ -100,6 +107,8 @@ def decorrelate(
         raise NeuralMapError(f"{where}: 'R' is not positive definite; measurement-noise "
                              "variances must be > 0.")
     J = torch.cholesky_solve(C.transpose(-1, -2), chol).transpose(-1, -2)  # C R⁻¹
+    if keep is not None:
+        J = torch.where(keep.reshape(-1, 1, 1), J.expand(batch, n, m), 0.0)
     x_prior = fx + (J @ residual.unsqueeze(-1)).squeeze(-1)
     F_star = (F - J @ A).expand(batch, n, n)
     Q_star = _symmetrize(Q - J @ C.transpose(-1, -2))
@@ -161,6 +170,7 @@ class CorrelatedNoiseEKF:
         R: torch.Tensor | None = None,
         A: torch.Tensor | None = None,
         residual: torch.Tensor | None = None,
+        keep: torch.Tensor | None = None,
         policy: FilterPolicy | None = None,
     ) -> None:
         """Decorrelated time update from the current (posterior) state.
@@ -174,6 +184,7 @@ class CorrelatedNoiseEKF:
             R: ``cov e`` of the update just made (with ``C``).
             A: ``∂h/∂x`` at ``x⁺`` (with ``C``).
             residual: ``(N, m)`` post-fit residual ``y − h(x⁺)`` (with ``C``).
+            keep: ``(N,)`` bool, False where the update rejected the measurement.
             policy: Optional policy whose ``process_noise`` hook may adapt ``Q*``.
 
         Raises:
@@ -185,7 +196,7 @@ class CorrelatedNoiseEKF:
             if R is None or A is None or residual is None:
                 raise NeuralMapError("CorrelatedNoiseEKF.predict: with a cross-covariance "
                                      "'C' pass 'R', 'A' and 'residual' (y − h(x⁺)) too.")
-            dec = decorrelate(fx=fx, F=F, Q=Q, C=C, R=R, A=A, residual=residual)
+            dec = decorrelate(fx=fx, F=F, Q=Q, C=C, R=R, A=A, residual=residual, keep=keep)
             x_prior, F_use, Q_use = dec.x_prior, dec.F, dec.Q
         self.ekf.predict(F_use, Q_use, policy=policy)
         healthy = self.ekf.healthy.unsqueeze(-1)

@@ -28,12 +28,43 @@ from dataclasses import dataclass
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters import BatchedEKF, FilterPolicy
+from neuralmap.filters import Adaptation, BatchedEKF, FilterPolicy, Posterior, UpdateContext
 from neuralmap.wind.correlated import CorrelatedNoiseEKF
 from neuralmap.wind.lti_model import LTIWindModel
 from neuralmap.wind.tvar_model import TVARWindModel
 
 __all__ = ["WindEstimate", "run_tvar_filter", "run_lti_filter", "estimate_wind"]
+
+
+class _NoiseRecorder(FilterPolicy):
+    """Delegates to a policy and records the ``R`` and kept components its update used."""
+
+    def __init__(self, inner: FilterPolicy) -> None:
+        self.inner = inner
+        self.iterations = inner.iterations
+        self.name = inner.name
+        self.R: torch.Tensor | None = None
+        self.keep: torch.Tensor | None = None
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def adapt(self, context: UpdateContext) -> Adaptation:
+        return self.inner.adapt(context)
+
+    def refine(self, context: UpdateContext, adaptation: Adaptation,
+               posterior: Posterior) -> Adaptation | None:
+        return self.inner.refine(context, adaptation, posterior)
+
+    def commit(self, context: UpdateContext, adaptation: Adaptation, posterior: Posterior,
+               applied: torch.Tensor) -> None:
+        self.R = posterior.R
+        self.keep = None if adaptation.keep is None else adaptation.keep.to(torch.bool).any(-1)
+        self.inner.commit(context, adaptation, posterior, applied)
+
+    def process_noise(self, *, F: torch.Tensor, Q: torch.Tensor,
+                      P: torch.Tensor) -> torch.Tensor | None:
+        return self.inner.process_noise(F=F, Q=Q, P=P)
 
 
 @dataclass
@@ -91,8 +122,12 @@ def run_tvar_filter(
     batch, steps = z.shape
     dtype = z.dtype
     Q, R, C = model.noise_covariances(dtype=dtype)
-    if policy is not None:
-        policy.reset()
+    # the rewrite needs Q − C R⁻¹ Cᵀ ≥ 0, i.e. R ≥ g² Σ_w (the correlated part of R_e):
+    # an adaptive R̂ below it is floored for the decorrelation only
+    r_floor = (1.0 + 1e-9) * (R - model.meas_var)
+    recorder = None if policy is None else _NoiseRecorder(policy)
+    if recorder is not None:
+        recorder.reset()
     x0, P0 = model.initial(z[:, 0])
     filt = CorrelatedNoiseEKF(x0, P0)
     wind = [x0[:, 0]]
@@ -102,15 +137,18 @@ def run_tvar_filter(
     for k in range(steps - 1):
         L = (z[:, k + 1] - z[:, k]).unsqueeze(-1)
         hx, A = model.measurement(filt.x)
-        diag = filt.update(L - hx, A, R, policy=policy)
+        diag = filt.update(L - hx, A, R, policy=recorder)
         x_post = filt.x
         fx, F = model.transition(x_post)
         if correlated:
+            R_used, keep = R, None
+            if recorder is not None and recorder.R is not None:
+                R_used, keep = torch.maximum(recorder.R, r_floor), recorder.keep
             hx_post, A_post = model.measurement(x_post)  # linearised at x⁺: F* = F − J A
-            filt.predict(fx=fx, F=F, Q=Q, C=C, R=R, A=A_post, residual=L - hx_post,
-                         policy=policy)
+            filt.predict(fx=fx, F=F, Q=Q, C=C, R=R_used, A=A_post, residual=L - hx_post,
+                         keep=keep, policy=recorder)
         else:
-            filt.predict(fx=fx, F=F, Q=Q, policy=policy)
+            filt.predict(fx=fx, F=F, Q=Q, policy=recorder)
         wind.append(filt.x[:, 0])
         var.append(filt.P[:, 0, 0])
         coef.append(filt.x[:, 1])

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from neuralmap.filters import Adaptation, FilterPolicy, UpdateContext
 from neuralmap.wind import (
     LTIWindModel,
     MeasurementConfig,
@@ -132,3 +133,41 @@ def test_estimate_wind_folds_axes():
     assert both.wind.shape == (3, 20, 2)
     assert torch.allclose(both.wind[..., 0], east.wind, atol=1e-12)
     assert torch.allclose(both.wind[..., 1], north.wind, atol=1e-12)
+
+
+class _RejectAll(FilterPolicy):
+    def adapt(self, context: UpdateContext) -> Adaptation:
+        return Adaptation(keep=torch.zeros_like(context.residual, dtype=torch.bool))
+
+
+class _InflateR(FilterPolicy):
+    def adapt(self, context: UpdateContext) -> Adaptation:
+        return Adaptation(R=context.R * 1e12)
+
+
+def test_policies_plug_in_and_rejection_removes_the_measurement_everywhere():
+    model = TVARWindModel(process_var=0.3, meas_var=0.1, a0=0.97)
+    _, z = _simulate_tvar(model, runs=4, steps=15, a=0.97, seed=6)
+    zt = torch.as_tensor(z)
+    plain = run_tvar_filter(zt, model)
+    passthrough = run_tvar_filter(zt, model, policy=FilterPolicy())
+    assert torch.allclose(passthrough.wind, plain.wind, atol=1e-12)
+    assert torch.allclose(passthrough.variance, plain.variance, atol=1e-12)
+    # every differenced measurement rejected: neither the update nor the decorrelated
+    # predict may use it, so the estimate is the model's free propagation from Z_0
+    rejected = run_tvar_filter(zt, model, policy=_RejectAll())
+    Q, _, _ = model.noise_covariances()
+    x0, P0 = model.initial(zt[:, 0])
+    x, P = x0.numpy(), P0.numpy()
+    for k in range(1, 15):
+        v, a, eta = x.T
+        F = np.zeros((4, 3, 3))
+        F[:, 0] = np.stack([a, v, np.ones(4)], -1)
+        F[:, 1, 1] = F[:, 2, 2] = 1.0
+        x = np.stack([a * v + eta, a, eta], -1)
+        P = F @ P @ F.transpose(0, 2, 1) + Q.numpy()
+        assert np.allclose(rejected.wind[:, k].numpy(), x[:, 0], atol=1e-10)
+        assert np.allclose(rejected.variance[:, k].numpy(), P[:, 0, 0], atol=1e-8)
+    # a down-weighted (R x 1e12) measurement is nearly rejected in the predict as well
+    inflated = run_tvar_filter(zt, model, policy=_InflateR())
+    assert torch.allclose(inflated.wind, rejected.wind, atol=1e-6)

@@ -22,7 +22,7 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.wind.checks import require_in_range, require_positive
 from neuralmap.wind.filtering import WindEstimate
 
-__all__ = ["wind_error_metrics", "diverged_runs", "rmse_over_time"]
+__all__ = ["wind_error_metrics", "diverged_runs", "rmse_over_time", "track_error_metrics"]
 
 
 def _check(truth: torch.Tensor, estimate: WindEstimate) -> None:
@@ -114,3 +114,27 @@ def wind_error_metrics(
             out["patch_max_error"] = float(torch.where(inside, full[has], 0.0).amax(-1).mean())
             out["patch_max_jump"] = float(torch.where(inside, jump[has], 0.0).amax(-1).mean())
     return out
+
+
+def track_error_metrics(along: torch.Tensor, cross: torch.Tensor) -> dict[str, float]:
+    """Summary of dead-reckoning errors ``(N, T)`` along and across the track (m).
+
+    Returns:
+        ``final_along_rms``, ``final_cross_rms``, ``final_rms`` (RMS over runs at the last
+        sample), ``max_rms`` (largest over time of the RMS over runs of the horizontal
+        error), ``mean_rms`` (its time average) and ``p95_max`` (95th percentile over runs
+        of each run's largest error).
+    """
+    if along.shape != cross.shape or along.ndim != 2:
+        raise NeuralMapError(f"track_error_metrics: along {tuple(along.shape)} and cross "
+                             f"{tuple(cross.shape)} must both be (N, T).")
+    sq = along.square() + cross.square()
+    rms_t = sq.mean(0).sqrt()
+    return {
+        "final_along_rms": float(along[:, -1].square().mean().sqrt()),
+        "final_cross_rms": float(cross[:, -1].square().mean().sqrt()),
+        "final_rms": float(rms_t[-1]),
+        "max_rms": float(rms_t.max()),
+        "mean_rms": float(rms_t.mean()),
+        "p95_max": float(torch.quantile(sq.sqrt().amax(-1), 0.95)),
+    }

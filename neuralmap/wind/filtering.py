@@ -121,7 +121,7 @@ def run_tvar_filter(
     z = _check_series(z, where)
     batch, steps = z.shape
     dtype = z.dtype
-    Q, R, C = model.noise_covariances(dtype=dtype)
+    Q, R, C = (m.to(z.device) for m in model.noise_covariances(dtype=dtype))
     # the rewrite needs Q − C R⁻¹ Cᵀ ≥ 0, i.e. R ≥ g² Σ_w (the correlated part of R_e):
     # an adaptive R̂ below it is floored for the decorrelation only
     r_floor = (1.0 + 1e-9) * (R - model.meas_var)
@@ -133,7 +133,7 @@ def run_tvar_filter(
     wind = [x0[:, 0]]
     var = [P0[:, 0, 0]]
     coef = [x0[:, 1]]
-    nis = [torch.full((batch,), float("nan"), dtype=dtype)]
+    nis = [torch.full((batch,), float("nan"), dtype=dtype, device=z.device)]
     for k in range(steps - 1):
         L = (z[:, k + 1] - z[:, k]).unsqueeze(-1)
         hx, A = model.measurement(filt.x)
@@ -175,9 +175,9 @@ def run_lti_filter(
     z = _check_series(z, where)
     batch, steps = z.shape
     dtype = z.dtype
-    F = torch.full((1, 1), model.phi, dtype=dtype)
-    Q = torch.full((1, 1), model.process_var, dtype=dtype)
-    H = torch.ones(1, 1, dtype=dtype)
+    F = torch.full((1, 1), model.phi, dtype=dtype, device=z.device)
+    Q = torch.full((1, 1), model.process_var, dtype=dtype, device=z.device)
+    H = torch.ones(1, 1, dtype=dtype, device=z.device)
     if policy is not None:
         policy.reset()
     x0, P0 = model.initial(z[:, 0])
@@ -190,7 +190,7 @@ def run_lti_filter(
         wind.append(ekf.x[:, 0])
         var.append(ekf.P[:, 0, 0])
         nis.append(diag.nis)
-    coef = torch.full((batch, steps), model.phi, dtype=dtype)
+    coef = torch.full((batch, steps), model.phi, dtype=dtype, device=z.device)
     return WindEstimate(torch.stack(wind, 1), torch.stack(var, 1), torch.stack(nis, 1), coef,
                         ekf.healthy.clone())
 

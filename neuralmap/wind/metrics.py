@@ -5,8 +5,8 @@ the horizontal vector error ``ŵ − w`` (m/s).
 
 * RMSE: ``sqrt(mean |ŵ − w|²)`` over the kept runs and all samples after the first;
 * divergence: a run diverges when the RMS of its error over the last ``tail_fraction`` of
-  the samples exceeds ``divergence_threshold`` (or is not finite, or the filter flagged
-  it numerically broken);
+  the samples exceeds ``divergence_threshold`` (or any estimate is not finite, or the
+  filter flagged it numerically broken);
 * NEES: time-averaged ``(ŵ_i − w_i)² / P_ii`` per axis (1 for a consistent filter);
 * outlier-patch metrics: the mean over runs of the largest error and of the largest
   one-sample change of the error inside the outlier samples (a "jump" of the estimate).
@@ -52,7 +52,9 @@ def diverged_runs(
     tail = max(1, int(math.ceil(frac * t)))
     err = (estimate.wind - truth)[:, -tail:]
     tail_rms = err.square().sum(-1).mean(-1).sqrt()
-    return ~torch.isfinite(tail_rms) | (tail_rms > divergence_threshold) | ~estimate.healthy
+    finite = torch.isfinite(estimate.wind).flatten(1).all(-1)
+    return ~finite | ~torch.isfinite(tail_rms) | (tail_rms > divergence_threshold) | ~(
+        estimate.healthy.to(finite.device))
 
 
 def rmse_over_time(truth: torch.Tensor, estimate: WindEstimate,

@@ -31,7 +31,7 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import StudyOutputs
-from neuralmap.wind.checks import require_in_range, require_positive
+from neuralmap.wind.checks import require_in_range, require_open_unit, require_positive
 from neuralmap.wind.comparison import WindFilterSpec, make_policy, run_filters
 from neuralmap.wind.faults import FaultConfig
 from neuralmap.wind.lti_model import LTIWindModel
@@ -250,6 +250,9 @@ class WindStudyConfig(StudyConfig):
             raise NeuralMapError(f"plot_run must be in [0, n_runs) = [0, {self.n_runs}), got "
                                  f"{self.plot_run}.")
         for spec in self.filter_specs():
+            if spec.policy == "SageHusa" and "b" in spec.policy_args:
+                require_open_unit(spec.policy_args["b"], "b",
+                                  f"filters '{spec.name}' (Sage-Husa forgetting factor)")
             if spec.policy is not None and _policies_available():
                 make_policy(spec)  # bad policy arguments (e.g. b outside (0, 1)) fail now
 

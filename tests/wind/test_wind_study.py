@@ -55,6 +55,10 @@ def test_wind_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str
         ({"filters": [{"name": "KF", "modle": "tvar"}]}, "unknown keys"),
         ({"filters": [{"name": "X", "model": "arma"}]}, "'model'"),
         ({"patch_std": -1.0}, "'patch_std'"),
+        ({"filters": [{"name": "SH", "policy": "SageHusa", "policy_args": {"b": 1.0}}]},
+         r"open interval \(0, 1\)"),
+        ({"filters": [{"name": "SH", "policy": "SageHusa", "policy_args": {"b": 0.0}}]},
+         "forgetting factor"),
     ],
 )
 def test_bad_study_options(override: dict, match: str) -> None:

@@ -31,6 +31,7 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.model import TanModel
 from neuralmap.nav.scenario import Scenario
 from neuralmap.nav.truth_terrain import TrueTerrain, dem_error_field, true_terrain
 
@@ -201,18 +202,13 @@ def simulate(
     vel = torch.from_numpy(vel_nom).unsqueeze(0).expand(n, k_steps + 1, 2).clone()
 
     # INS errors: δX_{k+1} = Φ δX_k + w_k in closed form (cumulative sums over time)
-    mean = torch.tensor(scenario.init_error_mean, dtype=f64)
-    sigma0 = torch.tensor(scenario.init_error_sigma(), dtype=f64)
+    model = TanModel.from_scenario(scenario)
+    mean = torch.tensor(model.truth_mean, dtype=f64)
+    sigma0 = torch.tensor(model.truth_P0, dtype=f64).sqrt()
     err0 = mean + sigma0 * torch.randn(n, 5, generator=gen, dtype=f64)
-    q_std = torch.tensor(scenario.truth_process_noise(), dtype=f64).sqrt()
+    q_std = torch.tensor(model.truth_Q, dtype=f64).sqrt()
     w = q_std * torch.randn(n, k_steps, 5, generator=gen, dtype=f64)
-    zeros = torch.zeros(n, 1, 5, dtype=f64)
-    w_sum = torch.cat([zeros, torch.cumsum(w, dim=1)], dim=1)  # Σ_{j<k} w_j, (N, K+1, 5)
-    dv = err0[:, None, 3:] + w_sum[..., 3:]
-    dv_sum = torch.cat([zeros[..., 3:], torch.cumsum(dv[:, :-1], dim=1)], dim=1)
-    dp = err0[:, None, :2] + dt * dv_sum + w_sum[..., :2]
-    dh = err0[:, None, 2:3] + w_sum[..., 2:3]
-    ins_error = torch.cat([dp, dh, dv], dim=-1)
+    ins_error = model.propagate_truth(err0, w)
 
     # true terrain (DEM + DEM-making error [+ sub-grid detail]) and the radar altimeter
     if truth_terrain is None:

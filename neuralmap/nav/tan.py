@@ -134,6 +134,7 @@ def tan_filter_step(
     R: float | torch.Tensor,
     extent: tuple[float, float, float, float] | None = None,
     mask: torch.Tensor | None = None,
+    policy: Any = None,
 ) -> StepDiagnostics:
     """One TAN step: predict, linearise at the estimate, altimeter update (SEEDS 004).
 
@@ -154,6 +155,8 @@ def tan_filter_step(
             linearisation variance is added per sample.
         extent: Map ``(xmin, xmax, ymin, ymax)``; None = the linearizer's (or no check).
         mask: ``(N,)`` bool, optional; False skips the update of that sample.
+        policy: Optional robust/adaptive filter policy
+            (:mod:`neuralmap.filters.policies`), passed to the predict and the update.
 
     Returns:
         :class:`StepDiagnostics`.
@@ -164,7 +167,10 @@ def tan_filter_step(
             f"tan_filter_step: ins_pos must be ({n}, 3) and radar ({n},) for {n} filters, got "
             f"{tuple(ins_pos.shape)} and {tuple(radar.shape)}."
         )
-    ekf.predict(F, Q)
+    if policy is None:
+        ekf.predict(F, Q)
+    else:
+        ekf.predict(F, Q, policy=policy)
     x = ekf.x
     p_hat = ins_pos[:, :2] - x[:, :2]
     lin = linearizer(p_hat, ekf.P[:, :2, :2])
@@ -187,8 +193,9 @@ def tan_filter_step(
         residual = torch.where(use, residual, 0.0)
         slope = torch.where(use.unsqueeze(1), slope, 0.0)
         r_total = torch.where(use, r_total, 1.0)
+    kwargs = {} if policy is None else {"policy": policy}
     diag = ekf.update(residual, _jacobian_batch_last(slope).t(), r_total,
-                      mask=None if all_used else use)
+                      mask=None if all_used else use, **kwargs)
     S = diag.S.reshape(n)
     applied = getattr(diag, "applied", None)
     return StepDiagnostics(

@@ -98,3 +98,17 @@ def test_differenced_noise_covariance_and_cross_covariance_match_derivation(dire
     assert np.all(np.abs((u[:, :-1] * e[:, 1:, None]).reshape(-1, 3).mean(0)) < 0.01)
     if direct_noise:  # the correlation is real: far from zero at this sample size
         assert cross[0] > 0.4 and cross[2] > 0.4
+
+
+def test_isolated_spikes_rate_and_size():
+    gen = torch.Generator().manual_seed(23)
+    truth = simulate_wind(WindSimConfig(), n_runs=200, n_steps=200, generator=gen)
+    meas = measure_wind(truth, MeasurementConfig(),
+                        FaultConfig(spike_rate=0.02, spike_magnitude=15.0), generator=gen)
+    rate = meas.outlier.double().mean().item()
+    assert rate == pytest.approx(0.02, abs=0.003)  # 40000 samples: std. error 0.0007
+    assert torch.all(meas.fault[meas.outlier].abs() == 15.0)
+    assert torch.all(meas.fault[~meas.outlier] == 0.0)
+    # isolated: mostly single samples, not patches
+    both = (meas.outlier[:, 1:] & meas.outlier[:, :-1]).double().mean().item()
+    assert both < 0.002

@@ -171,3 +171,25 @@ def test_policies_plug_in_and_rejection_removes_the_measurement_everywhere():
     # a down-weighted (R x 1e12) measurement is nearly rejected in the predict as well
     inflated = run_tvar_filter(zt, model, policy=_InflateR())
     assert torch.allclose(inflated.wind, rejected.wind, atol=1e-6)
+
+
+def test_robust_adaptive_filter_equals_kf_without_outliers():
+    from neuralmap.filters.policies import RobustAdaptive
+
+    # data much quieter than the filter assumes: every standardised residual stays below
+    # k0 = c0 = 1.5, so IGG-III weights are 1 and Yang's factor is 1 -> exactly the KF
+    truth_model = TVARWindModel(process_var=1e-4, meas_var=1e-4, a0=0.99, var_v0=1e-4,
+                                var_eta0=1e-4)
+    _, z = _simulate_tvar(truth_model, runs=5, steps=60, a=0.99, seed=8)
+    zt = torch.as_tensor(z)
+    model = TVARWindModel(process_var=0.01, meas_var=2.0, a0=0.99)
+    kf = run_tvar_filter(zt, model)
+    assert float(kf.nis[:, 1:].max()) < 1.5**2  # precondition: no residual above k0
+    raf = run_tvar_filter(zt, model, policy=RobustAdaptive(k0=1.5, k1=4.5, c0=1.5, c1=8.5))
+    assert torch.allclose(raf.wind, kf.wind, rtol=0, atol=1e-12)
+    assert torch.allclose(raf.variance, kf.variance, rtol=0, atol=1e-12)
+    # with an outlier the two differ (the comparison can fail)
+    zo = zt.clone()
+    zo[:, 30] += 50.0
+    assert (run_tvar_filter(zo, model, policy=RobustAdaptive(1.5, 4.5, 1.5, 8.5)).wind
+            - run_tvar_filter(zo, model).wind).abs().max() > 1.0

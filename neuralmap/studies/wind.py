@@ -281,7 +281,8 @@ _NOTES = """### How to read the wind results
   (cross-covariance ``Γ Σ_w Γᵀ Hᵀ``); every time-varying AR filter here removes it by
   rewriting the process equation with the measurement, using the measurement covariance
   the (robust) update actually used, so a rejected measurement enters neither the update
-  nor the prediction.
+  nor the prediction. A policy that adapts the process noise (Sage-Husa with Q) sees and
+  adapts the rewritten process noise ``Q − C R⁻¹ Cᵀ``.
 * **Column "final_coefficient_mean"** in results.json: the AR coefficient at the last
   sample, mean over runs (1 = random-walk wind).
 """

@@ -95,7 +95,7 @@ def plot_bands(
         bands: Name -> ``(centre, low, high)``, each ``(T,)``.
         ylabel: Y label.
         title: Title.
-        log: Logarithmic y axis.
+        log: Logarithmic y axis (non-positive values are left out).
 
     Returns:
         The figure.
@@ -105,10 +105,11 @@ def plot_bands(
     fig = Figure(figsize=(9.0, 4.6))
     ax = fig.add_subplot(1, 1, 1)
     for name, (centre, low, high) in bands.items():
-        c = _series(centre, n, name)
+        c, lo, hi = (_series(v, n, name) for v in (centre, low, high))
+        if log:  # zero errors (an exact start) have no place on a log axis
+            c, lo, hi = (np.where(v > 0, v, np.nan) for v in (c, lo, hi))
         (line,) = ax.plot(time, c, lw=1.4, label=name)
-        ax.fill_between(time, _series(low, n, name), _series(high, n, name),
-                        color=line.get_color(), alpha=0.15, lw=0)
+        ax.fill_between(time, lo, hi, color=line.get_color(), alpha=0.15, lw=0)
     if log:
         ax.set_yscale("log")
     ax.set_xlabel("time [s]")

@@ -283,8 +283,13 @@ _NOTES = """### How to read the wind results
   the (robust) update actually used, so a rejected measurement enters neither the update
   nor the prediction. A policy that adapts the process noise (Sage-Husa with Q) sees and
   adapts the rewritten process noise ``Q − C R⁻¹ Cᵀ``.
-* **Column "final_coefficient_mean"** in results.json: the AR coefficient at the last
-  sample, mean over runs (1 = random-walk wind).
+* **Adaptive factor and the AR coefficient.** Yang's factor divides the whole predicted
+  covariance by ``α``, the AR coefficient's variance included; with a low upper
+  breakpoint (``c1 = 3``) ``α`` often reaches its floor and the coefficient estimate
+  swings far from 1, which the linearised model turns into large wind errors. Compare the
+  rows of the two RAF settings and ``coefficient_min`` / ``coefficient_max`` in
+  results.json (``final_coefficient_mean``: the coefficient at the last sample, mean over
+  runs; 1 = random-walk wind).
 """
 
 
@@ -365,6 +370,8 @@ def run(config: WindStudyConfig, outputs: StudyOutputs) -> None:
             m = wind_error_metrics(truth.wind, est, outlier=outlier,
                                    divergence_threshold=config.divergence_threshold)
             m["final_coefficient_mean"] = float(est.coefficient[:, -1].mean())
+            m["coefficient_min"] = float(est.coefficient.nan_to_num(nan=float("inf")).min())
+            m["coefficient_max"] = float(est.coefficient.nan_to_num(nan=float("-inf")).max())
             per_filter[name] = m
             keep = ~diverged_runs(truth.wind, est,
                                   divergence_threshold=config.divergence_threshold)

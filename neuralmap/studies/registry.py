@@ -41,6 +41,12 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
         "tan.yaml",
     ),
+    "wind": StudySpec(
+        "neuralmap.studies.wind", "WindStudyConfig",
+        "Wind-field estimation: TVAR-model filters (KF, Sage-Husa, RAF, VB) against the LTI "
+        "model, clean / outliers / shear, and track correction",
+        "wind.yaml",
+    ),
 }
 
 

@@ -226,10 +226,10 @@ def _quality_policies(policy: Any) -> list[Any]:
     """Every policy inside ``policy`` (itself or a composition) that reads quality records."""
     if policy is None:
         return []
-    found = [policy] if callable(getattr(policy, "set_quality", None)) else []
-    for inner in getattr(policy, "policies", ()) or ():
-        found += _quality_policies(inner)
-    return found
+    members = getattr(policy, "policies", None)
+    if members:  # a composition: its members (it may forward set_quality itself)
+        return [found for inner in members for found in _quality_policies(inner)]
+    return [policy] if callable(getattr(policy, "set_quality", None)) else []
 
 
 def run_monte_carlo(

@@ -41,6 +41,11 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
         "tan.yaml",
     ),
+    "tan_outliers": StudySpec(
+        "neuralmap.studies.tan_outliers", "TanOutliersConfig",
+        "TAN under radar-altimeter faults: robust and adaptive update policies",
+        "tan_outliers.yaml",
+    ),
     "wind": StudySpec(
         "neuralmap.studies.wind", "WindStudyConfig",
         "Wind-field estimation: TVAR-model filters (KF, Sage-Husa, RAF, VB) against the LTI "

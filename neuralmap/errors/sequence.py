@@ -50,7 +50,7 @@ def as_sequence(sequence: Any, *, where: str, min_length: int = 2, why: str = ""
     scale = max(1.0, float(np.max(np.abs(x))))
     if float(np.ptp(x)) <= 1e-12 * scale:
         raise NeuralMapError(
-            f"{where}: the error sequence is constant ({x[0]!r} everywhere); it has no "
+            f"{where}: the error sequence is constant ({float(x[0]):g} everywhere); it has no "
             "correlation structure to identify. Check that the errors were computed (e.g. "
             "measured minus truth, not truth minus truth)."
         )

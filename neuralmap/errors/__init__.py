@@ -5,16 +5,6 @@ Needs SciPy (filters, distributions); statsmodels for the correlation, whiteness
 tests. Both come with the optional extra: ``pip install 'neuralmap[errors]'``.
 """
 
-from neuralmap.exceptions import NeuralMapError
-
-try:
-    import scipy  # noqa: F401
-except ImportError as exc:  # pragma: no cover - scipy comes with the extra
-    raise NeuralMapError(
-        "neuralmap.errors needs SciPy, which is not installed. Install the optional extra: "
-        "pip install 'neuralmap[errors]'."
-    ) from exc
-
 from neuralmap.errors.arma import ArmaModel, check_stationary, order_name
 from neuralmap.errors.correlation import (
     autocorrelation,

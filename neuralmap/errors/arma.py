@@ -16,8 +16,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.signal import lfilter
 
+from neuralmap.errors.optional import require_scipy
 from neuralmap.exceptions import NeuralMapError
 
 #: Roots of φ(z) or θ(z) closer than this to the unit circle count as on it.
@@ -136,6 +136,9 @@ class ArmaModel:
 
     def psi_weights(self, n: int) -> np.ndarray:
         """First ``n`` weights of ``x_t = Σ ψ_j a_{t-j}`` (``ψ_0 = 1``); ``(n,)``."""
+        require_scipy("ArmaModel.psi_weights")
+        from scipy.signal import lfilter
+
         impulse = np.zeros(n)
         impulse[0] = 1.0
         return lfilter(ma_polynomial(self.theta), ar_polynomial(self.phi), impulse)

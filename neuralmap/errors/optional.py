@@ -1,4 +1,4 @@
-"""The optional statsmodels dependency of the error-model toolkit."""
+"""The optional SciPy / statsmodels dependencies of the error-model toolkit."""
 
 from __future__ import annotations
 
@@ -27,3 +27,22 @@ def require_statsmodels(what: str) -> ModuleType:
             f"extra: pip install 'neuralmap[{STATSMODELS_EXTRA}]'."
         ) from exc
     return statsmodels
+
+
+def require_scipy(what: str) -> ModuleType:
+    """Imports SciPy or raises NeuralMapError naming the extra that installs it.
+
+    Args:
+        what: The function that needs SciPy (for the message).
+
+    Returns:
+        The ``scipy`` module.
+    """
+    try:
+        import scipy
+    except ImportError as exc:
+        raise NeuralMapError(
+            f"{what} needs SciPy, which is not installed. Install the optional extra: "
+            f"pip install 'neuralmap[{STATSMODELS_EXTRA}]'."
+        ) from exc
+    return scipy

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.stats import norm
 
+from neuralmap.errors.optional import require_scipy
 from neuralmap.errors.sequence import as_sequence
 from neuralmap.exceptions import NeuralMapError
 
@@ -57,6 +57,9 @@ def runs_test(values: Any, *, alpha: float = 0.05, where: str = "runs_test") -> 
     Returns:
         The :class:`RunsResult`.
     """
+    require_scipy(where)
+    from scipy.stats import norm
+
     x = as_sequence(values, where=where, min_length=4, why="a runs test")
     signs = x[x != np.median(x)] > np.median(x)
     n1 = int(signs.sum())

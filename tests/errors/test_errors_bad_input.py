@@ -85,3 +85,13 @@ def test_missing_statsmodels_names_the_extra(monkeypatch: pytest.MonkeyPatch) ->
     monkeypatch.setitem(sys.modules, "statsmodels", None)
     with pytest.raises(NeuralMapError, match=r"pip install 'neuralmap\[errors\]'"):
         require_statsmodels("ljung_box")
+
+
+def test_missing_scipy_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    from neuralmap.errors import f_quantile
+
+    monkeypatch.setitem(sys.modules, "scipy", None)
+    with pytest.raises(NeuralMapError, match=r"f_quantile needs SciPy.*neuralmap\[errors\]"):
+        f_quantile(1, 100)
+    # the stationarity condition itself needs only NumPy (used by the navigation models)
+    check_stationary((0.5,), where="x")

@@ -23,6 +23,38 @@ DEM_ERROR_AR1 = (0.5315,)
 DEM_ERROR_AR2 = (0.44417, 0.16430)
 
 
+#: Grid spacing of the paper's map (SEEDS 000), m: its AR coefficients are per 100 m step.
+PAPER_GRID_SPACING = 100.0
+
+
+def ar1_coefficient(correlation_length_m: float, spacing_m: float) -> float:
+    """AR(1) coefficient per grid step for an exponential correlation ``exp(−r / L)``.
+
+    ``φ = exp(−d / L)``: the AR(1) sequence sampled every ``d`` metres has correlation
+    ``φ^k = exp(−k d / L)``. The paper's φ = 0.5315 on its 100 m grid is ``L ≈ 158 m``
+    (:func:`correlation_length`); use this to carry it to a grid of another spacing.
+
+    Args:
+        correlation_length_m: ``L`` > 0, m.
+        spacing_m: Grid step ``d`` > 0, m.
+    """
+    if not (correlation_length_m > 0.0 and spacing_m > 0.0):
+        raise NeuralMapError(
+            f"ar1_coefficient: correlation length and spacing must be > 0 m, got "
+            f"{correlation_length_m!r} and {spacing_m!r}."
+        )
+    return float(np.exp(-spacing_m / correlation_length_m))
+
+
+def correlation_length(phi: float, spacing_m: float = PAPER_GRID_SPACING) -> float:
+    """Correlation length ``L = −d / ln φ`` of an AR(1) coefficient per grid step ``d``."""
+    if not (0.0 < phi < 1.0 and spacing_m > 0.0):
+        raise NeuralMapError(
+            f"correlation_length: need 0 < phi < 1 and spacing > 0, got {phi!r}, {spacing_m!r}."
+        )
+    return float(-spacing_m / np.log(phi))
+
+
 def unit_ar_model(phi: Sequence[float], *, where: str) -> ArmaModel:
     """The AR(p) model with coefficients ``phi`` scaled to unit process variance."""
     coef = check_stationary(phi, where=where)

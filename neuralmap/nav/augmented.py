@@ -12,6 +12,9 @@ and ``H = [−h_x, −h_y, 1, 0, 0, −1(, 0)]``: the map reads ``h_d = h_t + e_
 residual ``(ĥ − h_map(p̂)) − h_radar`` carries ``−e_r``. Only ``e_r`` is driven by noise
 (``Q_66 = σ_e²``, the identified fit residual). General AR(p) uses the same companion form.
 
+The PCRB of the augmented model follows from the 5-state information
+(:func:`augment_information`).
+
 "Switching the map-error state off" (``observed=False``) zeroes its column of H: the state is
 then decoupled and the first five states follow the 5-state filter exactly.
 """
@@ -232,3 +235,33 @@ def paper_augmented_tuning(
         "P0": augmented_initial_covariance(PAPER_P0_STD, PAPER_P0_MAP_STD, p, dtype=dtype),
         "R": PAPER_R_STD**2,
     }
+
+
+def augment_information(info: torch.Tensor, p: int) -> torch.Tensor:
+    """Measurement information ``E[Hᵀ R⁻¹ H]`` of the augmented model from the 5-state one.
+
+    With ``H = [−h_x, −h_y, 1, 0, 0, −1, 0, …]`` every new entry is already in the 5-state
+    information, because its δh entry is 1: ``E[H_i · (−1)] / R = −info[i, 2]`` and
+    ``E[(−1)²] / R = info[2, 2]``. So the augmented PCRB is
+    ``pcrb_recursion(P0_aug, Φ_aug, Q_aug, augment_information(info, p)[1:])`` with ``info``
+    from :func:`neuralmap.nav.pcrb.terrain_information`.
+
+    Args:
+        info: ``(..., 5, 5)`` 5-state information (per step).
+        p: AR order (number of map-error states).
+
+    Returns:
+        ``(..., 5 + p, 5 + p)`` float64 information.
+    """
+    if info.shape[-2:] != (N_STATES, N_STATES) or p < 1:
+        raise NeuralMapError(
+            f"augment_information: info must be (..., 5, 5) and p ≥ 1, got "
+            f"{tuple(info.shape)} and p={p}."
+        )
+    n = N_STATES + p
+    out = torch.zeros(*info.shape[:-2], n, n, dtype=info.dtype, device=info.device)
+    out[..., :N_STATES, :N_STATES] = info
+    out[..., :N_STATES, N_STATES] = -info[..., :, 2]
+    out[..., N_STATES, :N_STATES] = -info[..., 2, :]
+    out[..., N_STATES, N_STATES] = info[..., 2, 2]
+    return out

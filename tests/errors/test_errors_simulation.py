@@ -68,3 +68,17 @@ def test_add_dem_error_returns_new_tile() -> None:
     ok = np.isfinite(d)
     np.testing.assert_allclose(d[ok], field[ok], atol=1e-9)
     assert noisy.meta["dem_error"]["phi_east"] == list(DEM_ERROR_AR1)
+
+
+def test_correlation_length_conversion_and_tile_option() -> None:
+    from neuralmap.errors import ar1_coefficient, correlation_length
+
+    length = correlation_length(0.5315)
+    assert length == pytest.approx(158.2, abs=0.1)
+    assert ar1_coefficient(length, 100.0) == pytest.approx(0.5315, rel=1e-12)
+    tile = synthetic_tile((200, 100), spacing=(30.0, 60.0), seed=1)
+    noisy = add_dem_error(tile, correlation_length_m=length, seed=2)
+    d = noisy.heights - tile.heights
+    var = np.mean(d**2)
+    assert np.mean(d[:, 1:] * d[:, :-1]) / var == pytest.approx(np.exp(-30 / length), abs=0.03)
+    assert np.mean(d[1:] * d[:-1]) / var == pytest.approx(np.exp(-60 / length), abs=0.03)

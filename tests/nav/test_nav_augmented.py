@@ -141,3 +141,19 @@ def test_bad_ar_parameters(ar: tuple[float, ...]) -> None:
         augmented_transition_matrix(1.0, ar)
     with pytest.raises(NeuralMapError, match="not stationary|at least one AR coefficient"):
         paper_augmented_tuning(ar, 0.5)
+
+
+def test_augmented_information_equals_direct_expectation() -> None:
+    from neuralmap.nav.augmented import augment_information
+
+    gen = torch.Generator().manual_seed(3)
+    slopes = 0.4 * torch.randn(50, 2, generator=gen, dtype=torch.float64) + 0.1
+    R = 25.0
+    rows5 = torch.cat([-slopes, torch.ones(50, 1, dtype=torch.float64),
+                       torch.zeros(50, 2, dtype=torch.float64)], dim=1)
+    info5 = torch.einsum("ni,nj->ij", rows5, rows5) / (50 * R)
+    for p in (1, 2):
+        rows = augmented_measurement_jacobian(slopes, p)
+        direct = torch.einsum("ni,nj->ij", rows, rows) / (50 * R)
+        torch.testing.assert_close(augment_information(info5, p), direct, rtol=1e-14,
+                                   atol=1e-16)

@@ -24,6 +24,7 @@ from neuralmap.errors.inverse_function import (
     innovations,
     inverse_function_weights,
 )
+from neuralmap.errors.linearization_error import linearization_error, summarise_error_sequences
 from neuralmap.errors.moments import MomentSolutionError, arma_moments, sample_autocovariance
 from neuralmap.errors.repeat_survey import RepeatSurvey, repeat_survey, survey_recovery
 from neuralmap.errors.runs import RunsResult, runs_test
@@ -78,6 +79,7 @@ __all__ = [
     "identify_error_model",
     "innovations",
     "inverse_function_weights",
+    "linearization_error",
     "ljung_box",
     "minimum_length",
     "order_name",
@@ -87,5 +89,6 @@ __all__ = [
     "runs_test",
     "sample_autocovariance",
     "simulate_ar",
+    "summarise_error_sequences",
     "survey_recovery",
 ]

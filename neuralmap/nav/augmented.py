@@ -21,12 +21,17 @@ then decoupled and the first five states follow the 5-state filter exactly.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import torch
 
 from neuralmap.errors.arma import check_stationary
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.model import TanModel
 from neuralmap.nav.tan import N_STATES, transition_matrix
 
 #: Paper tuning (SEEDS 000): initial standard deviations of the 5 navigation states
@@ -265,3 +270,133 @@ def augment_information(info: torch.Tensor, p: int) -> torch.Tensor:
     out[..., N_STATES, :N_STATES] = -info[..., 2, :]
     out[..., N_STATES, N_STATES] = info[..., 2, 2]
     return out
+
+
+@dataclass(frozen=True)
+class AugmentedTanModel:
+    """A 5-state :class:`~neuralmap.nav.model.TanModel` augmented with AR map-error states.
+
+    Provides what :func:`neuralmap.nav.monte_carlo.run_filter` reads from a model
+    (``n_states``, ``transition``, ``filter_prior``, ``filter_process_noise``, ``base_R``,
+    ``jacobian``), so ``run_filter(truth, linearizer, scenario, model=augmented)`` runs the
+    6- or 7-state filter of SEEDS 000 on the same truth as the 5-state one.
+
+    Attributes:
+        base: The 5-state model (its ``dt``, ``P0`` and ``Q`` tune the navigation block).
+        ar: Stationary AR coefficients ``(a_1,)`` (6 states) or ``(a_1, a_2)`` (7 states).
+        sigma_e: AR innovation standard deviation, m (the identified fit residual's root).
+        p0_map: Initial standard deviations of the map-error states, m (paper: 40 m each);
+            None = the stationary covariance of the AR model (the consistent choice).
+        R: Measurement variance of the augmented filter, m²; None = ``base.base_R``.
+        observed: False switches the map-error state off (zero column of H).
+    """
+
+    base: TanModel
+    ar: tuple[float, ...]
+    sigma_e: float
+    p0_map: tuple[float, ...] | None = None
+    R: float | None = None
+    observed: bool = True
+
+    def __post_init__(self) -> None:
+        where = "AugmentedTanModel"
+        object.__setattr__(self, "ar", tuple(_ar(self.ar, where)))
+        if not (math.isfinite(self.sigma_e) and self.sigma_e >= 0.0):
+            raise NeuralMapError(
+                f"{where}: sigma_e must be finite and ≥ 0 m, got {self.sigma_e!r}."
+            )
+        if self.p0_map is not None:
+            p0 = tuple(float(v) for v in self.p0_map)
+            if len(p0) != len(self.ar) or not all(math.isfinite(v) and v > 0 for v in p0):
+                raise NeuralMapError(
+                    f"{where}: p0_map must hold {len(self.ar)} standard deviations > 0 m (one "
+                    f"per map-error state), got {self.p0_map!r}."
+                )
+            object.__setattr__(self, "p0_map", p0)
+        elif self.sigma_e == 0.0:
+            raise NeuralMapError(
+                f"{where}: with sigma_e = 0 the stationary map-error covariance is 0; give "
+                "p0_map (initial standard deviations) or a sigma_e > 0."
+            )
+        if self.R is not None and not (math.isfinite(self.R) and self.R > 0.0):
+            raise NeuralMapError(f"{where}: R must be finite and > 0 m², got {self.R!r}.")
+
+    @classmethod
+    def paper(cls, base: TanModel, ar: Sequence[float], sigma_e: float) -> AugmentedTanModel:
+        """The paper's tuning (SEEDS 000): ``P0½ = diag(400, 400, 400, 40, 40, 40…)``,
+        ``Q½ = diag(5, 5, 5, 0.5, 0.5, σ_e…)``, ``R½ = 20 m``; ``base`` keeps ``dt`` and the
+        truth description."""
+        tuned = dataclasses.replace(
+            base,
+            P0=tuple(s * s for s in PAPER_P0_STD),
+            Q=tuple(s * s for s in PAPER_Q_STD),
+            R_altimeter=PAPER_R_STD**2,
+            fit_variance=0.0,
+        )
+        return cls(tuned, tuple(ar), sigma_e, p0_map=(PAPER_P0_MAP_STD,) * len(ar),
+                   R=PAPER_R_STD**2)
+
+    @property
+    def p(self) -> int:
+        """Number of map-error states (the AR order)."""
+        return len(self.ar)
+
+    @property
+    def n_states(self) -> int:
+        """``5 + p``."""
+        return N_STATES + self.p
+
+    @property
+    def dt(self) -> float:
+        """Filter period T, s."""
+        return self.base.dt
+
+    @property
+    def base_R(self) -> float:
+        """Measurement variance before the linearisation variance, m²."""
+        return self.base.base_R if self.R is None else float(self.R)
+
+    def transition(self, *, dtype: torch.dtype = torch.float64,
+                   device: str | torch.device = "cpu") -> torch.Tensor:
+        """``(5+p, 5+p)`` Φ (:func:`augmented_transition_matrix`)."""
+        return augmented_transition_matrix(self.dt, self.ar, dtype=dtype, device=device)
+
+    def filter_process_noise(self, *, dtype: torch.dtype = torch.float64,
+                             device: str | torch.device = "cpu") -> torch.Tensor:
+        """``(5+p, 5+p)`` Q: the base model's, then ``σ_e²`` for ``e_r``."""
+        q_nav = self.base.filter_process_noise(dtype=dtype, device=device)
+        return augmented_process_noise(q_nav, self.sigma_e, self.p, dtype=dtype, device=device)
+
+    def map_prior(self, *, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """``(p, p)`` initial covariance of the map-error states."""
+        if self.p0_map is None:
+            return stationary_map_covariance(self.ar, self.sigma_e, dtype=dtype)
+        return torch.diag(torch.tensor(self.p0_map, dtype=dtype) ** 2)
+
+    def filter_prior(self, *, dtype: torch.dtype = torch.float64,
+                     device: str | torch.device = "cpu") -> torch.Tensor:
+        """``(5+p, 5+p)`` P0: the base model's, then the map-error block."""
+        return augmented_initial_covariance(
+            self.base.filter_prior(dtype=dtype, device=device),
+            self.map_prior(dtype=dtype).to(device), self.p, dtype=dtype, device=device,
+        )
+
+    def jacobian(self, slope: torch.Tensor) -> torch.Tensor:
+        """``(N, 5+p)`` rows ``H = [−h_x, −h_y, 1, 0, 0, −1, 0…]``."""
+        return augmented_measurement_jacobian(slope, self.p, observed=self.observed)
+
+    def measurement_noise(self, linearisation_variance: torch.Tensor | float = 0.0
+                          ) -> torch.Tensor | float:
+        """``R = base_R + linearisation variance``."""
+        return linearisation_variance + self.base_R
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-serialisable summary for reports."""
+        return {
+            "n_states": self.n_states,
+            "ar": list(self.ar),
+            "sigma_e": self.sigma_e,
+            "p0_map": None if self.p0_map is None else list(self.p0_map),
+            "R": self.base_R,
+            "observed": self.observed,
+        }

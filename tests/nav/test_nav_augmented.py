@@ -157,3 +157,97 @@ def test_augmented_information_equals_direct_expectation() -> None:
         direct = torch.einsum("ni,nj->ij", rows, rows) / (50 * R)
         torch.testing.assert_close(augment_information(info5, p), direct, rtol=1e-14,
                                    atol=1e-16)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.nav.simulator import simulate
+
+    scenario = load_scenario("tiny")
+    tile = scenario_tile(scenario)
+    return scenario, tile, simulate(scenario, tile, n_runs=6, seed=3)
+
+
+@pytest.mark.parametrize("ar", [(0.5315,), (0.44417, 0.16430)], ids=["6-state", "7-state"])
+def test_run_filter_switched_off_equals_five_state(tiny, ar: tuple[float, ...]) -> None:
+    from neuralmap.linearize.factory import make_linearizer
+    from neuralmap.nav.augmented import AugmentedTanModel
+    from neuralmap.nav.model import TanModel
+    from neuralmap.nav.monte_carlo import run_filter
+
+    scenario, tile, truth = tiny
+    lin = make_linearizer("nine_point", tile=tile)
+    five = run_filter(truth, lin, scenario)
+    base = TanModel.from_scenario(scenario)
+    off = run_filter(truth, lin, scenario,
+                     model=AugmentedTanModel(base, ar, 0.5, observed=False))
+    torch.testing.assert_close(off.err, five.err, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(off.P, five.P, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(off.nis[:, 1:], five.nis[:, 1:], rtol=1e-10, atol=1e-12)
+    on = run_filter(truth, lin, scenario, model=AugmentedTanModel(base, ar, 0.5))
+    assert on.err.shape == five.err.shape and bool(on.healthy.all())
+    assert float((on.err - five.err).abs().max()) > 1e-3
+
+
+def test_augmented_run_matches_filterpy_ekf(tiny) -> None:
+    """FilterPy EKF on 6 states; predicted clearance ĥ − (h_map(p̂) − ê_r)."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    from neuralmap.linearize.factory import make_linearizer
+    from neuralmap.nav.augmented import AugmentedTanModel
+    from neuralmap.nav.model import TanModel
+    from neuralmap.nav.monte_carlo import run_filter
+
+    scenario, tile, truth = tiny
+    lin = make_linearizer("bilinear", tile=tile)
+    model = AugmentedTanModel.paper(TanModel.from_scenario(scenario), (0.5315,), 0.9)
+    run = run_filter(truth, lin, scenario, model=model)
+    for i in (0, 4):
+        ekf = ExtendedKalmanFilter(dim_x=6, dim_z=1)
+        ekf.x = np.zeros((6, 1))
+        ekf.P = model.filter_prior().numpy().copy()
+        ekf.F = model.transition().numpy()
+        ekf.Q = model.filter_process_noise().numpy()
+        for k in range(1, truth.n_steps + 1):
+            ins = truth.ins_pos[i, k].numpy()
+            ekf.predict()
+
+            def linearise(x: np.ndarray, ins: np.ndarray = ins):
+                return lin(torch.tensor((ins[:2] - x[:2, 0])[None]))
+
+            def hx(x: np.ndarray, ins: np.ndarray = ins) -> np.ndarray:
+                return np.array([[ins[2] - x[2, 0] - float(linearise(x).height[0]) + x[5, 0]]])
+
+            def jacobian(x: np.ndarray) -> np.ndarray:
+                sx, sy = linearise(x).slope[0].tolist()
+                return np.array([[sx, sy, -1.0, 0.0, 0.0, 1.0]])  # ∂h(x)/∂x = −H
+
+            R = model.base_R + float(linearise(ekf.x).variance[0])
+            ekf.update(np.array([[float(truth.radar[i, k])]]), jacobian, hx, R=np.array([[R]]))
+            err_ref = truth.ins_error[i, k].numpy() - ekf.x[:5, 0]
+            assert np.allclose(run.err[i, k].numpy(), err_ref, rtol=1e-9, atol=1e-7), (i, k)
+            assert np.allclose(run.P[i, k].numpy(), ekf.P[:5, :5], rtol=1e-9, atol=1e-7), (i, k)
+
+
+def test_augmented_model_tuning_and_bad_input() -> None:
+    from neuralmap.nav.augmented import AugmentedTanModel
+    from neuralmap.nav.model import TanModel
+
+    base = TanModel(dt=1.0, P0=(1.0,) * 5, Q=(0.1,) * 5, R_altimeter=9.0, fit_variance=1.0,
+                    truth_P0=(1.0,) * 5, truth_mean=(0.0,) * 5, truth_Q=(0.1,) * 5, truth_R=9.0)
+    paper = AugmentedTanModel.paper(base, (0.44417, 0.16430), 0.51)
+    assert paper.n_states == 7 and paper.base_R == 400.0
+    np.testing.assert_allclose(torch.diagonal(paper.filter_prior()).sqrt().numpy(),
+                               [400, 400, 400, 40, 40, 40, 40])
+    np.testing.assert_allclose(torch.diagonal(paper.filter_process_noise()).sqrt().numpy(),
+                               [5, 5, 5, 0.5, 0.5, 0.51, 0])
+    consistent = AugmentedTanModel(base, (0.5315,), 0.8)
+    assert float(consistent.filter_prior()[5, 5]) == pytest.approx(0.64 / (1 - 0.5315**2))
+    assert consistent.base_R == 10.0
+    with pytest.raises(NeuralMapError, match="not stationary"):
+        AugmentedTanModel(base, (1.1,), 0.5)
+    with pytest.raises(NeuralMapError, match="p0_map must hold 2"):
+        AugmentedTanModel(base, (0.4, 0.1), 0.5, p0_map=(40.0,))
+    with pytest.raises(NeuralMapError, match="give p0_map"):
+        AugmentedTanModel(base, (0.5,), 0.0)

@@ -135,6 +135,7 @@ def tan_filter_step(
     R: float | torch.Tensor,
     extent: tuple[float, float, float, float] | None = None,
     mask: torch.Tensor | None = None,
+    policy: Any = None,
     jacobian: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> StepDiagnostics:
     """One TAN step: predict, linearise at the estimate, altimeter update (SEEDS 004).
@@ -156,6 +157,8 @@ def tan_filter_step(
             linearisation variance is added per sample.
         extent: Map ``(xmin, xmax, ymin, ymax)``; None = the linearizer's (or no check).
         mask: ``(N,)`` bool, optional; False skips the update of that sample.
+        policy: Optional robust/adaptive filter policy
+            (:mod:`neuralmap.filters.policies`), passed to the predict and the update.
         jacobian: For a state augmented beyond the 5 navigation states (e.g. the AR
             map-error states of :mod:`neuralmap.nav.augmented`): builds the ``(N, n)``
             rows of H from the ``(N, 2)`` slopes. The extra states enter the measurement
@@ -171,7 +174,10 @@ def tan_filter_step(
             f"tan_filter_step: ins_pos must be ({n}, 3) and radar ({n},) for {n} filters, got "
             f"{tuple(ins_pos.shape)} and {tuple(radar.shape)}."
         )
-    ekf.predict(F, Q)
+    if policy is None:
+        ekf.predict(F, Q)
+    else:
+        ekf.predict(F, Q, policy=policy)
     x = ekf.x
     p_hat = ins_pos[:, :2] - x[:, :2]
     lin = linearizer(p_hat, ekf.P[:, :2, :2])
@@ -200,7 +206,8 @@ def tan_filter_step(
         rows = jacobian(slope)
         predicted = (rows[:, N_STATES:] * x[:, N_STATES:]).sum(dim=1)
         residual = residual - (predicted if all_used else torch.where(use, predicted, 0.0))
-    diag = ekf.update(residual, rows, r_total, mask=None if all_used else use)
+    kwargs = {} if policy is None else {"policy": policy}
+    diag = ekf.update(residual, rows, r_total, mask=None if all_used else use, **kwargs)
     S = diag.S.reshape(n)
     applied = getattr(diag, "applied", None)
     return StepDiagnostics(

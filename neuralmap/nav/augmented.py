@@ -272,6 +272,19 @@ def augment_information(info: torch.Tensor, p: int) -> torch.Tensor:
     return out
 
 
+def paper_tan_model(base: TanModel) -> TanModel:
+    """The 5-state model with the paper's tuning (SEEDS 000): ``P0½ = diag(400, 400, 400,
+    40, 40)``, ``Q½ = diag(5, 5, 5, 0.5, 0.5)``, ``R½ = 20 m``, no extra fit variance;
+    ``base`` keeps ``dt`` and the truth description."""
+    return dataclasses.replace(
+        base,
+        P0=tuple(s * s for s in PAPER_P0_STD),
+        Q=tuple(s * s for s in PAPER_Q_STD),
+        R_altimeter=PAPER_R_STD**2,
+        fit_variance=0.0,
+    )
+
+
 @dataclass(frozen=True)
 class AugmentedTanModel:
     """A 5-state :class:`~neuralmap.nav.model.TanModel` augmented with AR map-error states.
@@ -326,14 +339,7 @@ class AugmentedTanModel:
         """The paper's tuning (SEEDS 000): ``P0½ = diag(400, 400, 400, 40, 40, 40…)``,
         ``Q½ = diag(5, 5, 5, 0.5, 0.5, σ_e…)``, ``R½ = 20 m``; ``base`` keeps ``dt`` and the
         truth description."""
-        tuned = dataclasses.replace(
-            base,
-            P0=tuple(s * s for s in PAPER_P0_STD),
-            Q=tuple(s * s for s in PAPER_Q_STD),
-            R_altimeter=PAPER_R_STD**2,
-            fit_variance=0.0,
-        )
-        return cls(tuned, tuple(ar), sigma_e, p0_map=(PAPER_P0_MAP_STD,) * len(ar),
+        return cls(paper_tan_model(base), tuple(ar), sigma_e, p0_map=(PAPER_P0_MAP_STD,) * len(ar),
                    R=PAPER_R_STD**2)
 
     @property

@@ -41,6 +41,11 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
         "tan.yaml",
     ),
+    "dem_errors": StudySpec(
+        "neuralmap.studies.dem_errors", "DemErrorsStudyConfig",
+        "DEM-related error models: identification, linearisation error m2, 5/6/7-state filters",
+        "dem_errors.yaml",
+    ),
 }
 
 

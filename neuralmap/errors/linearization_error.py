@@ -1,11 +1,19 @@
-"""The stochastic-linearisation error ``m2`` and a Table 2-style summary of error sequences.
+"""The stochastic-linearisation error and a Table 2-style summary of error sequences.
 
-SEEDS 000, eq. 11: ``h_t(x̂, ŷ) = f(x̂, ŷ) + m2``: ``m2`` is the true terrain minus the fitted
-plane, both at the filter's estimate ``(x̂, ŷ)`` (the method-related error; ``m1``, at the true
-position, has the same nature). Sampled once per filter period along Monte Carlo flights it
-forms the sequences whose standard deviation the paper tabulates (Table 2) and whose models
-it identifies (fixed regions: stationary AR(1)/AR(2); adaptive region: non-stationary,
-shrinking).
+SEEDS 000, eqs. 9–12: with the estimate ``p̂ = (x̂, ŷ)``, the truth ``p`` and the method's
+height ``f(p̂)`` and slope ``∇f``, the altimeter measurement is
+``z = H δX + (linearisation error) − m_d − m_r`` where the linearisation error is
+
+    e_lin = h(p) − f(p̂) − ∇f · (p − p̂)         (the part of z that H δX does not explain).
+
+The paper splits it into ``m2 = h(p̂) − f(p̂)`` (eq. 11, at the estimate) and the error at the
+true position ``m1``. The toolkit's linearisation methods return the map look-up at the
+estimate as ``f(p̂)`` (SEEDS 000 eq. 5) and the plane only for the slope, so ``m2`` here is the
+look-up's interpolation error and the region's size acts through the slope term;
+:func:`linearization_error` gives ``m2`` or, with the true positions, ``e_lin``. Sampled once
+per filter period along Monte Carlo flights they form the sequences whose standard deviation
+the paper tabulates (Table 2) and whose models it identifies (fixed regions: stationary
+AR(1)/AR(2); adaptive region: non-stationary, shrinking).
 """
 
 from __future__ import annotations
@@ -29,21 +37,26 @@ def linearization_error(
     xy: torch.Tensor,
     *,
     pos_cov: torch.Tensor | None = None,
+    true_xy: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """``m2 = h_t(x̂, ŷ) − f(x̂, ŷ)`` at a batch of estimates (SEEDS 000, eq. 11).
+    """Linearisation error at a batch of estimates (SEEDS 000, eqs. 11–12).
+
+    Without ``true_xy``: ``m2 = h(p̂) − f(p̂)`` (eq. 11). With it: the whole linearisation
+    error of the measurement ``e_lin = h(p) − f(p̂) − ∇f · (p − p̂)`` (module docstring).
 
     Args:
         linearizer: A linearisation method (``forward(xy (M, 2), pos_cov (M, 2, 2)) ->
-            Linearization``; its ``height`` is the fitted plane at ``xy``).
-        true_terrain: The true terrain (``forward(xy (..., 2)) -> heights (...)``), e.g. a
-            bicubic :class:`~neuralmap.terrain.GridTerrain` of the true tile.
-        xy: ``(..., 2)`` horizontal estimates ``(x̂, ŷ)``, m (e.g. the filter's ``p_hat``
-            per step, ``(N, K, 2)``).
+            Linearization``: ``height`` = ``f(p̂)``, ``slope`` = ``∇f``).
+        true_terrain: The reference surface ``h`` (``forward(xy (..., 2)) -> heights``),
+            e.g. a bicubic :class:`~neuralmap.terrain.GridTerrain` of the DEM (to isolate
+            the linearisation from the DEM-making error) or of the truth.
+        xy: ``(..., 2)`` horizontal estimates ``p̂``, m (e.g. ``(N, K, 2)`` per run and step).
         pos_cov: ``(..., 2, 2)`` horizontal covariance at each estimate (the adaptive
             region Ω_adp uses it), or None.
+        true_xy: ``(..., 2)`` true positions ``p``, or None for ``m2``.
 
     Returns:
-        ``(...)`` tensor of ``m2`` in metres (dtype of ``xy``); NaN where a map returns NaN.
+        ``(...)`` tensor in metres (dtype of ``xy``); NaN where a map returns NaN.
     """
     if not isinstance(xy, torch.Tensor) or xy.ndim < 1 or xy.shape[-1] != 2:
         raise NeuralMapError(
@@ -60,13 +73,25 @@ def linearization_error(
                 f"got {tuple(pos_cov.shape)}."
             )
         cov = pos_cov.reshape(-1, 2, 2)
+    truth_flat = None
+    if true_xy is not None:
+        if tuple(true_xy.shape) != tuple(xy.shape):
+            raise NeuralMapError(
+                f"linearization_error: true_xy must have the shape of xy {tuple(xy.shape)}, "
+                f"got {tuple(true_xy.shape)}."
+            )
+        truth_flat = true_xy.reshape(-1, 2).to(xy.dtype)
     out = []
     with torch.no_grad():
         for start in range(0, flat.shape[0], CHUNK):
             part = flat[start : start + CHUNK]
             lin = linearizer(part, None if cov is None else cov[start : start + CHUNK])
-            truth = true_terrain(part)
-            out.append(truth.to(xy.dtype) - lin.height.to(xy.dtype))
+            if truth_flat is None:
+                out.append(true_terrain(part).to(xy.dtype) - lin.height.to(xy.dtype))
+                continue
+            true_part = truth_flat[start : start + CHUNK]
+            step = ((true_part - part) * lin.slope.to(xy.dtype)).sum(dim=-1)
+            out.append(true_terrain(true_part).to(xy.dtype) - lin.height.to(xy.dtype) - step)
     return torch.cat(out).reshape(lead)
 
 

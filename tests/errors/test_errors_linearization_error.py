@@ -61,3 +61,22 @@ def test_summary_of_stationary_and_shrinking_sequences() -> None:
     shrinking = (1 + 30 * np.exp(-t / 60)) * rng.standard_normal((6, 400))
     cell = summarise_error_sequences(shrinking, n_identify=6)
     assert cell["stationary_fraction"] <= 0.25
+
+
+def test_measurement_linearisation_error_closed_form() -> None:
+    # h = 0.01 x² and the plane stub (f = 10 + 0.1 x, slope (0.1, 0)):
+    # e_lin = h(p) − f(p̂) − 0.1 (x − x̂)
+    xy = torch.rand(4, 5, 2, dtype=torch.float64) * 100
+    true_xy = xy + torch.randn(4, 5, 2, dtype=torch.float64) * 10
+    e = linearization_error(_Plane(), lambda p: 0.01 * p[..., 0] ** 2, xy, true_xy=true_xy)
+    ref = (0.01 * true_xy[..., 0] ** 2 - (10 + 0.1 * xy[..., 0])
+           - 0.1 * (true_xy[..., 0] - xy[..., 0]))
+    torch.testing.assert_close(e, ref)
+    # on a plane the slope term is exact: e_lin = m2 = 0 for a plane-fit method
+    yy, xx = np.mgrid[0:60, 0:60] * 100.0
+    tile = DemTile(heights=300 + 0.05 * xx - 0.02 * yy, spacing=100.0, name="plane")
+    lin = make_linearizer("lsq_mean", tile=tile, dtype=torch.float64)
+    est = 2000 + 2000 * torch.rand(20, 2, dtype=torch.float64)
+    e = linearization_error(lin, GridTerrain(tile, method="bicubic", dtype=torch.float64), est,
+                            true_xy=est + 150.0)
+    assert float(e.abs().max()) < 1e-6

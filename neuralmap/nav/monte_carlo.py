@@ -120,6 +120,7 @@ def run_filter(
     *,
     progress: bool | Any = False,
     method: str = "",
+    policy: Any = None,
     model: Any = None,
 ) -> FilterRun:
     """Runs the 5-state TAN EKF over all N runs with one linearisation method.
@@ -136,6 +137,10 @@ def run_filter(
         progress: True shows a tqdm bar over the steps; a tqdm bar object is advanced by
             one per step instead (used by :func:`run_monte_carlo`).
         method: Method name stored in the result.
+        policy: Optional robust/adaptive update policy (:mod:`neuralmap.filters.policies`),
+            reset first; every :class:`~neuralmap.filters.policies.QualityR` inside it gets
+            the altimeter's quality record (``truth.quality``) before each update. Epochs
+            with a loss of lock (NaN clearance) are not updated.
         model: The filter's model; None = ``TanModel.from_scenario(scenario)``. An
             augmented model (:class:`neuralmap.nav.augmented.AugmentedTanModel`, with
             ``n_states > 5`` and a ``jacobian``) runs the augmented filter; the result
@@ -180,12 +185,25 @@ def run_filter(
         bar, own_bar = tqdm(total=k_steps, desc=method or "filter", unit="step"), True
     elif progress is not False and progress is not None:
         bar = progress
+    quality_policies = _quality_policies(policy)
+    if policy is not None:
+        policy.reset()
+    if quality_policies and getattr(truth, "quality", None) is None:
+        raise NeuralMapError(
+            f"method {method!r}: the policy needs the altimeter quality record, but the truth "
+            "has none; simulate it with neuralmap.nav.simulator.simulate."
+        )
+    lock_lost = not bool(torch.isfinite(truth.radar[:, 1:]).all())
     start = time.perf_counter()
     try:
         for k in range(1, k_steps + 1):
+            radar = truth.radar[:, k]
+            for quality_policy in quality_policies:
+                quality_policy.set_quality(truth.quality[:, k])
             diag = tan_filter_step(
-                ekf, truth.ins_pos[:, k], truth.radar[:, k], linearizer, F=F, Q=Q, R=R,
-                extent=truth.extent, jacobian=jacobian,
+                ekf, truth.ins_pos[:, k], radar, linearizer, F=F, Q=Q, R=R,
+                extent=truth.extent, mask=torch.isfinite(radar) if lock_lost else None,
+                policy=policy, jacobian=jacobian,
             )
             if ekf.x.requires_grad or ekf.P.requires_grad:  # a graph-keeping linearizer
                 ekf.x, ekf.P = ekf.x.detach(), ekf.P.detach()
@@ -210,6 +228,16 @@ def run_filter(
         updated=updated, est_on_map=est_on_map, off_map=off_map,
         healthy=ekf.healthy.clone(), elapsed_s=elapsed,
     )
+
+
+def _quality_policies(policy: Any) -> list[Any]:
+    """Every policy inside ``policy`` (itself or a composition) that reads quality records."""
+    if policy is None:
+        return []
+    found = [policy] if callable(getattr(policy, "set_quality", None)) else []
+    for inner in getattr(policy, "policies", ()) or ():
+        found += _quality_policies(inner)
+    return found
 
 
 def run_monte_carlo(

@@ -115,3 +115,15 @@ def test_concurrent_runs_get_distinct_version_folders(tmp_path: Path) -> None:
     for thread in threads:
         thread.join()
     assert sorted(p.name for p in taken) == [f"version_{i}" for i in range(8)]
+
+
+def test_flight_off_the_tile_exits_2_with_the_reason(tmp_path: Path, tiny_map: Path,
+                                                    capsys) -> None:  # noqa: ANN001
+    scenario = tmp_path / "off.yaml"
+    text = (REPO_ROOT / "configs" / "scenarios" / "tiny.yaml").read_text()
+    scenario.write_text(text.replace("start_xy: [500.0, 500.0]", "start_xy: [-9000.0, -9000.0]"))
+    code = cli.main(["--config", str(TINY), "--map", str(tiny_map), "--scenario", str(scenario),
+                     "--runs_dir", str(tmp_path / "runs"), "--methods", "[bilinear]"])
+    err = capsys.readouterr().err
+    assert code == 2 and "no run could be scored" in err and "start_xy" in err
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("*.json"))

@@ -84,3 +84,12 @@ def test_report_formats() -> None:
     assert data["chosen"]["name"] == "AR(1)"
     assert {row["order"] for row in data["table"]} >= {"AR(1)", "AR(2)", "ARMA(1,1)"}
     assert str(result) == md
+
+
+def test_tensor_input_gives_the_same_table() -> None:
+    import torch
+
+    x = simulate_ar(300, seed=17)
+    a = identify_error_model(x, diagnostics=False)
+    b = identify_error_model(torch.from_numpy(x), diagnostics=False)
+    assert a.table() == b.table()

@@ -121,6 +121,7 @@ def run_filter(
     progress: bool | Any = False,
     method: str = "",
     policy: Any = None,
+    model: Any = None,
 ) -> FilterRun:
     """Runs the 5-state TAN EKF over all N runs with one linearisation method.
 
@@ -140,6 +141,10 @@ def run_filter(
             reset first; every :class:`~neuralmap.filters.policies.QualityR` inside it gets
             the altimeter's quality record (``truth.quality``) before each update. Epochs
             with a loss of lock (NaN clearance) are not updated.
+        model: The filter's model; None = ``TanModel.from_scenario(scenario)``. An
+            augmented model (:class:`neuralmap.nav.augmented.AugmentedTanModel`, with
+            ``n_states > 5`` and a ``jacobian``) runs the augmented filter; the result
+            keeps the 5 navigation states (``err``, ``P``).
 
     Returns:
         :class:`FilterRun`.
@@ -153,8 +158,11 @@ def run_filter(
     check_map_matches(linearizer, truth, method=method)
     dtype, device = truth.pos.dtype, truth.pos.device
     n, k_steps = truth.n_runs, truth.n_steps
-    model = TanModel.from_scenario(scenario)
-    ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device),
+    if model is None:
+        model = TanModel.from_scenario(scenario)
+    n_states = int(getattr(model, "n_states", N_STATES))
+    jacobian = model.jacobian if n_states > N_STATES else None
+    ekf = BatchedEKF(torch.zeros(n, n_states, dtype=dtype, device=device),
                      model.filter_prior(dtype=dtype, device=device))
     F = model.transition(dtype=dtype, device=device)
     Q = model.filter_process_noise(dtype=dtype, device=device)
@@ -166,8 +174,8 @@ def run_filter(
     residual = torch.zeros(n, k_steps + 1, dtype=dtype, device=device)
     updated = torch.zeros(n, k_steps + 1, dtype=torch.bool, device=device)
     est_on_map = torch.ones(n, k_steps + 1, dtype=torch.bool, device=device)
-    err[:, 0] = truth.ins_error[:, 0] - ekf.x
-    P_hist[:, 0] = ekf.P
+    err[:, 0] = truth.ins_error[:, 0] - ekf.x[:, :N_STATES]
+    P_hist[:, 0] = ekf.P[:, :N_STATES, :N_STATES]
     est_on_map[:, 0] = inside_extent(truth.ins_pos[:, 0, :2], truth.extent)
 
     bar, own_bar = None, False
@@ -195,12 +203,12 @@ def run_filter(
             diag = tan_filter_step(
                 ekf, truth.ins_pos[:, k], radar, linearizer, F=F, Q=Q, R=R,
                 extent=truth.extent, mask=torch.isfinite(radar) if lock_lost else None,
-                policy=policy,
+                policy=policy, jacobian=jacobian,
             )
             if ekf.x.requires_grad or ekf.P.requires_grad:  # a graph-keeping linearizer
                 ekf.x, ekf.P = ekf.x.detach(), ekf.P.detach()
-            err[:, k] = truth.ins_error[:, k] - ekf.x
-            P_hist[:, k] = ekf.P
+            err[:, k] = truth.ins_error[:, k] - ekf.x[:, :N_STATES]
+            P_hist[:, k] = ekf.P[:, :N_STATES, :N_STATES]
             upd = diag.updated.detach()
             nis[:, k] = torch.where(upd, diag.nis.detach(), nis[:, k])
             residual[:, k] = torch.where(upd, diag.residual.detach(), residual[:, k])

@@ -11,9 +11,11 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+from neuralmap.terrain.quantize import check_scheme, dequantize_state, quantize_state
 
 FORMAT = "neuralmap-terrain-map"
-FORMAT_VERSION = 1
+#: Version 2 adds the optional ``quantization`` entry; unquantised files stay version 1.
+FORMAT_VERSION = 2
 _CLASSES: dict[str, type[BlockwiseTerrainNet]] = {"BlockwiseTerrainNet": BlockwiseTerrainNet}
 
 
@@ -23,32 +25,51 @@ def save_map(
     *,
     metrics: dict[str, Any] | None = None,
     extra: dict[str, Any] | None = None,
+    quantization: str | None = None,
 ) -> Path:
     """Writes a neural map atomically (temporary file, then rename).
 
     The file records the model class, its constructor config (including the tile it was
     fitted to: name, fingerprint, extent), the float state dict and optional metrics.
+    With ``quantization`` the parameters are stored in that compact form instead
+    (:mod:`neuralmap.terrain.quantize`; buffers stay float32) and :func:`load_map`
+    dequantises them; the file size is then the map's stored size.
 
     Args:
         model: The fitted network.
         path: Destination, conventionally ``runs/<experiment>/<version>/neural_map.pt``.
         metrics: Final fit metrics (JSON-like), stored for reports.
         extra: Any further JSON-like information (e.g. the training config).
+        quantization: ``None`` (float32) or a scheme of
+            :data:`neuralmap.terrain.quantize.QUANT_SCHEMES` (``"fp16"``, ``"int8_tensor"``,
+            ``"int8_block"``, ``"int8_channel"``).
 
     Returns:
         The path written.
+
+    Raises:
+        NeuralMapError: Unknown quantisation scheme.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
+    # clone: a parameter that is a view (e.g. a bias sliced from a larger init tensor) would
+    # otherwise drag its whole storage into the file.
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    payload: dict[str, Any] = {
         "format": FORMAT,
-        "format_version": FORMAT_VERSION,
+        "format_version": 1,
         "class": type(model).__name__,
         "config": model.config,
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "state_dict": state,
         "metrics": dict(metrics or {}),
         "extra": dict(extra or {}),
     }
+    if quantization is not None:
+        quantized = quantize_state(model, check_scheme(quantization))
+        for name in quantized["tensors"]:
+            state.pop(name, None)
+        payload["quantization"] = quantized
+        payload["format_version"] = FORMAT_VERSION
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=".neural_map.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
@@ -108,12 +129,22 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
         ``.tile_info`` say which tile it was fitted to, ``.metrics`` holds the stored metrics.
 
     Raises:
-        NeuralMapError: If the file is missing or not a neuralmap export.
+        NeuralMapError: If the file is missing or not a neuralmap export, or a quantised
+            file lacks values or scales.
     """
     payload = load_map_payload(path)
     config = dict(payload["config"])
     model = _CLASSES[payload["class"]](**config)
-    model.load_state_dict(payload["state_dict"])
+    state = dict(payload["state_dict"])
+    if "quantization" in payload:
+        state.update(dequantize_state(payload["quantization"]))
+    missing = sorted(set(model.state_dict()) - set(state))
+    if missing:
+        raise NeuralMapError(
+            f"{path}: the map file lacks the tensor(s) {', '.join(missing)}; it is incomplete "
+            "or damaged. Export the map again with save_map."
+        )
+    model.load_state_dict(state)
     model.metrics = payload.get("metrics", {})  # type: ignore[assignment]
     model.eval()
     return model

@@ -280,6 +280,22 @@ class BlockwiseTerrainNet(TerrainModel):
         )
         return height.reshape(lead).to(xy.dtype)
 
+    def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Heights and slopes in one forward-mode pass, without autograd.
+
+        Equal to :meth:`forward` and the autograd gradient of its sum (see
+        :func:`neuralmap.terrain.forward_slope.blockwise_height_and_slope`).
+
+        Args:
+            xy: ``(..., 2)`` east/north metres.
+
+        Returns:
+            ``(height (...), slope (..., 2))`` in ``xy``'s dtype.
+        """
+        from neuralmap.terrain.forward_slope import blockwise_height_and_slope
+
+        return blockwise_height_and_slope(self, xy)
+
     def analytic_slope(self, xy: torch.Tensor) -> torch.Tensor:
         """Terrain slope from the closed-form input gradient, SEEDS 004 eq. (8).
 

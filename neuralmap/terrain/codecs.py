@@ -31,6 +31,7 @@ nodes only, and the error at the original nodes is whatever the measurement says
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -87,6 +88,9 @@ class CompressedGrid:
         tile: The decoded heights at the original tile's nodes (decimated grids
             interpolated back, bicubic), as a tile with the original geometry.
         settings: Codec settings used (e.g. ``near``, the JPEG 2000 PSNR level).
+        decode_s: Wall-clock seconds the decoder took for the payload (without the
+            bicubic interpolation back of decimated grids).
+        source_fingerprint: :meth:`DemTile.fingerprint` of the tile that was encoded.
     """
 
     codec: str
@@ -99,6 +103,8 @@ class CompressedGrid:
     error_bound: float
     tile: DemTile
     settings: dict[str, Any] = field(default_factory=dict)
+    decode_s: float = 0.0
+    source_fingerprint: str = ""
 
     @property
     def nbytes(self) -> int:
@@ -120,8 +126,15 @@ class CompressedGrid:
     def terrain(
         self, *, method: str = "bicubic", dtype: torch.dtype = torch.float64
     ) -> GridTerrain:
-        """The decoded grid as a :class:`GridTerrain` (interpolation ``method``)."""
-        return GridTerrain(self.tile, method=method, dtype=dtype)
+        """The decoded grid as a :class:`GridTerrain` (interpolation ``method``).
+
+        The terrain records the *encoded* tile's name and fingerprint: it is a map of that
+        tile (the filters' tile checks accept it for the original tile's scenarios).
+        """
+        grid = GridTerrain(self.tile, method=method, dtype=dtype)
+        if self.source_fingerprint:
+            grid.tile_fingerprint = self.source_fingerprint
+        return grid
 
 
 def _check_max_error(max_error: float) -> float:
@@ -285,7 +298,9 @@ def compress_grid(
     else:
         coarse_tile, stored = tile, heights
     payload, step, offset, error_bound, settings = _encode(codec, stored, bound, int(near))
+    started = time.perf_counter()
     decoded = _decode(codec, payload, stored.shape, step, offset)
+    decode_s = time.perf_counter() - started
     if decimation > 1:
         back = DemTile(
             heights=decoded,
@@ -315,4 +330,6 @@ def compress_grid(
         error_bound=error_bound,
         tile=out_tile,
         settings=settings,
+        decode_s=decode_s,
+        source_fingerprint=tile.fingerprint(),
     )

@@ -119,19 +119,20 @@ def run(args: argparse.Namespace) -> list[Row]:
     return rows
 
 
-def main() -> None:
-    """Command-line entry point."""
+def main(argv: list[str] | None = None) -> int:
+    """Command-line entry point; returns the exit status."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=200_000, help="query points")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--map", action="append", default=[], help="trained neural_map.pt")
     parser.add_argument("--quick", action="store_true", help="small smoke run")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     if args.quick:
-        args.n, args.repeats = 20_000, 2
+        args.n, args.repeats = min(args.n, 20_000), 2
     run(args)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -474,7 +474,9 @@ def run(config: MapSizeStudyConfig, outputs: StudyOutputs) -> None:
                                      divergence_sigma=config.divergence_sigma)
         row["nav_rmse_m"] = metrics.get("rmse_pos_m")
         row["nav_pcrb_ratio"] = metrics.get("pcrb_ratio_all")
+        row["nav_rmse_converged_m"] = metrics.get("rmse_pos_converged_m")
         row["divergence_rate"] = metrics.get("divergence_rate")
+        row["n_diverged"] = metrics.get("n_diverged")
         row["n_included"] = metrics.get("n_included")
     nav_s = time.perf_counter() - tick
 
@@ -509,15 +511,39 @@ def _smallest(rows: list[dict[str, Any]], kind: str, ok: Any) -> dict[str, Any] 
     return min(hits, key=lambda r: r["bytes"]) if hits else None
 
 
+def _equal_accuracy(
+    rows: list[dict[str, Any]], key: str, *, robust: bool
+) -> dict[str, Any]:
+    """Smallest grid and neural map within ``EQUAL_ACCURACY`` of the full grid's ``key``.
+
+    With ``robust`` a map must also diverge in no more runs than the full grid.
+    """
+    ref = rows[0]
+    ref_value = ref.get(key)
+    threshold = None if ref_value is None else (1.0 + EQUAL_ACCURACY) * ref_value
+
+    def ok(r: dict[str, Any]) -> bool:
+        if threshold is None or r.get(key) is None or r[key] > threshold:
+            return False
+        return not robust or (r.get("n_diverged") or 0) <= (ref.get("n_diverged") or 0)
+
+    grid, neural = _smallest(rows, "grid", ok), _smallest(rows, "neural", ok)
+    has_neural = any(r["kind"] == "neural" for r in rows)
+    pick = ("name", "bytes", key, "n_diverged")
+    return {
+        "metric": key,
+        "reference": ref_value,
+        "reference_diverged": ref.get("n_diverged"),
+        "threshold_m": threshold,
+        "smallest_grid": grid and {k: grid.get(k) for k in pick},
+        "smallest_neural": neural and {k: neural.get(k) for k in pick},
+        "met": None if not has_neural else bool(
+            neural is not None and (grid is None or neural["bytes"] <= grid["bytes"])),
+    }
+
+
 def _summarise(rows: list[dict[str, Any]], raw_bytes: int) -> dict[str, Any]:
     """Fronts and targets from the per-map rows."""
-    ref = rows[0]
-    ref_nav = ref.get("nav_rmse_m")
-    threshold = None if ref_nav is None else (1.0 + EQUAL_ACCURACY) * ref_nav
-
-    def nav_ok(r: dict[str, Any]) -> bool:
-        return threshold is not None and r.get("nav_rmse_m") is not None and (
-            r["nav_rmse_m"] <= threshold)
 
     def compact_ok(r: dict[str, Any]) -> bool:
         return r["bytes"] <= TARGET_FRACTION * raw_bytes and r["node_rmse_m"] <= TARGET_RMSE_M
@@ -525,32 +551,23 @@ def _summarise(rows: list[dict[str, Any]], raw_bytes: int) -> dict[str, Any]:
     fronts: dict[str, Any] = {}
     for kind in ("grid", "neural"):
         pts = [r for r in rows if r["kind"] == kind]
-        for key in ("node_max_m", "nav_rmse_m"):
+        for key in ("node_max_m", "nav_rmse_m", "nav_rmse_converged_m"):
             idx = pareto_front([r["bytes"] for r in pts], [r.get(key) for r in pts])
-            fronts[f"{kind}_{key}"] = [
+            fronts[f"{kind}:{key}"] = [
                 {"name": pts[i]["name"], "bytes": pts[i]["bytes"], key: pts[i][key]} for i in idx
             ]
-    grid_eq = _smallest(rows, "grid", nav_ok)
-    neural_eq = _smallest(rows, "neural", nav_ok)
     compact = _smallest(rows, "neural", compact_ok)
     neural_rows = [r for r in rows if r["kind"] == "neural"]
     best_nav = min((r for r in neural_rows if r.get("nav_rmse_m") is not None),
                    key=lambda r: r["nav_rmse_m"], default=None)
     return {
-        "reference_nav_rmse_m": ref_nav,
-        "equal_accuracy_threshold_m": threshold,
-        "smallest_grid_at_equal_accuracy": grid_eq and {
-            k: grid_eq[k] for k in ("name", "bytes", "nav_rmse_m")},
-        "smallest_neural_at_equal_accuracy": neural_eq and {
-            k: neural_eq[k] for k in ("name", "bytes", "nav_rmse_m")},
+        "equal_accuracy_all_runs": _equal_accuracy(rows, "nav_rmse_m", robust=False),
+        "equal_accuracy_converged": _equal_accuracy(rows, "nav_rmse_converged_m", robust=True),
         "best_neural_nav": best_nav and {k: best_nav[k] for k in ("name", "bytes", "nav_rmse_m")},
         "compact_target_map": compact and {
             k: compact[k] for k in ("name", "bytes", "fraction_of_raw", "node_rmse_m")},
         "target_compact_met": compact is not None if neural_rows else None,
-        "target_equal_accuracy_met": (
-            None if not neural_rows else
-            bool(neural_eq is not None and (grid_eq is None or neural_eq["bytes"] <= grid_eq["bytes"]))
-        ),
+        "target_equal_accuracy_met": _equal_accuracy(rows, "nav_rmse_m", robust=False)["met"],
         "fronts": fronts,
     }
 
@@ -575,36 +592,39 @@ def _write_report(
     )
     headers = ["map", "bytes", "bits/node", "% raw", "node RMSE m", "node max m",
                "truth RMSE m", "truth max m", "slope RMSE", "M q/s", "x bicubic",
-               "M q/s fast", "fast x bicubic",
-               "nav RMSE m", "RMSE/PCRB", "diverged"]
+               "M q/s fast", "fast x bicubic", "nav RMSE m", "RMSE/PCRB",
+               "nav RMSE conv. m", "diverged"]
     table = [
         [r["name"], r["bytes"], r["bits_per_node"], 100 * r["fraction_of_raw"],
          r["node_rmse_m"], r["node_max_m"], r["truth_rmse_m"], r["truth_max_m"],
          r["slope_rmse"], r["queries_per_s"] / 1e6, r["query_vs_bicubic"],
          r["fast_queries_per_s"] / 1e6, r["fast_query_vs_bicubic"], r.get("nav_rmse_m"),
-         r.get("nav_pcrb_ratio"), r.get("divergence_rate")]
+         r.get("nav_pcrb_ratio"), r.get("nav_rmse_converged_m"),
+         f"{r.get('n_diverged')}/{r.get('n_included')}"]
         for r in sorted(rows, key=lambda r: (r["kind"], r["family"], r["bytes"]))
     ]
     outputs.add_table("Every map", headers, table)
     front_rows = []
     for key, front in summary["fronts"].items():
-        metric = "node_max_m" if key.endswith("node_max_m") else "nav_rmse_m"
-        front_rows += [[key.split("_")[0], metric, p["name"], p["bytes"], p[metric]]
-                       for p in front]
+        kind, metric = key.split(":")
+        front_rows += [[kind, metric, p["name"], p["bytes"], p[metric]] for p in front]
     outputs.add_table("Rate-distortion fronts", ["family", "error", "map", "bytes", "error"],
                       front_rows)
-    ref = summary["reference_nav_rmse_m"]
+    all_runs = summary["equal_accuracy_all_runs"]
+    converged = summary["equal_accuracy_converged"]
     _plot_front(outputs, rows, key="node_max_m", ylabel="max |error| at the DEM nodes (m)",
                 name="bytes_vs_max_error", raw_bytes=raw_bytes,
                 caption="Stored bytes vs maximum node error: grid codecs and neural maps")
     _plot_front(outputs, rows, key="nav_rmse_m", ylabel="all-run position RMSE (m)",
-                name="bytes_vs_nav_rmse", raw_bytes=raw_bytes,
-                reference=summary["equal_accuracy_threshold_m"],
+                name="bytes_vs_nav_rmse", raw_bytes=raw_bytes, reference=all_runs["threshold_m"],
                 caption="Stored bytes vs navigation RMSE (all runs, second half of the flight)")
+    _plot_front(outputs, rows, key="nav_rmse_converged_m",
+                ylabel="converged-run position RMSE (m)", name="bytes_vs_nav_rmse_converged",
+                raw_bytes=raw_bytes, reference=converged["threshold_m"],
+                caption="Stored bytes vs navigation RMSE of the converged runs (the all-run "
+                        "RMSE is set by the few diverged runs)")
 
     neural = [r for r in rows if r["kind"] == "neural"]
-    grid_eq = summary["smallest_grid_at_equal_accuracy"]
-    neural_eq = summary["smallest_neural_at_equal_accuracy"]
     if not neural:
         compact_text = "no neural map was given (codecs only)"
         compact_verdict = "not enough data (no neural map)"
@@ -620,21 +640,9 @@ def _write_report(
             f"node RMSE {best['node_rmse_m']:.2f} m"
         )
         compact_verdict = "holds" if hit else "does not hold"
-        grid_text = (f"smallest grid within {EQUAL_ACCURACY:.0%} of the full grid's "
-                     f"{ref:.1f} m: {grid_eq['name']} {_fmt_bytes(grid_eq['bytes'])} "
-                     f"({grid_eq['nav_rmse_m']:.1f} m)" if grid_eq else
-                     "no compressed grid reaches it")
-        if neural_eq:
-            ratio = neural_eq["bytes"] / grid_eq["bytes"] if grid_eq else float("nan")
-            eq_text = (f"{grid_text}; smallest neural map: {neural_eq['name']} "
-                       f"{_fmt_bytes(neural_eq['bytes'])} ({neural_eq['nav_rmse_m']:.1f} m), "
-                       f"{ratio:.2f} x the grid's bytes")
-        else:
-            nb = summary["best_neural_nav"]
-            eq_text = (f"{grid_text}; no neural map reaches it (best: {nb['name']} at "
-                       f"{nb['nav_rmse_m']:.1f} m, {nb['nav_rmse_m'] / ref:.2f} x the full "
-                       "grid's RMSE)" if nb and ref else f"{grid_text}; no neural map scored")
-        eq_verdict = "holds" if summary["target_equal_accuracy_met"] else "does not hold"
+        eq_text = (_equal_accuracy_text(all_runs, "all-run RMSE") + "; robust check: "
+                   + _equal_accuracy_text(converged, "converged-run RMSE, no more diverged runs"))
+        eq_verdict = "holds" if all_runs["met"] else "does not hold"
     outputs.add_claim(
         "toolkit target",
         f"a neural map <= {TARGET_FRACTION:.0%} of the raw float32 grid with node RMSE "
@@ -647,6 +655,26 @@ def _write_report(
     storage_text, storage_verdict = _storage_claim(rows, raw_bytes)
     outputs.add_claim("SEEDS 004", "the neural map needs less storage than the grid",
                       storage_text, storage_verdict)
+
+
+def _equal_accuracy_text(check: dict[str, Any], what: str) -> str:
+    """One sentence on an equal-accuracy check."""
+    key, ref = check["metric"], check["reference"]
+    if ref is None:
+        return f"{what}: the full grid scored no run"
+    grid, neural = check["smallest_grid"], check["smallest_neural"]
+    text = (f"{what} <= {check['threshold_m']:.1f} m (full grid {ref:.1f} m, "
+            f"{check['reference_diverged']} diverged): ")
+    text += (f"smallest grid {grid['name']} {_fmt_bytes(grid['bytes'])} ({grid[key]:.1f} m)"
+             if grid else "no compressed grid")
+    if neural:
+        text += (f", smallest neural map {neural['name']} {_fmt_bytes(neural['bytes'])} "
+                 f"({neural[key]:.1f} m)")
+        if grid:
+            text += f" = {neural['bytes'] / grid['bytes']:.2f} x the grid's bytes"
+    else:
+        text += ", no neural map reaches it"
+    return text
 
 
 def _storage_claim(rows: list[dict[str, Any]], raw_bytes: int) -> tuple[str, str]:

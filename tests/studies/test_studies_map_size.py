@@ -100,7 +100,7 @@ def test_map_size_end_to_end(tiny_map: Path, tmp_path: Path) -> None:
     assert abs(int8_map["node_rmse_m"] - float_map["node_rmse_m"]) < 0.2 * float_map[
         "node_rmse_m"] + 0.05
     summary = results["summary"]
-    assert summary["fronts"]["grid_node_max_m"][0]["bytes"] == min(
+    assert summary["fronts"]["grid:node_max_m"][0]["bytes"] == min(
         m["bytes"] for m in maps.values() if m["kind"] == "grid")
     report = (out / "report.md").read_text()
     assert "SEEDS 004" in report and "bytes_vs_nav_rmse" in report

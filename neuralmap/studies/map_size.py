@@ -9,6 +9,8 @@ scenario's tile:
 * **neural maps**: every exported map given (or found under ``runs_dir``), stored in float32
   and in each quantised form of :mod:`neuralmap.terrain.quantize`; the stored size is the
   file :func:`~neuralmap.terrain.export.save_map` writes;
+* the same neural maps *baked* (evaluated once at the DEM nodes when loaded, then queried
+  as a bicubic grid): the neural map's storage with the grid's query speed;
 * the raw float32 grid as the reference.
 
 Per map: stored bytes and bits per DEM node, error at the nodes (RMSE, max), error and
@@ -75,6 +77,10 @@ class MapSizeStudyConfig(StudyConfig):
             neural maps (codecs only).
         quantizations: Stored forms of each neural map: ``none`` (float32) and schemes
             of :data:`neuralmap.terrain.quantize.QUANT_SCHEMES`.
+        baked: Stored forms (of ``quantizations``) also evaluated *baked*: the loaded map
+            evaluated once at the DEM nodes at load time and queried as a bicubic grid
+            (:func:`neuralmap.terrain.bake.bake_to_grid`): the neural map's storage with
+            the grid's query speed.
         map_error_points: Random points between the nodes for the errors against truth.
         query_points: Points of the throughput measurement.
         pcrb_factor: Divergence when the final error exceeds this times the final PCRB.
@@ -93,6 +99,7 @@ class MapSizeStudyConfig(StudyConfig):
     quantizations: list[str] = field(
         default_factory=lambda: ["none", "fp16", "int8_channel", "int8_tensor"]
     )
+    baked: list[str] = field(default_factory=lambda: ["int8_channel"])
     map_error_points: int = 20000
     query_points: int = 50000
     pcrb_factor: float = 5.0
@@ -133,6 +140,12 @@ class MapSizeStudyConfig(StudyConfig):
             raise NeuralMapError(
                 f"--quantizations: unknown or empty {bad_q or self.quantizations}; choose "
                 f"from {', '.join(schemes)}."
+            )
+        bad_b = [q for q in self.baked if q not in self.quantizations]
+        if bad_b:
+            raise NeuralMapError(
+                f"--baked: {bad_b} not among --quantizations {self.quantizations}; bake only "
+                "stored forms that are measured."
             )
         if self.map_error_points < 100 or self.query_points < 100:
             raise NeuralMapError(
@@ -243,9 +256,14 @@ def build_grid_maps(tile: Any, config: MapSizeStudyConfig) -> list[MapEntry]:
 
 
 def build_neural_maps(
-    paths: list[Path], quantizations: list[str], folder: Path
+    paths: list[Path], quantizations: list[str], folder: Path, *, tile: Any,
+    baked: list[str] | None = None,
 ) -> list[MapEntry]:
-    """Every map in every stored form, written to ``folder`` and read back with load_map."""
+    """Every map in every stored form, written to ``folder`` and read back with load_map.
+
+    Forms listed in ``baked`` are added once more, baked onto the tile's nodes (bicubic).
+    """
+    from neuralmap.terrain.bake import bake_to_grid
     from neuralmap.terrain.export import load_map, save_map
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -257,11 +275,16 @@ def build_neural_maps(
             out = save_map(net, folder / f"{label}_{scheme}.pt",
                            metrics=getattr(net, "metrics", {}),
                            quantization=None if scheme == "none" else scheme)
-            entries.append(MapEntry(
-                f"{label} {scheme}", "neural", "neural", os.path.getsize(out), load_map(out),
-                {"source": str(path), "file": out.name, "quantization": scheme,
-                 "num_parameters": int(net.num_parameters), "config": dict(net.config)},
-            ))
+            loaded = load_map(out)
+            info = {"source": str(path), "file": out.name, "quantization": scheme,
+                    "num_parameters": int(net.num_parameters), "config": dict(net.config)}
+            size = os.path.getsize(out)
+            entries.append(MapEntry(f"{label} {scheme}", "neural", "neural", size, loaded, info))
+            if scheme in (baked or []):
+                grid = bake_to_grid(loaded, tile)
+                grid.tile_fingerprint = loaded.tile_fingerprint  # a map of the same tile
+                entries.append(MapEntry(f"{label} {scheme} baked", "neural baked", "neural",
+                                        size, grid, {**info, "baked": True}))
     return entries
 
 
@@ -355,14 +378,15 @@ def _plot_front(
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 5.0))
-    families = sorted({r["family"] for r in rows}, key=lambda f: (f == "neural", f))
-    markers = "osD^v<>ph*"
+    families = sorted({r["family"] for r in rows}, key=lambda f: (f.startswith("neural"), f))
+    markers = "osD^v<>ph*Xd"
     for i, family in enumerate(families):
         pts = [r for r in rows if r["family"] == family and r.get(key) is not None]
         if not pts:
             continue
         ax.scatter([r["bytes"] for r in pts], [r[key] for r in pts],
-                   marker=markers[i % len(markers)], s=36 if family != "neural" else 60,
+                   marker=markers[i % len(markers)],
+                   s=60 if family.startswith("neural") else 36,
                    label=family, zorder=3)
     for kind, style in (("grid", "k--"), ("neural", "r-")):
         pts = [r for r in rows if r["kind"] == kind and r.get(key) is not None]
@@ -425,7 +449,8 @@ def run(config: MapSizeStudyConfig, outputs: StudyOutputs) -> None:
     raw_bytes = int(tile.heights.size * 4)
 
     entries = build_grid_maps(tile, config)
-    entries += build_neural_maps(paths, config.quantizations, outputs.dir / "maps")
+    entries += build_neural_maps(paths, config.quantizations, outputs.dir / "maps", tile=tile,
+                                 baked=config.baked)
     print(f"map_size: {len(entries)} maps ({len(paths)} neural map file(s)) on tile "
           f"{tile.name} {tile.shape}, scenario {scenario.name}, {config.n_runs} runs", flush=True)
 

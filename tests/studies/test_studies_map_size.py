@@ -85,7 +85,8 @@ def test_map_size_end_to_end(tiny_map: Path, tmp_path: Path) -> None:
     results = json.loads((out / "results.json").read_text())
     maps = {m["name"]: m for m in results["maps"]}
     # 1 raw + 2 codecs x (2 full-resolution errors + 1 decimated) + 1 map x 2 stored forms
-    assert len(maps) == 1 + 2 * 3 + 2
+    # + the int8 form baked onto the nodes
+    assert len(maps) == 1 + 2 * 3 + 2 + 1
     raw = maps["raw float32 grid"]
     assert raw["bytes"] == 96 * 96 * 4 and raw["node_max_m"] == 0.0
     for name, m in maps.items():
@@ -99,6 +100,10 @@ def test_map_size_end_to_end(tiny_map: Path, tmp_path: Path) -> None:
     # quantisation moves the map by far less than its own fit error
     assert abs(int8_map["node_rmse_m"] - float_map["node_rmse_m"]) < 0.2 * float_map[
         "node_rmse_m"] + 0.05
+    baked = maps["small int8_channel baked"]
+    assert baked["bytes"] == int8_map["bytes"] and baked["kind"] == "neural"
+    # at the nodes the baked grid holds the network's own values
+    assert baked["node_rmse_m"] == pytest.approx(int8_map["node_rmse_m"], abs=1e-3)
     summary = results["summary"]
     assert summary["fronts"]["grid:node_max_m"][0]["bytes"] == min(
         m["bytes"] for m in maps.values() if m["kind"] == "grid")
@@ -115,4 +120,5 @@ def test_bad_options_exit_2(capsys: pytest.CaptureFixture[str], tmp_path: Path) 
     assert evaluate.main([*base, "--codecs", "[png]"]) == 2
     assert evaluate.main([*base, "--quantizations", "[int4]"]) == 2
     assert evaluate.main([*base, "--decimations", "[0]"]) == 2
+    assert evaluate.main([*base, "--baked", "[fp16]"]) == 2
     assert evaluate.main([*base, "--neural_maps", f"[{tmp_path / 'nope.pt'}]"]) == 2

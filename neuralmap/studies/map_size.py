@@ -97,7 +97,7 @@ class MapSizeStudyConfig(StudyConfig):
     decimated_max_errors: list[float] | None = field(default_factory=lambda: [0.5, 2.0])
     neural_maps: list[str] | None = None
     quantizations: list[str] = field(
-        default_factory=lambda: ["none", "fp16", "int8_channel", "int8_tensor"]
+        default_factory=lambda: ["none", "fp16", "int8_channel", "int8_block", "int8_tensor"]
     )
     baked: list[str] = field(default_factory=lambda: ["int8_channel"])
     map_error_points: int = 20000

@@ -90,7 +90,7 @@ class MapSizeStudyConfig(StudyConfig):
 
     experiment: str = "map_size"
     scenario: str = "jacksboro"
-    n_runs: int = 300
+    n_runs: int = 500
     codecs: list[str] = field(default_factory=lambda: ["lerc", "jpegls", "jpeg2k", "zstd"])
     max_errors: list[float] = field(default_factory=lambda: [0.5, 1.0, 2.0, 5.0, 10.0])
     decimations: list[int] = field(default_factory=lambda: [1, 2, 4])
@@ -479,6 +479,14 @@ def run(config: MapSizeStudyConfig, outputs: StudyOutputs) -> None:
     if len(set(methods)) != len(entries):
         raise NeuralMapError("map_size: two maps share a name; give the neural map files "
                              "distinct experiment folders.")
+    # the raw grid was measured first, while the process was still warming up: measure it
+    # again now and keep the faster of the two (the ratios are against this rate)
+    ref_xy = query_xy.to(_model_dtype(entries[0].terrain))
+    rows[0]["queries_per_s"] = max(rows[0]["queries_per_s"],
+                                   query_rate(methods[entries[0].name], ref_xy))
+    rows[0]["fast_queries_per_s"] = max(
+        rows[0]["fast_queries_per_s"],
+        query_rate(lambda p, t=entries[0].terrain: _height_and_slope(t, p), ref_xy))
     ref_rate = rows[0]["queries_per_s"]
     ref_fast = rows[0]["fast_queries_per_s"]
     for row in rows:

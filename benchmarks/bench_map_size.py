@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> list[Row]:
     rows.append(Row("grid", "torch bilinear grid, analytic", rate, best, "q/s", f"{raw}"))
 
     maps: list[tuple[str, BlockwiseTerrainNet]] = [
-        (f"trained {p}", load_map(p)) for p in args.map
+        (f"trained {Path(p).parent.parent.name}", load_map(p)) for p in args.map
     ]
     if not maps:
         archs = ARCHITECTURES[-1:] if args.quick else ARCHITECTURES

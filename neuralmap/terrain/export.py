@@ -78,6 +78,11 @@ def load_map_payload(path: str | os.PathLike[str]) -> dict[str, Any]:
     Raises:
         NeuralMapError: If the file is missing or is not a neuralmap export.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise NeuralMapError(
+            f"load_map: path must be the path of a neural_map.pt file, got "
+            f"{type(path).__name__} {path!r}. `python train.py` prints the path on its last line."
+        )
     path = Path(path)
     if not path.is_file():
         raise NeuralMapError(
@@ -109,6 +114,16 @@ def load_map_payload(path: str | os.PathLike[str]) -> dict[str, Any]:
     return payload
 
 
+def _damaged(path: str | os.PathLike[str], payload: dict[str, Any], exc: Exception) -> NeuralMapError:
+    """The error for a file whose header is ours but whose config or weights do not load."""
+    first = str(exc).splitlines()[0] if str(exc) else ""
+    return NeuralMapError(
+        f"{path}: the header says neuralmap map, but its config or weights do not build "
+        f"a {payload.get('class')} ({type(exc).__name__}: {first}). The file is damaged "
+        "or was edited; export it again with `python train.py`."
+    )
+
+
 def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
 
@@ -120,22 +135,32 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
         ``.tile_info`` say which tile it was fitted to, ``.metrics`` holds the stored metrics.
 
     Raises:
-        NeuralMapError: If the file is missing or not a neuralmap export, or a quantised
-            file lacks values or scales.
+        NeuralMapError: If the file is missing, not a neuralmap export, its stored config
+            or weights do not build the model (a damaged or hand-edited file), or a
+            quantised file lacks values or scales.
     """
     payload = load_map_payload(path)
-    config = dict(payload["config"])
-    model = _CLASSES[payload["class"]](**config)
-    state = dict(payload["state_dict"])
-    if "quantization" in payload:
+    state = payload.get("state_dict")
+    state = dict(state) if isinstance(state, dict) else state
+    if "quantization" in payload and isinstance(state, dict):
         state.update(dequantize_state(payload["quantization"]))
-    missing = sorted(set(model.state_dict()) - set(state))
+    try:
+        config = dict(payload["config"])
+        model = _CLASSES[payload["class"]](**config)
+    except NeuralMapError as exc:
+        raise NeuralMapError(f"{path}: the stored map config is invalid ({exc}).") from None
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as exc:
+        raise _damaged(path, payload, exc) from None
+    missing = sorted(set(model.state_dict()) - set(state)) if isinstance(state, dict) else []
     if missing:
         raise NeuralMapError(
             f"{path}: the map file lacks the tensor(s) {', '.join(missing)}; it is incomplete "
             "or damaged. Export the map again with save_map."
         )
-    model.load_state_dict(state)
+    try:
+        model.load_state_dict(state)  # type: ignore[arg-type]
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as exc:
+        raise _damaged(path, payload, exc) from None
     model.metrics = payload.get("metrics", {})  # type: ignore[assignment]
     model.eval()
     return model

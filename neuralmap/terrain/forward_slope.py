@@ -109,7 +109,7 @@ def blockwise_height_and_slope(
     lead = xy.shape[:-1]
     dtype = net.out_bias.dtype
     with torch.no_grad():
-        flat = xy.reshape(-1, 2).to(dtype)
+        flat, finite = net._finite_points(xy.reshape(-1, 2).to(dtype))
         point, block, weight, weight_grad = _assign_with_derivatives(net.layout, flat)
         groups = TileGroups(block, net.layout.count)
         half = net.block_half_width.index_select(0, block)  # (Q, 2)
@@ -158,4 +158,7 @@ def blockwise_height_and_slope(
         slope = torch.zeros(n, 2, dtype=dtype, device=flat.device).index_add_(
             0, point, pair_slope
         )
+        if finite is not None:  # non-finite points: NaN height and slope, as forward()
+            height = torch.where(finite, height, torch.full_like(height, float("nan")))
+            slope = torch.where(finite.unsqueeze(-1), slope, torch.full_like(slope, float("nan")))
     return height.reshape(lead).to(xy.dtype), slope.reshape(*lead, 2).to(xy.dtype)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
 import json
 import random
@@ -21,11 +20,10 @@ TINY_CONFIG = REPO_ROOT / "configs" / "map_size_tiny.yaml"
 
 
 def _evaluate() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("evaluate_map_size", REPO_ROOT / "evaluate.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """The package's evaluate CLI (what ``python evaluate.py`` runs)."""
+    from neuralmap.studies import cli
+
+    return cli
 
 
 def test_pareto_front_matches_brute_force() -> None:

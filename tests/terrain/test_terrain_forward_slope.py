@@ -43,3 +43,12 @@ def test_bad_shape() -> None:
     net = BlockwiseTerrainNet.from_tile(tile, block_nodes=8, hidden=4)
     with pytest.raises(NeuralMapError, match=r"\(\.\.\., 2\)"):
         blockwise_height_and_slope(net, torch.zeros(4, 3))
+
+
+def test_nan_points_give_nan_like_forward() -> None:
+    tile = synthetic_tile((20, 20), 30.0)
+    net = BlockwiseTerrainNet.from_tile(tile, block_nodes=8, hidden=4)
+    xy = torch.tensor([[100.0, 200.0], [float("nan"), 10.0], [300.0, 300.0]])
+    h, s = blockwise_height_and_slope(net, xy)
+    assert torch.isnan(h[1]) and torch.isnan(s[1]).all()
+    torch.testing.assert_close(h[[0, 2]], net(xy[[0, 2]]))

@@ -377,6 +377,7 @@ def _plot_front(
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    floor = 0.01  # lossless maps (error 0) are drawn at 1 cm on the log axis
     fig, ax = plt.subplots(figsize=(7.5, 5.0))
     families = sorted({r["family"] for r in rows}, key=lambda f: (f.startswith("neural"), f))
     markers = "osD^v<>ph*Xd"
@@ -384,7 +385,7 @@ def _plot_front(
         pts = [r for r in rows if r["family"] == family and r.get(key) is not None]
         if not pts:
             continue
-        ax.scatter([r["bytes"] for r in pts], [r[key] for r in pts],
+        ax.scatter([r["bytes"] for r in pts], [max(r[key], floor) for r in pts],
                    marker=markers[i % len(markers)],
                    s=60 if family.startswith("neural") else 36,
                    label=family, zorder=3)
@@ -392,7 +393,7 @@ def _plot_front(
         pts = [r for r in rows if r["kind"] == kind and r.get(key) is not None]
         idx = pareto_front([r["bytes"] for r in pts], [r[key] for r in pts])
         if idx:
-            ax.plot([pts[i]["bytes"] for i in idx], [pts[i][key] for i in idx], style,
+            ax.plot([pts[i]["bytes"] for i in idx], [max(pts[i][key], floor) for i in idx], style,
                     lw=1.2, label=f"{kind} front", zorder=2)
     ax.axvline(raw_bytes, color="grey", lw=0.8, ls=":", label="raw float32 grid")
     ax.axvline(TARGET_FRACTION * raw_bytes, color="grey", lw=0.8, ls="-.",
@@ -647,7 +648,8 @@ def _write_report(
     converged = summary["equal_accuracy_converged"]
     _plot_front(outputs, rows, key="node_max_m", ylabel="max |error| at the DEM nodes (m)",
                 name="bytes_vs_max_error", raw_bytes=raw_bytes,
-                caption="Stored bytes vs maximum node error: grid codecs and neural maps")
+                caption="Stored bytes vs maximum node error: grid codecs and neural maps "
+                        "(lossless maps drawn at 0.01 m)")
     _plot_front(outputs, rows, key="nav_rmse_m", ylabel="all-run position RMSE (m)",
                 name="bytes_vs_nav_rmse", raw_bytes=raw_bytes, reference=all_runs["threshold_m"],
                 caption="Stored bytes vs navigation RMSE (all runs, second half of the flight)")

@@ -41,6 +41,11 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
         "tan.yaml",
     ),
+    "map_size": StudySpec(
+        "neuralmap.studies.map_size", "MapSizeStudyConfig",
+        "Stored bytes vs map error vs navigation accuracy: neural maps against compressed grids",
+        "map_size.yaml",
+    ),
     "tan_outliers": StudySpec(
         "neuralmap.studies.tan_outliers", "TanOutliersConfig",
         "TAN under radar-altimeter faults: robust and adaptive update policies",

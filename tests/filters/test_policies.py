@@ -410,3 +410,22 @@ def test_scalar_policy_fast_path_equals_dense_path(shared_h: bool) -> None:
         torch.testing.assert_close(fast.x, dense.x, rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(fast.P, dense.P, rtol=1e-10, atol=1e-10)
         assert torch.equal(fast.P, fast.P.transpose(1, 2))
+
+
+def test_scalar_path_rejection_with_adapted_P_leaves_sample_unchanged() -> None:
+    """A rejected sample keeps x and P even when the same adaptation rescales P⁻."""
+    from neuralmap.filters import Adaptation, FilterPolicy
+
+    class _RejectAndScale(FilterPolicy):
+        def adapt(self, context):  # type: ignore[no-untyped-def]
+            keep = torch.tensor([[True], [False], [True]])
+            return Adaptation(p_scale=torch.full((3,), 2.0, dtype=D), keep=keep)
+
+    prob = _problem(5, 1, batch=3, seed=2)
+    ekf = BatchedEKF(prob["x"], prob["P"])
+    start = BatchedEKF(prob["x"], prob["P"])
+    diag = ekf.update(prob["z"], prob["H"], prob["R"], policy=_RejectAndScale())
+    assert diag.applied.tolist() == [True, False, True]
+    assert torch.equal(ekf.x[1], start.x[1]) and torch.equal(ekf.P[1], start.P[1])
+    ref = _plain(prob, P=2.0 * prob["P"])
+    torch.testing.assert_close(ekf.P[0], ref.P[0], rtol=1e-12, atol=1e-12)

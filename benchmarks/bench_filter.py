@@ -211,8 +211,7 @@ def bench_policy_steps(
 
     The quality policies get per-epoch altimeter indicators (roughness, height above
     ground, lock; drawn once, outside the timing) through ``set_quality`` before each
-    step. The plain step is timed first and again last; its faster median is the
-    reference (the machine is shared).
+    step. Repeats are interleaved (each repeat runs every policy once).
     """
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
@@ -250,16 +249,21 @@ def bench_policy_steps(
 
         return run
 
-    out = []
-    factories = policy_factories()
-    for name, make in factories.items():
-        med, best = _rates(n * k_steps, timed(runner(make), repeats=repeats, warmup=1))
-        out.append((name, med, best))
-    med, best = _rates(n * k_steps, timed(runner(factories["plain EKF"]), repeats=repeats,
-                                          warmup=1))
-    plain = out[0]
-    out[0] = (plain[0], max(plain[1], med), max(plain[2], best))
-    return out
+    # interleaved: every repeat times each policy once, so that slow phases of a shared
+    # machine hit all of them alike
+    runs = {name: runner(make) for name, make in policy_factories().items()}
+    for run in runs.values():
+        run()  # warm-up
+    times: dict[str, list[float]] = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, run in runs.items():
+            start = time.perf_counter()
+            run()
+            times[name].append(time.perf_counter() - start)
+    return [
+        (name, *_rates(n * k_steps, (statistics.median(t), min(t))))
+        for name, t in times.items()
+    ]
 
 
 def filterpy_tan(

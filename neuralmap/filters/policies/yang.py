@@ -123,4 +123,7 @@ class YangAdaptive(FilterPolicy):
         delta = torch.sqrt(residual_statistic(context))
         alpha = yang_factor(delta, self.c0, self.c1, self.segments, self.floor)
         alpha = torch.where(context.mask, alpha, 1.0)
-        return Adaptation(p_scale=1.0 / alpha, info={"alpha": alpha, "delta": delta})
+        info = {"alpha": alpha, "delta": delta}
+        if not alpha.requires_grad and bool((alpha == 1).all()):
+            return Adaptation(info=info)  # nothing to scale (clean epoch): skip the product
+        return Adaptation(p_scale=1.0 / alpha, info=info)

@@ -109,21 +109,17 @@ def load_bench_tile(scenario_name: str) -> tuple[Any, DemTile, str]:
 
 def neural_map_for(tile: DemTile, runs_dir: Path) -> tuple[torch.nn.Module, str]:
     """The newest trained map of ``tile`` under ``runs_dir``, else an untrained default net."""
+    from neuralmap.studies.maps import find_latest_map
     from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+    from neuralmap.terrain.export import load_map
 
-    candidates = sorted(
-        runs_dir.glob("*/version_*/neural_map.pt"), key=lambda p: p.stat().st_mtime, reverse=True
-    )
-    try:
-        from neuralmap.terrain.export import load_map
-    except ImportError:
-        candidates = []
-    for path in candidates:
+    path = find_latest_map(runs_dir, tile_fingerprint=tile.fingerprint())
+    if path is not None:
         try:
             model = load_map(path)
         except NeuralMapError:
-            continue
-        if getattr(model, "tile_fingerprint", "") == tile.fingerprint():
+            model = None
+        if model is not None and getattr(model, "tile_fingerprint", "") == tile.fingerprint():
             return model, f"trained map {path}"
     net = BlockwiseTerrainNet.from_tile(tile)
     return net, "untrained BlockwiseTerrainNet.from_tile(tile) (default config; same cost)"
@@ -139,15 +135,17 @@ def bench_tan_step(
 ) -> tuple[float, float]:
     """(median, best) trajectory-steps per second of the batched TAN filter over K steps."""
     from neuralmap.filters.ekf import BatchedEKF
-    from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+    from neuralmap.nav.model import N_STATES, TanModel
+    from neuralmap.nav.tan import tan_filter_step
 
     n, k_steps = truth.n_runs, truth.n_steps
     ins_pos = truth.ins_pos.to(dtype)
     radar = truth.radar.to(dtype)
-    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype))
-    F = transition_matrix(scenario.dt, dtype=dtype)
-    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype))
-    R = scenario.R_m2 + scenario.fit_variance_m2
+    model = TanModel.from_scenario(scenario)
+    p0 = model.filter_prior(dtype=dtype)
+    F = model.transition(dtype=dtype)
+    Q = model.filter_process_noise(dtype=dtype)
+    R = model.base_R
 
     def run() -> None:
         ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype), p0)
@@ -336,16 +334,15 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
     """
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+    from neuralmap.nav.model import N_STATES, TanModel
+    from neuralmap.nav.tan import tan_filter_step
 
     lin = make_linearizer("bilinear", tile=tile, variance="zero")
     dtype = torch.float64
-    ekf = BatchedEKF(
-        torch.zeros(n_runs, N_STATES, dtype=dtype),
-        torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype)),
-    )
-    F = transition_matrix(scenario.dt, dtype=dtype)
-    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype))
+    model = TanModel.from_scenario(scenario)
+    ekf = BatchedEKF(torch.zeros(n_runs, N_STATES, dtype=dtype), model.filter_prior(dtype=dtype))
+    F = model.transition(dtype=dtype)
+    Q = model.filter_process_noise(dtype=dtype)
     with torch.no_grad():
         for k in range(1, truth.n_steps + 1):
             tan_filter_step(
@@ -355,7 +352,7 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
                 lin,
                 F=F,
                 Q=Q,
-                R=scenario.R_m2 + scenario.fit_variance_m2,
+                R=model.base_R,
                 extent=truth.extent,
             )
     return ekf.x.numpy()

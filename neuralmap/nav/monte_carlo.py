@@ -20,9 +20,10 @@ import torch
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.base import Linearizer
+from neuralmap.nav.model import N_STATES, TanModel
 from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
 from neuralmap.nav.simulator import Truth, simulate
-from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+from neuralmap.nav.tan import tan_filter_step
 from neuralmap.terrain.base import inside_extent
 
 
@@ -147,11 +148,12 @@ def run_filter(
     check_map_matches(linearizer, truth, method=method)
     dtype, device = truth.pos.dtype, truth.pos.device
     n, k_steps = truth.n_runs, truth.n_steps
-    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype, device=device))
-    ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device), p0)
-    F = transition_matrix(scenario.dt, dtype=dtype, device=device)
-    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype, device=device))
-    R = scenario.R_m2 + scenario.fit_variance_m2
+    model = TanModel.from_scenario(scenario)
+    ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device),
+                     model.filter_prior(dtype=dtype, device=device))
+    F = model.transition(dtype=dtype, device=device)
+    Q = model.filter_process_noise(dtype=dtype, device=device)
+    R = model.base_R
 
     err = torch.empty(n, k_steps + 1, N_STATES, dtype=dtype, device=device)
     P_hist = torch.empty(n, k_steps + 1, N_STATES, N_STATES, dtype=dtype, device=device)
@@ -212,6 +214,7 @@ def run_monte_carlo(
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float64,
     tile: DemTile | None = None,
+    truth_terrain: Any = None,
 ) -> MonteCarloResult:
     """Simulates the truth once and runs the TAN EKF with every linearisation method.
 
@@ -228,6 +231,8 @@ def run_monte_carlo(
         device: Device of the truth and the filters.
         dtype: Filter dtype (float64 default).
         tile: The scenario's tile, when already loaded (else :func:`scenario_tile`).
+        truth_terrain: The truth terrain, when already built
+            (:func:`neuralmap.nav.truth_terrain.true_terrain`; else built from the seed).
 
     Returns:
         :class:`MonteCarloResult` ``(truth, runs)``.
@@ -243,7 +248,8 @@ def run_monte_carlo(
         )
     if tile is None:
         tile = scenario_tile(scenario)
-    truth = simulate(scenario, tile, n_runs=n_runs, seed=seed, dtype=dtype, device=device)
+    truth = simulate(scenario, tile, n_runs=n_runs, seed=seed, dtype=dtype, device=device,
+                     truth_terrain=truth_terrain)
     for name, linearizer in methods.items():
         check_map_matches(linearizer, truth, method=name)
     bar = None

@@ -758,22 +758,30 @@ class BatchedEKF:
         adaptation = policy.adapt(context)
         posterior: Posterior | None = None
         for _ in range(max(1, int(policy.iterations))):
+            # A rejected measurement: r = 0, h = 0 (so P⁻hᵀ = 0), R = 1 and the stored P⁻
+            # (not the adapted one); then K = 0 and x⁺ = x⁻, P⁺ = P⁻ bitwise, so the
+            # sample is committed with the others (no per-entry selection) and reported
+            # as not applied.
+            any_kept: torch.Tensor | None = None
+            if adaptation.keep is not None:
+                any_kept = adaptation.keep.to(torch.bool)[:, 0]
             pt_use: torch.Tensor = pt
             u_use: list[torch.Tensor] | None = u
             if adaptation.P_prior is not None:
                 pt_use = adaptation.P_prior.permute(1, 2, 0).contiguous()
+                if any_kept is not None:
+                    pt_use = torch.where(any_kept, pt_use, pt)
                 u_use = None
             if adaptation.p_scale is not None:
-                pt_use = pt_use * adaptation.p_scale
+                scale = adaptation.p_scale
+                if any_kept is not None:
+                    scale = torch.where(any_kept, scale, 1.0)
+                pt_use = pt_use * scale
                 if u_use is not None:
-                    u_use = [ui * adaptation.p_scale for ui in u_use]
+                    u_use = [ui * scale for ui in u_use]
             r_use = R if adaptation.R is None else adaptation.R.reshape(batch)
             res_use, h_use = r1, h
-            any_kept: torch.Tensor | None = None
-            if adaptation.keep is not None:
-                # a rejected measurement: r = 0, h = 0 (so P⁻hᵀ = 0), R = 1; then K = 0 and
-                # x⁺ = x⁻, P⁺ = P⁻ exactly
-                any_kept = adaptation.keep.to(torch.bool)[:, 0]
+            if any_kept is not None:
                 res_use = torch.where(any_kept, r1, 0.0)
                 h_use = [torch.where(any_kept, hj, 0.0) for hj in h]
                 r_use = torch.where(any_kept, r_use, 1.0)
@@ -794,17 +802,7 @@ class BatchedEKF:
                 break
             adaptation = nxt
         assert posterior is not None
-        # A rejected sample comes out of the pass bitwise unchanged when its P⁻ was not
-        # adapted (p_scale 1, no replacement): then it is committed with the others (no
-        # per-entry selection) and reported as not applied; otherwise it is left out.
-        candidates = mask
-        if any_kept is not None:
-            unchanged = adaptation.P_prior is None and (
-                adaptation.p_scale is None or bool((any_kept | (adaptation.p_scale == 1)).all())
-            )
-            if not unchanged:
-                candidates = any_kept if mask is None else any_kept & mask
-        applied = self._commit(xt, p_up, candidates, extra_ok=(S > 0) & (S < math.inf),
+        applied = self._commit(xt, p_up, mask, extra_ok=(S > 0) & (S < math.inf),
                                stacked=p_full)
         if any_kept is not None:
             applied = applied & any_kept

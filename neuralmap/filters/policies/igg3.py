@@ -76,10 +76,9 @@ class IGG3(FilterPolicy):
         """Weights from the standardised residuals; the equivalent R and the rejections."""
         v = standardised_residual(context)
         w = igg3_weights(v, self.k0, self.k1)
+        info = {"weight": w, "standardised_residual": v}
+        if bool((w == 1).all()):
+            return Adaptation(info=info)  # clean epoch: R unchanged, nothing rejected
         keep = w > 0
         R = scale_variances(context.R, torch.where(keep, w, 1.0))
-        return Adaptation(
-            R=R,
-            keep=keep,
-            info={"weight": w, "standardised_residual": v},
-        )
+        return Adaptation(R=R, keep=keep, info=info)

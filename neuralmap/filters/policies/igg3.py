@@ -46,7 +46,7 @@ def igg3_weights(v_std: torch.Tensor, k0: float, k1: float) -> torch.Tensor:
     mid = (v > k0) & (v <= k1)
     vs = torch.where(mid, v, k0)  # no division by 0 (and clean gradients) off the middle
     taper = (k0 / vs) * ((k1 - vs) / (k1 - k0)).square()
-    return torch.where(v <= k0, torch.ones_like(v), torch.where(mid, taper, torch.zeros_like(v)))
+    return torch.where(v <= k0, 1.0, torch.where(mid, taper, 0.0))
 
 
 class IGG3(FilterPolicy):

@@ -77,14 +77,13 @@ def yang_factor(
     d = delta.abs()
     if segments == 2:
         big = d > c0
-        alpha = torch.where(big, c0 / torch.where(big, d, c0), torch.ones_like(d))
+        alpha = torch.where(big, c0 / torch.where(big, d, c0), 1.0)
     else:
         assert c1 is not None
         mid = (d > c0) & (d <= c1)
         ds = torch.where(mid, d, c0)
         taper = (c0 / ds) * ((c1 - ds) / (c1 - c0)).square()
-        alpha = torch.where(d <= c0, torch.ones_like(d),
-                            torch.where(mid, taper, torch.zeros_like(d)))
+        alpha = torch.where(d <= c0, 1.0, torch.where(mid, taper, 0.0))
     return alpha.clamp_min(floor)
 
 

@@ -1,0 +1,573 @@
+"""TAN acquisition from large initial errors: point mass or EKF bank, hand-off to the EKF.
+
+An EKF linearises the map at one hypothesis; once the initial horizontal uncertainty spans
+several terrain correlation lengths it locks onto the wrong one. This module runs the
+grid-based Bayes filter (:class:`~neuralmap.filters.point_mass.PointMassFilter`, the
+point-mass filter of Bergman, Ljung and Gustafsson; horizontal error on the grid, altitude
+error Rao-Blackwellised per cell) or the EKF bank
+(:class:`~neuralmap.filters.ekf_bank.GaussianSumEKF`) over all Monte Carlo runs at once,
+and hands each run to the 5-state TAN EKF once its posterior is unimodal and small.
+
+Measurement per cell (the TAN altimeter model, SEEDS 004): with the INS error
+``δX = [δp, δh, δv]`` (INS − truth), ``y = h_ins − h_radar = t(p_ins − δp) + δh − v``, i.e.
+the point-mass model ``y = g(s) + a + e`` with ``s = δp``, ``g(s) = t(p_ins − s)`` evaluated
+on the map under test (grid or neural; one batched forward over every cell of every run),
+``a = δh`` and ``R = R_m2 + fit_variance_m2`` (altimeter + the map's error variance).
+
+Velocity error: the grid carries the horizontal error only. Its prediction uses the
+position marginal of the prior ``[δp, δv]`` model (per axis ``P_pp ← P_pp + 2T P_pv + T² P_pv
++ q_p``, ``P_pv ← P_pv + T P_vv``, ``P_vv ← P_vv + q_v``): the process noise of step k is the
+growth of ``P_pp``. At hand-off (and for the point-mass output) the velocity error is the
+Gaussian conditional on the position posterior ``N(μ, Σ)``: ``B = P_pv / P_pp`` (per axis),
+``δv̂ = v₀ + B (μ − m_p)``, ``cov(δv) = P_vv − B P_pp B + B Σ B``, ``cov(δp, δv) = Σ B`` —
+exact for a linear-Gaussian position measurement at the hand-off time, an approximation
+otherwise (stated in the study report).
+
+Hand-off test (:func:`handoff_ready`): the grid posterior is **unimodal** — the
+Bhattacharyya coefficient between it and its Gaussian fit is ≥ ``handoff_affinity`` — and
+**small** — the largest standard deviation ``sqrt(λ_max(Σ))`` ≤ ``handoff_sigma_m`` — for
+``handoff_hold`` consecutive steps, and at least ``min_acquire_steps`` have passed.
+
+Fall-back (:func:`lost_lock`): a tracking run whose mean NIS over the last
+``fallback_window`` updates exceeds ``χ²_{p}(W) / W`` (``p = fallback_prob``) has lost
+lock; its grid is re-initialised around the EKF estimate with the EKF's horizontal
+covariance inflated to at least ``reacquire_sigma_m`` per axis.
+
+Coupling to the TAN model is kept to :func:`tan_inputs` (truth/scenario → tensors) and the
+call of :func:`neuralmap.nav.tan.tan_filter_step`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.ekf import BatchedEKF
+from neuralmap.filters.ekf_bank import GaussianSumEKF, lattice_prior
+from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter
+from neuralmap.nav.monte_carlo import FilterRun
+from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+from neuralmap.terrain.base import inside_extent
+
+__all__ = [
+    "ACQUISITION_METHODS",
+    "AcquisitionConfig",
+    "AcquisitionResult",
+    "TanInputs",
+    "acquisition_time",
+    "handoff_ready",
+    "lost_lock",
+    "run_acquisition",
+    "tan_inputs",
+]
+
+#: ``ekf`` (the TAN EKF alone), ``bank`` (EKF bank), ``point_mass`` (grid all the way),
+#: ``point_mass_ekf`` (grid, hand-off to the EKF, fall-back on lost lock).
+ACQUISITION_METHODS = ("ekf", "bank", "point_mass", "point_mass_ekf")
+
+
+@dataclass
+class AcquisitionConfig:
+    """Options of :func:`run_acquisition` (defaults fit the jacksboro scenario).
+
+    Attributes:
+        cells: Point-mass grid cells per axis.
+        span_sigma: Grid half-width in standard deviations.
+        min_spacing_m: Finest grid spacing, m.
+        dtype: Point-mass dtype, ``"float32"`` or ``"float64"``.
+        outlier_prob: Altimeter outlier probability of the likelihood (0 = Gaussian).
+        outlier_width_m: Width of the uniform outlier density, m.
+        handoff_sigma_m: Largest posterior standard deviation allowed at hand-off, m.
+        handoff_affinity: Smallest Bhattacharyya coefficient grid-vs-Gaussian-fit.
+        handoff_hold: Consecutive steps the test must pass.
+        min_acquire_steps: Steps of acquisition before a hand-off is allowed.
+        velocity_from_grid: Condition the velocity error on the grid posterior (module
+            docstring); False hands off ``δv̂ = v₀``, ``cov = P_vv`` and no correlation.
+        fallback_window: NIS window W of the lost-lock test (0 disables fall-back).
+        fallback_prob: Probability of the χ² threshold of the mean NIS.
+        reacquire_sigma_m: Smallest per-axis standard deviation of a re-acquisition grid.
+        bank_per_axis: EKF-bank components per axis (K = per_axis²).
+        bank_span_sigma: Half-width of the bank's lattice, prior σ.
+        bank_prune: Relative weight under which a bank component is pruned.
+        bank_merge: Squared Mahalanobis distance under which components merge.
+    """
+
+    cells: int = 64
+    span_sigma: float = 4.0
+    min_spacing_m: float = 2.0
+    dtype: str = "float32"
+    outlier_prob: float = 0.0
+    outlier_width_m: float = 1000.0
+    handoff_sigma_m: float = 40.0
+    handoff_affinity: float = 0.9
+    handoff_hold: int = 3
+    min_acquire_steps: int = 5
+    velocity_from_grid: bool = True
+    fallback_window: int = 10
+    fallback_prob: float = 0.999
+    reacquire_sigma_m: float = 200.0
+    bank_per_axis: int = 7
+    bank_span_sigma: float = 2.5
+    bank_prune: float = 1e-4
+    bank_merge: float = 1.0
+
+    def validate(self) -> AcquisitionConfig:
+        """Checks ranges; raises :class:`NeuralMapError` naming the bad option."""
+        if self.dtype not in ("float32", "float64"):
+            raise NeuralMapError(
+                f"AcquisitionConfig: dtype must be 'float32' or 'float64', got {self.dtype!r}."
+            )
+        for key in ("handoff_sigma_m", "reacquire_sigma_m", "min_spacing_m", "span_sigma",
+                    "bank_span_sigma"):
+            if not getattr(self, key) > 0:
+                raise NeuralMapError(
+                    f"AcquisitionConfig: '{key}' must be > 0, got {getattr(self, key)!r}."
+                )
+        if not 0.0 < self.handoff_affinity <= 1.0:
+            raise NeuralMapError(
+                f"AcquisitionConfig: 'handoff_affinity' must be in (0, 1], got "
+                f"{self.handoff_affinity!r}."
+            )
+        if not 0.0 < self.fallback_prob < 1.0:
+            raise NeuralMapError(
+                f"AcquisitionConfig: 'fallback_prob' must be in (0, 1), got {self.fallback_prob!r}."
+            )
+        for key in ("handoff_hold", "min_acquire_steps", "fallback_window", "bank_per_axis"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise NeuralMapError(
+                    f"AcquisitionConfig: '{key}' must be an integer >= 0, got {value!r}."
+                )
+        self.point_mass_config()
+        return self
+
+    def point_mass_config(self) -> PointMassConfig:
+        """The grid options as a :class:`PointMassConfig` (validated)."""
+        return PointMassConfig(
+            cells=self.cells, span_sigma=self.span_sigma, min_spacing=self.min_spacing_m,
+            outlier_prob=self.outlier_prob, outlier_width=self.outlier_width_m,
+        ).validate()
+
+
+@dataclass
+class TanInputs:
+    """What acquisition needs from the TAN model (one thin adapter, :func:`tan_inputs`).
+
+    Attributes:
+        ins_pos: ``(N, K+1, 3)`` INS positions.
+        radar: ``(N, K+1)`` radar-altimeter clearances.
+        ins_error: ``(N, K+1, 5)`` true INS errors (for the error outputs only).
+        P0: ``(5, 5)`` filter prior covariance.
+        Q: ``(5, 5)`` filter process noise per step.
+        R: Altimeter + map error variance, m².
+        dt: Filter period, s.
+        extent: Map extent ``(xmin, xmax, ymin, ymax)``.
+        on_map: ``(N, K+1)`` bool, truth on the map.
+    """
+
+    ins_pos: torch.Tensor
+    radar: torch.Tensor
+    ins_error: torch.Tensor
+    P0: torch.Tensor
+    Q: torch.Tensor
+    R: float
+    dt: float
+    extent: tuple[float, float, float, float]
+    on_map: torch.Tensor
+
+
+def tan_inputs(truth: Any, scenario: Any) -> TanInputs:
+    """Adapter from the simulator's truth and the scenario to :class:`TanInputs`."""
+    dtype, device = truth.pos.dtype, truth.pos.device
+    return TanInputs(
+        ins_pos=truth.ins_pos, radar=truth.radar, ins_error=truth.ins_error,
+        P0=torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype, device=device)),
+        Q=torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype, device=device)),
+        R=float(scenario.R_m2 + scenario.fit_variance_m2), dt=float(scenario.dt),
+        extent=tuple(truth.extent), on_map=truth.on_map,
+    )
+
+
+@dataclass
+class AcquisitionResult:
+    """One method's run: the standard :class:`FilterRun` plus acquisition diagnostics.
+
+    Attributes:
+        run: Errors, covariances, NIS etc. of the output estimate (acquisition included).
+        handoff_step: ``(N,)`` step of the first hand-off to the EKF (−1 = never).
+        n_fallbacks: ``(N,)`` number of lost-lock fall-backs.
+        recoveries: ``(N,)`` updates whose likelihood vanished in every cell/component.
+        acquiring: ``(N, K+1)`` bool, the run was in acquisition at that step.
+        elapsed_s: Wall time of the filter loop, s.
+        cell_updates: Total grid-cell (or component) measurement updates performed.
+    """
+
+    run: FilterRun
+    handoff_step: torch.Tensor
+    n_fallbacks: torch.Tensor
+    recoveries: torch.Tensor
+    acquiring: torch.Tensor
+    elapsed_s: float
+    cell_updates: int
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def handoff_ready(
+    affinity: torch.Tensor, cov: torch.Tensor, *, max_sigma: float, min_affinity: float
+) -> torch.Tensor:
+    """The hand-off test of one step: unimodal (affinity) and small (largest σ).
+
+    Args:
+        affinity: ``(N,)`` Bhattacharyya coefficient grid posterior vs its Gaussian fit.
+        cov: ``(N, 2, 2)`` posterior horizontal covariance.
+        max_sigma: Largest allowed ``sqrt(λ_max(cov))``, m.
+        min_affinity: Smallest allowed affinity.
+
+    Returns:
+        ``(N,)`` bool.
+    """
+    lam = torch.linalg.eigvalsh(cov.double())[:, -1].clamp_min(0.0)
+    return (affinity >= min_affinity) & (lam.sqrt() <= max_sigma)
+
+
+def lost_lock(nis_window: torch.Tensor, count: torch.Tensor, *, prob: float) -> torch.Tensor:
+    """The lost-lock test: mean NIS over a full window above ``χ²_prob(W) / W``.
+
+    Args:
+        nis_window: ``(N, W)`` last W NIS values.
+        count: ``(N,)`` valid entries in the window.
+        prob: χ² probability of the threshold.
+
+    Returns:
+        ``(N,)`` bool.
+    """
+    from scipy.stats import chi2
+
+    w = nis_window.shape[1]
+    threshold = float(chi2.ppf(prob, w)) / w
+    return (count >= w) & (nis_window.mean(1) > threshold)
+
+
+def _terrain_fn(terrain: torch.nn.Module, ins_xy: torch.Tensor) -> Any:
+    """Callable cell coordinates ``(N, G, G, 2)`` → map height at ``p_ins − δp``."""
+    try:
+        tdtype = next(iter(terrain.parameters())).dtype
+    except StopIteration:
+        tdtype = None
+
+    def heights(points: torch.Tensor) -> torch.Tensor:
+        xy = ins_xy[:, None, None, :].to(points.dtype) - points
+        if tdtype is not None and tdtype != xy.dtype:
+            xy = xy.to(tdtype)
+        with torch.no_grad():
+            return terrain(xy).to(points.dtype)
+
+    return heights
+
+
+def _check_start(inputs: TanInputs) -> None:
+    start = inputs.ins_pos[:, 0, :2]
+    inside = inside_extent(start, inputs.extent)
+    if not bool(inside.all()):
+        first = int((~inside).nonzero()[0])
+        raise NeuralMapError(
+            f"run_acquisition: run {first} starts off the map (INS position "
+            f"{start[first].tolist()} outside the extent {list(inputs.extent)}). Move the "
+            "scenario's start_xy inside the tile, leaving the initial uncertainty on it."
+        )
+
+
+def run_acquisition(
+    inputs: TanInputs,
+    *,
+    method: str,
+    terrain: torch.nn.Module | None = None,
+    linearizer: Any = None,
+    config: AcquisitionConfig | None = None,
+    name: str = "",
+) -> AcquisitionResult:
+    """Runs one acquisition method over all runs (see the module docstring).
+
+    Args:
+        inputs: From :func:`tan_inputs`.
+        method: One of :data:`ACQUISITION_METHODS`.
+        terrain: Map evaluated for the grid likelihood (``point_mass*``).
+        linearizer: Linearisation for the EKF and the bank (``ekf``, ``bank``,
+            ``point_mass_ekf``).
+        config: Options (:class:`AcquisitionConfig`).
+        name: Method name stored in the run.
+
+    Returns:
+        :class:`AcquisitionResult`.
+
+    Raises:
+        NeuralMapError: Unknown method, missing terrain/linearizer, runs starting off the
+            map, or bad options.
+    """
+    cfg = (config or AcquisitionConfig()).validate()
+    if method not in ACQUISITION_METHODS:
+        raise NeuralMapError(
+            f"run_acquisition: unknown method {method!r}; choose one of "
+            f"{', '.join(ACQUISITION_METHODS)}."
+        )
+    if method.startswith("point_mass") and terrain is None:
+        raise NeuralMapError(f"run_acquisition: method {method!r} needs a terrain model.")
+    if method != "point_mass" and linearizer is None:
+        raise NeuralMapError(f"run_acquisition: method {method!r} needs a linearizer.")
+    _check_start(inputs)
+    if method == "bank":
+        return _run_bank(inputs, linearizer, cfg, name or method)
+    return _run_grid(inputs, method, terrain, linearizer, cfg, name or method)
+
+
+def _outputs(n: int, k_steps: int, dtype: torch.dtype, device: torch.device) -> dict[str, Any]:
+    return {
+        "err": torch.empty(n, k_steps + 1, N_STATES, dtype=dtype, device=device),
+        "P": torch.empty(n, k_steps + 1, N_STATES, N_STATES, dtype=dtype, device=device),
+        "nis": torch.full((n, k_steps + 1), float("nan"), dtype=dtype, device=device),
+        "residual": torch.zeros(n, k_steps + 1, dtype=dtype, device=device),
+        "updated": torch.zeros(n, k_steps + 1, dtype=torch.bool, device=device),
+        "est_on_map": torch.ones(n, k_steps + 1, dtype=torch.bool, device=device),
+    }
+
+
+def _finish(inputs: TanInputs, out: dict[str, Any], name: str, healthy: torch.Tensor,
+            elapsed: float) -> FilterRun:
+    t = torch.arange(inputs.radar.shape[1], dtype=inputs.radar.dtype) * inputs.dt
+    return FilterRun(
+        method=name, t=t, err=out["err"], P=out["P"], nis=out["nis"],
+        residual=out["residual"], updated=out["updated"], est_on_map=out["est_on_map"],
+        off_map=~inputs.on_map.all(dim=1), healthy=healthy, elapsed_s=elapsed,
+    )
+
+
+def _run_bank(inputs: TanInputs, linearizer: Any, cfg: AcquisitionConfig,
+              name: str) -> AcquisitionResult:
+    ins, radar = inputs.ins_pos, inputs.radar
+    n, k_steps = radar.shape[0], radar.shape[1] - 1
+    dtype, device = ins.dtype, ins.device
+    x0 = torch.zeros(n, N_STATES, dtype=dtype, device=device)
+    means, covs, logw = lattice_prior(x0, inputs.P0, per_axis=cfg.bank_per_axis,
+                                      span_sigma=cfg.bank_span_sigma)
+    bank = GaussianSumEKF(means, covs, log_weights=logw, prune_threshold=cfg.bank_prune,
+                          merge_distance=cfg.bank_merge, dtype=dtype)
+    kc = bank.n_components
+    F = transition_matrix(inputs.dt, dtype=dtype, device=device)
+    out = _outputs(n, k_steps, dtype, device)
+    mean, cov = bank.mixture()
+    out["err"][:, 0] = inputs.ins_error[:, 0] - mean
+    out["P"][:, 0] = cov
+    updates = 0
+    start = time.perf_counter()
+    for k in range(1, k_steps + 1):
+        alive = bank.alive
+        diag = tan_filter_step(
+            bank.ekf, ins[:, k].repeat_interleave(kc, 0), radar[:, k].repeat_interleave(kc, 0),
+            linearizer, F=F, Q=inputs.Q, R=inputs.R, extent=inputs.extent, mask=alive,
+        )
+        updates += int(alive.sum())
+        bank.reweight(diag.residual, diag.S, diag.updated)
+        mean, cov = bank.mixture()
+        out["err"][:, k] = inputs.ins_error[:, k] - mean
+        out["P"][:, k] = cov
+        best = bank.log_weights.argmax(1) + torch.arange(n, device=device) * kc
+        upd = diag.updated[best]
+        out["nis"][:, k] = torch.where(upd, diag.nis[best], out["nis"][:, k])
+        out["residual"][:, k] = torch.where(upd, diag.residual[best], 0.0)
+        out["updated"][:, k] = upd
+        out["est_on_map"][:, k] = inside_extent(ins[:, k, :2] - mean[:, :2], inputs.extent)
+    elapsed = time.perf_counter() - start
+    healthy = bank.alive.reshape(n, kc).any(1)
+    run = _finish(inputs, out, name, healthy, elapsed)
+    return AcquisitionResult(
+        run=run, handoff_step=torch.full((n,), -1), n_fallbacks=torch.zeros(n, dtype=torch.long),
+        recoveries=bank.recoveries.clone(), acquiring=torch.ones(n, k_steps + 1, dtype=torch.bool),
+        elapsed_s=elapsed, cell_updates=updates,
+    )
+
+
+class _VelocityPrior:
+    """Per-axis ``[δp, δv]`` prior of the grid runs (see the module docstring)."""
+
+    def __init__(self, n: int, P0: torch.Tensor, dtype: torch.dtype, device: torch.device):
+        self.ppp = P0[[0, 1], [0, 1]].to(dtype).expand(n, 2).clone()
+        self.ppv = torch.zeros(n, 2, dtype=dtype, device=device)
+        self.pvv = P0[[3, 4], [3, 4]].to(dtype).expand(n, 2).clone()
+        self.v0 = torch.zeros(n, 2, dtype=dtype, device=device)
+        self.mp = torch.zeros(n, 2, dtype=dtype, device=device)
+
+    def step(self, dt: float, qp: torch.Tensor, qv: torch.Tensor) -> torch.Tensor:
+        """Propagates; returns the position-variance growth ``(N, 2)`` of this step."""
+        grow = 2.0 * dt * self.ppv + dt * dt * self.pvv + qp
+        self.ppp = self.ppp + grow
+        self.ppv = self.ppv + dt * self.pvv
+        self.pvv = self.pvv + qv
+        self.mp = self.mp + dt * self.v0
+        return grow
+
+    def reset(self, mask: torch.Tensor, ppp: torch.Tensor, ppv: torch.Tensor, pvv: torch.Tensor,
+              v0: torch.Tensor, mp: torch.Tensor) -> None:
+        m = mask[:, None]
+        self.ppp = torch.where(m, ppp, self.ppp)
+        self.ppv = torch.where(m, ppv, self.ppv)
+        self.pvv = torch.where(m, pvv, self.pvv)
+        self.v0 = torch.where(m, v0, self.v0)
+        self.mp = torch.where(m, mp, self.mp)
+
+    def state(self, mu: torch.Tensor, sigma: torch.Tensor, alt_m: torch.Tensor,
+              alt_v: torch.Tensor, condition: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """5-state mean ``(N, 5)`` and covariance ``(N, 5, 5)`` from the grid posterior."""
+        n = mu.shape[0]
+        b = self.ppv / self.ppp if condition else torch.zeros_like(self.ppv)
+        bm = torch.diag_embed(b)
+        v = self.v0 + b * (mu - self.mp)
+        pvv = torch.diag_embed(self.pvv - b * b * self.ppp) + bm @ sigma @ bm
+        ppv = sigma @ bm
+        x = torch.cat([mu, alt_m[:, None], v], 1)
+        P = torch.zeros(n, N_STATES, N_STATES, dtype=mu.dtype, device=mu.device)
+        P[:, :2, :2] = sigma
+        P[:, 2, 2] = alt_v
+        P[:, :2, 3:] = ppv
+        P[:, 3:, :2] = ppv.transpose(1, 2)
+        P[:, 3:, 3:] = 0.5 * (pvv + pvv.transpose(1, 2))
+        return x, P
+
+
+def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
+              cfg: AcquisitionConfig, name: str) -> AcquisitionResult:
+    ins, radar = inputs.ins_pos, inputs.radar
+    n, k_steps = radar.shape[0], radar.shape[1] - 1
+    dtype, device = ins.dtype, ins.device
+    pm_dtype = torch.float32 if cfg.dtype == "float32" else torch.float64
+    P0, Q = inputs.P0, inputs.Q
+    F = transition_matrix(inputs.dt, dtype=dtype, device=device)
+    use_pm = method.startswith("point_mass")
+    use_ekf = method in ("ekf", "point_mass_ekf")
+    ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device), P0) if use_ekf else None
+    pm = vel = None
+    acquiring = torch.full((n,), use_pm, dtype=torch.bool, device=device)
+    if use_pm:
+        pm = PointMassFilter(torch.zeros(n, 2, dtype=pm_dtype, device=device),
+                             P0[:2, :2].to(pm_dtype), scalar_mean=0.0,
+                             scalar_var=float(P0[2, 2]), config=cfg.point_mass_config(),
+                             dtype=pm_dtype)
+        vel = _VelocityPrior(n, P0, dtype, device)
+    qp = Q[[0, 1], [0, 1]].expand(n, 2)
+    qv = Q[[3, 4], [3, 4]].expand(n, 2)
+    out = _outputs(n, k_steps, dtype, device)
+    out["err"][:, 0] = inputs.ins_error[:, 0]
+    out["P"][:, 0] = P0
+    acq_hist = torch.zeros(n, k_steps + 1, dtype=torch.bool, device=device)
+    acq_hist[:, 0] = acquiring
+    handoff_step = torch.full((n,), -1, dtype=torch.long, device=device)
+    n_fallbacks = torch.zeros(n, dtype=torch.long, device=device)
+    hold = torch.zeros(n, dtype=torch.long, device=device)
+    since = torch.zeros(n, dtype=torch.long, device=device)
+    win = max(cfg.fallback_window, 1)
+    nis_win = torch.zeros(n, win, dtype=dtype, device=device)
+    nis_count = torch.zeros(n, dtype=torch.long, device=device)
+    updates = 0
+    start = time.perf_counter()
+    for k in range(1, k_steps + 1):
+        x_out = torch.zeros(n, N_STATES, dtype=dtype, device=device)
+        P_out = torch.zeros(n, N_STATES, N_STATES, dtype=dtype, device=device)
+        any_acq = bool(acquiring.any())
+        if use_pm and any_acq:
+            grow = vel.step(inputs.dt, qp, qv)
+            pm.predict(Q=grow.to(pm_dtype), shift=(inputs.dt * vel.v0).to(pm_dtype),
+                       scalar_q=float(Q[2, 2]))
+            y = (ins[:, k, 2] - radar[:, k]).to(pm_dtype)
+            pm.update(y, _terrain_fn(terrain, ins[:, k, :2]), R=inputs.R, mask=acquiring)
+            updates += int(acquiring.sum()) * pm.cells**2
+            since = since + acquiring.long()
+            mu, sigma = pm.mean().to(dtype), pm.cov().to(dtype)
+            alt_m, alt_v = (t.to(dtype) for t in pm.scalar_moments())
+            x_pm, P_pm = vel.state(mu, sigma, alt_m, alt_v, cfg.velocity_from_grid)
+            x_out = torch.where(acquiring[:, None], x_pm, x_out)
+            P_out = torch.where(acquiring[:, None, None], P_pm, P_out)
+        if use_ekf:
+            tracking = ~acquiring
+            diag = tan_filter_step(ekf, ins[:, k], radar[:, k], linearizer, F=F, Q=Q,
+                                   R=inputs.R, extent=inputs.extent,
+                                   mask=None if not use_pm else tracking)
+            upd = diag.updated & tracking
+            x_out = torch.where(tracking[:, None], ekf.x, x_out)
+            P_out = torch.where(tracking[:, None, None], ekf.P, P_out)
+            out["nis"][:, k] = torch.where(upd, diag.nis, out["nis"][:, k])
+            out["residual"][:, k] = torch.where(upd, diag.residual, 0.0)
+            out["updated"][:, k] = upd
+            if use_pm and cfg.fallback_window > 0:
+                nis_win[:, (k - 1) % win] = torch.where(upd, diag.nis, nis_win[:, (k - 1) % win])
+                nis_count = nis_count + upd.long()
+                lost = tracking & lost_lock(nis_win, nis_count, prob=cfg.fallback_prob)
+                if bool(lost.any()):
+                    _fall_back(pm, vel, ekf, lost, cfg, pm_dtype)
+                    acquiring = acquiring | lost
+                    n_fallbacks += lost.long()
+                    hold = torch.where(lost, 0, hold)
+                    since = torch.where(lost, 0, since)
+        if use_pm and method == "point_mass_ekf" and any_acq:
+            ready = handoff_ready(pm.gaussian_affinity().to(dtype), pm.cov().to(dtype),
+                                  max_sigma=cfg.handoff_sigma_m,
+                                  min_affinity=cfg.handoff_affinity)
+            hold = torch.where(acquiring & ready, hold + 1, 0)
+            go = acquiring & (hold >= max(cfg.handoff_hold, 1)) & (since >= cfg.min_acquire_steps)
+            if bool(go.any()):
+                ekf.x = torch.where(go[:, None], x_out, ekf.x)
+                ekf.P = torch.where(go[:, None, None], P_out, ekf.P)
+                handoff_step = torch.where(go & (handoff_step < 0), k, handoff_step)
+                acquiring = acquiring & ~go
+                nis_count = torch.where(go, 0, nis_count)
+                nis_win = torch.where(go[:, None], 0.0, nis_win)
+        out["err"][:, k] = inputs.ins_error[:, k] - x_out
+        out["P"][:, k] = P_out
+        out["est_on_map"][:, k] = inside_extent(ins[:, k, :2] - x_out[:, :2], inputs.extent)
+        acq_hist[:, k] = acquiring
+    elapsed = time.perf_counter() - start
+    healthy = ekf.healthy.clone() if ekf is not None else torch.ones(n, dtype=torch.bool)
+    if pm is not None:
+        healthy = healthy & torch.isfinite(pm.weights).flatten(1).all(1)
+    run = _finish(inputs, out, name, healthy, elapsed)
+    recov = pm.recoveries.clone() if pm is not None else torch.zeros(n, dtype=torch.long)
+    return AcquisitionResult(
+        run=run, handoff_step=handoff_step, n_fallbacks=n_fallbacks, recoveries=recov,
+        acquiring=acq_hist, elapsed_s=elapsed, cell_updates=updates,
+    )
+
+
+def _fall_back(pm: PointMassFilter, vel: _VelocityPrior, ekf: BatchedEKF, lost: torch.Tensor,
+               cfg: AcquisitionConfig, pm_dtype: torch.dtype) -> None:
+    """Re-initialises the grid of the runs that lost lock around the EKF estimate."""
+    x, P = ekf.x, ekf.P
+    var = torch.diagonal(P[:, :2, :2], dim1=1, dim2=2).clamp_min(cfg.reacquire_sigma_m**2)
+    cov = torch.diag_embed(var)
+    pm.reset(x[:, :2].to(pm_dtype), cov.to(pm_dtype), scalar_mean=x[:, 2].to(pm_dtype),
+             scalar_var=P[:, 2, 2].clamp_min(1.0).to(pm_dtype), mask=lost)
+    vel.reset(lost, var, torch.zeros_like(var), torch.diagonal(P[:, 3:, 3:], dim1=1, dim2=2),
+              x[:, 3:], x[:, :2])
+
+
+def acquisition_time(err_xy: torch.Tensor, bound: torch.Tensor, factor: float = 3.0,
+                     dt: float = 1.0) -> torch.Tensor:
+    """Time to acquire per run: first time after which the error stays below factor·bound.
+
+    Args:
+        err_xy: ``(N, K+1)`` horizontal error norms, m.
+        bound: ``(K+1,)`` PCRB position bound, m.
+        factor: Multiple of the bound.
+        dt: Sample period, s.
+
+    Returns:
+        ``(N,)`` seconds; ``inf`` for a run that is above the threshold at the last step.
+    """
+    above = err_xy > factor * bound[None, :]
+    k1 = above.shape[1]
+    idx = torch.arange(k1, device=err_xy.device).expand_as(above)
+    last_above = torch.where(above, idx, -1).amax(1)
+    t = (last_above + 1).to(torch.float64) * dt
+    return torch.where(last_above >= k1 - 1, math.inf, t)

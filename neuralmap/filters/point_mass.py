@@ -9,8 +9,12 @@ runs at once. Each run carries
   ``spacing (N, 2)``; cell ``(i, j)`` (row ``i`` along y, column ``j`` along x) sits at
   ``centre + spacing · (j − h, i − h)``, ``h = (G − 1) / 2``;
 * normalised cell masses ``w (N, G, G)`` (the discrete posterior, Dirac convention);
-* a Rao-Blackwellised scalar Gaussian per cell, ``a ~ N(m_ij, v_ij)`` (the altitude error),
-  entering the measurement linearly.
+* a Rao-Blackwellised scalar Gaussian per cell, ``a | cell ij ~ N(m_ij, v)`` (the altitude
+  error), entering the measurement linearly; the conditional variance ``v`` is one number
+  per run (with a common ``R`` the scalar Kalman variance update does not depend on the
+  cell, and the moment-matched prediction keeps the run's total variance
+  ``v + Var_w(m)`` exact: ``v' = v + Σ w m² − Σ w' m'²``; exact in the linear-Gaussian
+  case, where the conditional variance is the same in every cell).
 
 Measurement model (one scalar per run and step)::
 
@@ -19,7 +23,8 @@ Measurement model (one scalar per run and step)::
 where ``g`` is given per cell by the caller (``predicted (N, G, G)``, or a callable mapping
 the cell coordinates ``(N, G, G, 2)`` to it): the filter knows nothing of what ``g`` is.
 Update per cell (a scalar Kalman filter on ``a``): ``ν = y − g − m``, ``S = v + R``,
-``log w += −½ (log 2πS + ν²/S)``, ``m += v ν / S``, ``v ← v R / S`` — the marginalised
+``log w += −½ ν²/S`` (``−½ log 2πS`` is common to the run's cells), ``m += v ν / S``,
+``v ← v R / S`` — the marginalised
 likelihood of the Rao-Blackwellised point-mass filter. Weights are updated in the log
 domain and renormalised by their maximum; a run whose likelihood is zero (or not finite)
 in every cell keeps its prior weights, and that recovery is counted in
@@ -30,7 +35,8 @@ moved by the known shift ``u`` (no interpolation) and the masses are convolved w
 process-noise density (separable: one 1-D kernel per axis and run; a sampled Gaussian for
 ``σ ≥ 0.7`` cells, the three-tap kernel ``[σ²/2, 1 − σ², σ²/2]`` below, so that the kernel
 variance is ``σ²`` in both cases). The scalar part is mixed with the masses (moment
-matching: the convolution of ``w``, ``w m`` and ``w (v + m²)``) and gets ``q_a`` added.
+matching: the convolution of ``w`` and ``w m``; ``v`` from the total variance) and gets
+``q_a`` added.
 
 Adaptive grid: after each update, a run whose posterior needs less than ``shrink_ratio``
 of the grid's half-width (``span_sigma`` standard deviations per axis), or whose mean left
@@ -57,6 +63,12 @@ from neuralmap.exceptions import NeuralMapError
 __all__ = ["PointMassConfig", "PointMassFilter", "PointMassUpdate"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
+
+#: Relative mass under which a cell's scalar mean is pulled to the run's mean (round-off).
+_RATIO_EPS = {torch.float32: 1e-13, torch.float64: 1e-13}
+
+#: Kernels with more than ``2 · FFT_MIN_HALF_LEN + 1`` taps are applied by FFT.
+FFT_MIN_HALF_LEN = 4
 
 
 @dataclass
@@ -148,6 +160,37 @@ def _as_batch(value: object, shape: tuple[int, ...], name: str, dtype: torch.dty
         ) from exc
 
 
+def _convolve_axis(x: torch.Tensor, kernels: torch.Tensor, half_len: int,
+                   dim: int) -> torch.Tensor:
+    """Zero-padded 1-D convolution of ``x (N, C, G, G)`` along ``dim`` with per-run kernels.
+
+    ``kernels (N, 2·half_len + 1)``. Short kernels: a sum of shifted, scaled slices (on CPU
+    this beats a grouped ``conv2d`` with N·C groups); kernels longer than
+    ``2·FFT_MIN_HALF_LEN + 1`` taps: an FFT product (the convolution form of the
+    point-mass prediction of Matoušek, Duník et al.).
+    """
+    g = x.shape[dim]
+    if half_len > FFT_MIN_HALF_LEN:
+        nfft = 1 << (g + 2 * half_len - 1).bit_length()
+        # float64 transforms: float32 round-off (1e-7 of the peak) would seed far tails
+        # that later updates can amplify
+        spec = torch.fft.rfft(x.double(), n=nfft, dim=dim)
+        kspec = torch.fft.rfft(kernels.double(), n=nfft, dim=1)[:, None, None, :]
+        if dim == 2:
+            kspec = kspec.transpose(2, 3)
+        full = torch.fft.irfft(spec * kspec, n=nfft, dim=dim)
+        return full.narrow(dim, half_len, g).to(x.dtype)
+    out = torch.mul(x, kernels[:, half_len, None, None, None])
+    for t in range(2 * half_len + 1):
+        o = t - half_len  # out[j] += k[t] · x[j − o]
+        if o == 0 or abs(o) >= g:
+            continue
+        length = g - abs(o)
+        dst = out.narrow(dim, max(o, 0), length)
+        dst.addcmul_(x.narrow(dim, max(-o, 0), length), kernels[:, t, None, None, None])
+    return out
+
+
 class PointMassFilter:
     """N point-mass filters over a 2-D state with a Rao-Blackwellised scalar, in lock-step.
 
@@ -162,7 +205,7 @@ class PointMassFilter:
     Attributes:
         weights: ``(N, G, G)`` normalised cell masses (rows along y, columns along x).
         scalar_mean: ``(N, G, G)`` per-cell mean of the scalar part.
-        scalar_var: ``(N, G, G)`` per-cell variance of the scalar part.
+        scalar_var: ``(N,)`` conditional variance of the scalar part (same in every cell).
         centre: ``(N, 2)`` grid centres.
         spacing: ``(N, 2)`` grid spacing per axis.
         recoveries: ``(N,)`` int64, count of updates whose likelihood vanished everywhere.
@@ -198,7 +241,8 @@ class PointMassFilter:
         self._offsets = torch.arange(g, dtype=dtype, device=self.device) - self.half
         self.weights = torch.empty(n, g, g, dtype=dtype, device=self.device)
         self.scalar_mean = torch.empty_like(self.weights)
-        self.scalar_var = torch.empty_like(self.weights)
+        self.scalar_var = torch.empty(n, dtype=dtype, device=self.device)
+        self._chans = torch.empty(n, 2, g, g, dtype=dtype, device=self.device)
         self.centre = torch.empty(n, 2, dtype=dtype, device=self.device)
         self.spacing = torch.empty(n, 2, dtype=dtype, device=self.device)
         self._points = torch.empty(n, g, g, 2, dtype=dtype, device=self.device)
@@ -266,9 +310,8 @@ class PointMassFilter:
                     "leave spacing None to size the grid from the prior."
                 )
         weights = self._gaussian_weights(mean, cov, mean, spacing)
-        self._assign(mask, mean, spacing, weights,
-                     s_mean[:, None, None].expand_as(weights),
-                     s_var[:, None, None].expand_as(weights))
+        self._assign(mask, mean, spacing, weights, s_mean[:, None, None].expand_as(weights),
+                     s_var)
 
     def _assign(self, mask: torch.Tensor | None, centre: torch.Tensor, spacing: torch.Tensor,
                 weights: torch.Tensor, s_mean: torch.Tensor, s_var: torch.Tensor) -> None:
@@ -285,7 +328,7 @@ class PointMassFilter:
             self.spacing.copy_(torch.where(m1, spacing, self.spacing))
             self.weights.copy_(torch.where(m3, weights, self.weights))
             self.scalar_mean.copy_(torch.where(m3, s_mean, self.scalar_mean))
-            self.scalar_var.copy_(torch.where(m3, s_var, self.scalar_var))
+            self.scalar_var.copy_(torch.where(mask, s_var, self.scalar_var))
         self._refresh_points()
 
     def _refresh_points(self) -> None:
@@ -309,6 +352,11 @@ class PointMassFilter:
         return w / w.sum(dim=(1, 2), keepdim=True)
 
     # ------------------------------------------------------------------ views
+    @property
+    def offsets(self) -> torch.Tensor:
+        """``(G,)`` cell offsets ``j − (G − 1)/2`` (cell = centre + spacing · offset)."""
+        return self._offsets
+
     def points(self) -> torch.Tensor:
         """``(N, G, G, 2)`` cell coordinates in the state space (a reused buffer)."""
         return self._points
@@ -336,7 +384,7 @@ class PointMassFilter:
         """Mixture mean and variance ``(N,)`` of the scalar part over the grid."""
         w = self.weights
         m = (w * self.scalar_mean).sum((1, 2))
-        v = (w * (self.scalar_var + self.scalar_mean**2)).sum((1, 2)) - m * m
+        v = self.scalar_var + (w * self.scalar_mean**2).sum((1, 2)) - m * m
         return m, v.clamp_min(0.0)
 
     def gaussian_affinity(self) -> torch.Tensor:
@@ -405,28 +453,36 @@ class PointMassFilter:
         smax = float(sigma_cells.max())
         if smax > 1e-4:
             half_len = min(max(1, int(math.ceil(4.0 * smax))), g - 1)
-            w = self.weights
-            chans = torch.stack([w, w * self.scalar_mean,
-                                 w * (self.scalar_var + self.scalar_mean**2)], 1)  # (N,3,G,G)
-            chans = chans.reshape(1, n * 3, g, g)
-            kx = self._kernels(sigma_cells[:, 0], half_len).repeat_interleave(3, 0)
-            ky = self._kernels(sigma_cells[:, 1], half_len).repeat_interleave(3, 0)
-            chans = nnf.conv2d(chans, kx[:, None, None, :], padding=(0, half_len), groups=n * 3)
-            chans = nnf.conv2d(chans, ky[:, None, :, None], padding=(half_len, 0), groups=n * 3)
-            chans = chans.reshape(n, 3, g, g)
-            w0 = chans[:, 0]
-            tiny = torch.finfo(self.dtype).tiny
+            w, m = self.weights, self.scalar_mean
+            second = (w * m * m).sum((1, 2))
+            chans = self._chans
+            chans[:, 0].copy_(w)
+            torch.mul(w, m, out=chans[:, 1])
+            kx = self._kernels(sigma_cells[:, 0], half_len)
+            ky = self._kernels(sigma_cells[:, 1], half_len)
+            chans = _convolve_axis(chans, kx, half_len, dim=3)
+            chans = _convolve_axis(chans, ky, half_len, dim=2)
+            w0 = chans[:, 0].clamp_(min=0.0)  # FFT round-off can dip below 0
             total = w0.sum((1, 2), keepdim=True)
-            live = w0 > tiny * 1e6
-            safe = torch.where(live, w0, 1.0)
-            m_new = torch.where(live, chans[:, 1] / safe, self.scalar_mean)
-            v_new = torch.where(live, chans[:, 2] / safe - m_new * m_new, self.scalar_var)
-            self.scalar_mean.copy_(m_new)
-            self.scalar_var.copy_(v_new.clamp_min(0.0))
+            # regularised ratio: cells with mass near the round-off level get the run's mean
+            eps = _RATIO_EPS[self.dtype] * w0.amax((1, 2), keepdim=True)
+            m_mix = (w * m).sum((1, 2))[:, None, None]
+            m_new = (chans[:, 1] + eps * m_mix) / (w0 + eps)
             ok = (total.reshape(n) > 0) & torch.isfinite(total.reshape(n))
             w_new = w0 / torch.where(ok[:, None, None], total, 1.0)
-            self.weights.copy_(torch.where(ok[:, None, None], w_new, self.weights))
-        self.scalar_var.add_(sq[:, None, None])
+            second_new = (w_new * m_new * m_new).sum((1, 2))
+            v_new = (self.scalar_var + second - second_new).clamp_min(
+                1e-6 * self.scalar_var)
+            if bool(ok.all()):
+                self.weights.copy_(w_new)
+                self.scalar_mean.copy_(m_new)
+                self.scalar_var.copy_(v_new)
+            else:
+                ok3 = ok[:, None, None]
+                self.weights.copy_(torch.where(ok3, w_new, self.weights))
+                self.scalar_mean.copy_(torch.where(ok3, m_new, m))
+                self.scalar_var.copy_(torch.where(ok, v_new, self.scalar_var))
+        self.scalar_var.add_(sq)
         return regridded
 
     # ------------------------------------------------------------------ update
@@ -463,47 +519,55 @@ class PointMassFilter:
         r = _as_batch(R, (n,), "R", self.dtype, self.device)
         if not bool((r > 0).all()):
             raise NeuralMapError("PointMassFilter.update: R must be > 0 for every run.")
-        r3 = r[:, None, None]
         m, v = self.scalar_mean, self.scalar_var
-        nu = y[:, None, None] - gval - m
-        s = v + r3
-        loglik = -0.5 * (_LOG_2PI + s.log() + nu * nu / s)
+        s_run = v + r  # (N,) innovation variance, the same in every cell
+        nu = (y[:, None, None] - gval).sub_(m)
+        loglik = nu.square().mul_((-0.5 / s_run)[:, None, None])
+        const = -0.5 * (_LOG_2PI + s_run.log())  # (N,) common to the run's cells
         p_out = self.config.outlier_prob
         if p_out > 0.0:
-            log_out = math.log(p_out / self.config.outlier_width)
+            log_out = math.log(p_out / self.config.outlier_width) - const[:, None, None]
             log_in = loglik + math.log1p(-p_out)
-            mix = torch.logaddexp(log_in, torch.full_like(log_in, log_out))
+            mix = torch.logaddexp(log_in, log_out.expand_as(log_in))
             resp = (log_in - mix).exp()  # inlier responsibility
             loglik = mix
         else:
             resp = None
-        loglik = torch.where(torch.isfinite(loglik), loglik, -math.inf)
-        logw = self.weights.log() + loglik
+        loglik = torch.nan_to_num(loglik, nan=-math.inf)
+        logw = self.weights.log().add_(loglik)
         peak = logw.amax((1, 2), keepdim=True)
         finite_peak = torch.isfinite(peak).reshape(n)
-        w = (logw - torch.where(torch.isfinite(peak), peak, 0.0)).exp()
+        w = logw.sub_(torch.where(torch.isfinite(peak), peak, 0.0)).exp_()
         total = w.sum((1, 2))
-        log_lik = torch.where(finite_peak, peak.reshape(n) + total.log(), -math.inf)
+        log_lik = torch.where(finite_peak, const + peak.reshape(n) + total.log(), -math.inf)
         use = finite_peak & (total > 0) & torch.isfinite(total)
         recovered = ~use
         if mask is not None:
             recovered = recovered & mask
             use = use & mask
         self.recoveries.add_(recovered.long())
-        w = w / torch.where(use, total, 1.0)[:, None, None]
+        w.div_(torch.where(use, total, 1.0)[:, None, None])
         floor = self.config.weight_floor
-        if floor > 0.0:
-            w = w.clamp_min(floor)
-            w = w / w.sum((1, 2), keepdim=True)
-        gain = v / s
-        if resp is not None:
-            gain = gain * resp
-        m_new = m + gain * torch.where(torch.isfinite(nu), nu, 0.0)
-        v_new = v * (1.0 - gain * (2.0 - gain)) + gain * gain * r3  # Joseph form, scalar
-        u3 = use[:, None, None]
-        self.weights.copy_(torch.where(u3, w, self.weights))
-        self.scalar_mean.copy_(torch.where(u3, m_new, m))
-        self.scalar_var.copy_(torch.where(u3, v_new, v))
+        if floor > 0.0:  # keeps every cell alive; adds at most G² · floor of mass
+            w.clamp_(min=floor)
+        gain = v / s_run  # (N,)
+        nu = torch.nan_to_num(nu, nan=0.0, posinf=0.0, neginf=0.0)
+        if resp is None:
+            m_new = nu.mul_(gain[:, None, None]).add_(m)
+            v_new = v * r / s_run
+        else:  # inlier-weighted gain; the variance shrinks by the mean responsibility
+            m_new = torch.addcmul(m, resp * gain[:, None, None], nu)
+            rbar = (w * resp).sum((1, 2))
+            v_new = v * (1.0 - rbar * gain)
+        if bool(use.all()):
+            self.weights.copy_(w)
+            self.scalar_mean.copy_(m_new)
+            self.scalar_var.copy_(v_new)
+        else:
+            u3 = use[:, None, None]
+            self.weights.copy_(torch.where(u3, w, self.weights))
+            self.scalar_mean.copy_(torch.where(u3, m_new, m))
+            self.scalar_var.copy_(torch.where(use, v_new, v))
         return PointMassUpdate(log_likelihood=log_lik, recovered=recovered, applied=use)
 
     # ------------------------------------------------------------------ adaptive grid
@@ -569,8 +633,7 @@ class PointMassFilter:
             return move
         n = self.n_runs
         w = self.weights
-        chans = torch.stack([w, w * self.scalar_mean,
-                             w * (self.scalar_var + self.scalar_mean**2)], 1)
+        chans = torch.stack([w, w * self.scalar_mean], 1)
         s_m, s_v = self.scalar_moments()
         eye = torch.eye(2, dtype=self.dtype, device=self.device).expand(n, 2, 2)
         # pass 1: plain interpolation; pass 2: the new cells mapped by the affine map that
@@ -591,8 +654,6 @@ class PointMassFilter:
         live = w0 > torch.finfo(self.dtype).tiny * 1e6
         safe = torch.where(live, w0, 1.0)
         m_new = torch.where(live, out[:, 1] / safe, s_m[:, None, None])
-        v_new = torch.where(live, (out[:, 2] / safe - m_new * m_new).clamp_min(0.0),
-                            s_v[:, None, None])
         interp_ok = (total.reshape(n) > 0) & (sigma >= 1.5 * self.spacing).all(1)
         w_interp = w0 / torch.where(total > 0, total, 1.0)
         w_gauss = self._gaussian_weights(mean, cov + torch.diag_embed(self.spacing**2 / 12.0),
@@ -600,7 +661,10 @@ class PointMassFilter:
         ok3 = interp_ok[:, None, None]
         weights = torch.where(ok3, w_interp, w_gauss)
         m_new = torch.where(ok3, m_new, s_m[:, None, None].expand_as(m_new))
-        v_new = torch.where(ok3, v_new, s_v[:, None, None].expand_as(v_new))
+        # keep the run's total scalar variance: v' = total − Var_w'(m')
+        mbar = (weights * m_new).sum((1, 2))
+        v_new = (s_v - (weights * m_new * m_new).sum((1, 2)) + mbar * mbar).clamp_min(
+            1e-6 * self.scalar_var)
         self.regrids.add_(move.long())
         self._assign(move, mean, spacing, weights, m_new, v_new)
         return move

@@ -61,6 +61,7 @@ __all__ = [
     "TanInputs",
     "acquisition_time",
     "handoff_ready",
+    "lattice_bilinear",
     "lost_lock",
     "run_acquisition",
     "tan_inputs",
@@ -253,6 +254,54 @@ def lost_lock(nis_window: torch.Tensor, count: torch.Tensor, *, prob: float) -> 
     return (count >= w) & (nis_window.mean(1) > threshold)
 
 
+def lattice_bilinear(
+    terrain: Any, ins_xy: torch.Tensor, centre: torch.Tensor, spacing: torch.Tensor,
+    offsets: torch.Tensor,
+) -> torch.Tensor:
+    """Bilinear map heights at ``p_ins − s`` for every cell of axis-aligned grids (fast path).
+
+    Equals ``GridTerrain(tile, method="bilinear")(ins_xy − points)`` (border clamping
+    included), but the cell arithmetic runs per grid row and column ``(N, G)`` and only the
+    four corner gathers and the blend run per cell.
+
+    Args:
+        terrain: A bilinear :class:`~neuralmap.terrain.grid.GridTerrain`.
+        ins_xy: ``(N, 2)`` INS horizontal positions.
+        centre: ``(N, 2)`` grid centres (state space: INS − truth).
+        spacing: ``(N, 2)`` grid spacings.
+        offsets: ``(G,)`` cell offsets ``j − (G − 1)/2``.
+
+    Returns:
+        ``(N, G, G)`` heights in the dtype of ``centre``.
+    """
+    ny, nx = terrain.shape
+    (x0, y0), (dx, dy) = terrain.origin, terrain.spacing
+    dt = centre.dtype
+    xs = ins_xy[:, 0:1].to(dt) - (centre[:, 0:1] + spacing[:, 0:1] * offsets)  # (N, G)
+    ys = ins_xy[:, 1:2].to(dt) - (centre[:, 1:2] + spacing[:, 1:2] * offsets)
+    u = ((xs - x0) / dx).clamp(0.0, nx - 1.0)
+    v = ((ys - y0) / dy).clamp(0.0, ny - 1.0)
+    jf = u.floor().clamp(max=nx - 2.0)
+    i_f = v.floor().clamp(max=ny - 2.0)
+    fu, fv = (u - jf)[:, None, :], (v - i_f)[:, :, None]
+    idx = (i_f.long() * nx)[:, :, None] + jf.long()[:, None, :]
+    flat = terrain.heights.view(-1)
+    if flat.dtype != dt:
+        flat = flat.to(dt)
+    shape = idx.shape
+    idx = idx.reshape(-1)
+    h00 = flat.index_select(0, idx).view(shape)
+    h01 = flat[1:].index_select(0, idx).view(shape)
+    south = torch.lerp(h00, h01, fu)
+    h10 = flat[nx:].index_select(0, idx).view(shape)
+    h11 = flat[nx + 1 :].index_select(0, idx).view(shape)
+    return torch.lerp(south, torch.lerp(h10, h11, fu), fv)
+
+
+def _is_bilinear_grid(terrain: Any) -> bool:
+    return getattr(terrain, "method", None) == "bilinear" and hasattr(terrain, "heights")
+
+
 def _terrain_fn(terrain: torch.nn.Module, ins_xy: torch.Tensor) -> Any:
     """Callable cell coordinates ``(N, G, G, 2)`` → map height at ``p_ins − δp``."""
     try:
@@ -391,6 +440,14 @@ def _run_bank(inputs: TanInputs, linearizer: Any, cfg: AcquisitionConfig,
     )
 
 
+class _Float32Grid:
+    """A bilinear grid's geometry with its heights cast once to float32."""
+
+    def __init__(self, grid: Any) -> None:
+        self.shape, self.origin, self.spacing = grid.shape, grid.origin, grid.spacing
+        self.heights = grid.heights.to(torch.float32)
+
+
 class _VelocityPrior:
     """Per-axis ``[δp, δv]`` prior of the grid runs (see the module docstring)."""
 
@@ -457,6 +514,9 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
                              scalar_var=float(P0[2, 2]), config=cfg.point_mass_config(),
                              dtype=pm_dtype)
         vel = _VelocityPrior(n, P0, dtype, device)
+    fast_grid = use_pm and _is_bilinear_grid(terrain)
+    if fast_grid and pm_dtype == torch.float32:
+        terrain = _Float32Grid(terrain)
     qp = Q[[0, 1], [0, 1]].expand(n, 2)
     qv = Q[[3, 4], [3, 4]].expand(n, 2)
     out = _outputs(n, k_steps, dtype, device)
@@ -482,7 +542,12 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
             pm.predict(Q=grow.to(pm_dtype), shift=(inputs.dt * vel.v0).to(pm_dtype),
                        scalar_q=float(Q[2, 2]))
             y = (ins[:, k, 2] - radar[:, k]).to(pm_dtype)
-            pm.update(y, _terrain_fn(terrain, ins[:, k, :2]), R=inputs.R, mask=acquiring)
+            if fast_grid:
+                pred = lattice_bilinear(terrain, ins[:, k, :2], pm.centre, pm.spacing,
+                                        pm.offsets)
+            else:
+                pred = _terrain_fn(terrain, ins[:, k, :2])
+            pm.update(y, pred, R=inputs.R, mask=acquiring)
             updates += int(acquiring.sum()) * pm.cells**2
             since = since + acquiring.long()
             mu, sigma = pm.mean().to(dtype), pm.cov().to(dtype)

@@ -87,6 +87,7 @@ class PointMassConfig:
             current one.
         recentre_fraction: Re-centre when the mean is farther from the centre than this
             fraction of the half-width.
+        grow_margin: A new grid's half-width is ``(1 + grow_margin) · span_sigma · σ``.
         weight_floor: Masses below ``weight_floor × max`` are raised to it after each
             update (keeps every cell alive; 0 disables).
         outlier_prob: Probability of a measurement outlier (0 = Gaussian likelihood);
@@ -102,6 +103,7 @@ class PointMassConfig:
     shrink_ratio: float = 0.5
     recentre_fraction: float = 0.25
     weight_floor: float = 1e-30
+    grow_margin: float = 0.25
     outlier_prob: float = 0.0
     outlier_width: float = 1000.0
 
@@ -115,6 +117,8 @@ class PointMassConfig:
 
         if isinstance(self.cells, bool) or not isinstance(self.cells, int) or self.cells < 8:
             raise bad("cells", "an integer >= 8")
+        if not 0.0 <= self.grow_margin <= 1.0:
+            raise bad("grow_margin", "in [0, 1]")
         for key in ("span_sigma", "min_spacing", "outlier_width"):
             if not getattr(self, key) > 0.0:
                 raise bad(key, "> 0")
@@ -350,6 +354,30 @@ class PointMassFilter:
         logw = logw - logw.amax(dim=(1, 2), keepdim=True)
         w = logw.exp()
         return w / w.sum(dim=(1, 2), keepdim=True)
+
+    def take(self, index: torch.Tensor) -> PointMassFilter:
+        """A new filter holding the runs ``index`` (copies; counters carried over).
+
+        Args:
+            index: ``(M,)`` long run indices (M ≥ 1).
+        """
+        out = object.__new__(PointMassFilter)
+        out.config, out.dtype, out.device = self.config, self.dtype, self.device
+        out.cells, out.half, out._offsets = self.cells, self.half, self._offsets
+        out.n_runs = int(index.numel())
+        for name in ("weights", "scalar_mean", "scalar_var", "centre", "spacing", "_points",
+                     "recoveries", "regrids", "_chans"):
+            setattr(out, name, getattr(self, name).index_select(0, index))
+        return out
+
+    def extend(self, other: PointMassFilter) -> PointMassFilter:
+        """A new filter with the runs of ``self`` followed by those of ``other``."""
+        out = self.take(torch.arange(self.n_runs, device=self.device))
+        for name in ("weights", "scalar_mean", "scalar_var", "centre", "spacing", "_points",
+                     "recoveries", "regrids", "_chans"):
+            setattr(out, name, torch.cat([getattr(self, name), getattr(other, name)]))
+        out.n_runs = self.n_runs + other.n_runs
+        return out
 
     # ------------------------------------------------------------------ views
     @property
@@ -620,7 +648,9 @@ class PointMassFilter:
         need = cfg.span_sigma * var_next.sqrt()
         halfw = self.spacing * self.half
         off = (mean - self.centre).abs()
-        spacing = (need / self.half).clamp_min(cfg.min_spacing)
+        # new grids get a growth margin so that a slowly widening density does not move
+        # its grid every step
+        spacing = ((1.0 + cfg.grow_margin) * need / self.half).clamp_min(cfg.min_spacing)
         # grow at most 2x per move: outside the old grid there is no information
         spacing = torch.minimum(spacing, 2.0 * self.spacing)
         shrink = (need < cfg.shrink_ratio * halfw) & (spacing < self.spacing * (1 - 1e-6))

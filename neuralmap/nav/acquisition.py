@@ -39,6 +39,7 @@ call of :func:`neuralmap.nav.tan.tan_filter_step`.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -236,6 +237,13 @@ def handoff_ready(
     return (affinity >= min_affinity) & (lam.sqrt() <= max_sigma)
 
 
+@functools.lru_cache(maxsize=64)
+def _chi2_ppf(prob: float, dof: int) -> float:
+    from neuralmap.nav.metrics import chi2_quantile
+
+    return chi2_quantile(prob, dof)
+
+
 def lost_lock(nis_window: torch.Tensor, count: torch.Tensor, *, prob: float) -> torch.Tensor:
     """The lost-lock test: mean NIS over a full window above ``χ²_prob(W) / W``.
 
@@ -247,10 +255,8 @@ def lost_lock(nis_window: torch.Tensor, count: torch.Tensor, *, prob: float) -> 
     Returns:
         ``(N,)`` bool.
     """
-    from scipy.stats import chi2
-
     w = nis_window.shape[1]
-    threshold = float(chi2.ppf(prob, w)) / w
+    threshold = _chi2_ppf(prob, w) / w
     return (count >= w) & (nis_window.mean(1) > threshold)
 
 
@@ -476,14 +482,17 @@ class _VelocityPrior:
         self.v0 = torch.where(m, v0, self.v0)
         self.mp = torch.where(m, mp, self.mp)
 
-    def state(self, mu: torch.Tensor, sigma: torch.Tensor, alt_m: torch.Tensor,
-              alt_v: torch.Tensor, condition: bool) -> tuple[torch.Tensor, torch.Tensor]:
-        """5-state mean ``(N, 5)`` and covariance ``(N, 5, 5)`` from the grid posterior."""
+    def state(self, rows: torch.Tensor, mu: torch.Tensor, sigma: torch.Tensor,
+              alt_m: torch.Tensor, alt_v: torch.Tensor,
+              condition: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """5-state mean ``(M, 5)`` and covariance ``(M, 5, 5)`` of runs ``rows`` from their
+        grid posterior ``mu (M, 2)``, ``sigma (M, 2, 2)``."""
         n = mu.shape[0]
-        b = self.ppv / self.ppp if condition else torch.zeros_like(self.ppv)
+        ppp, ppv, pvv0 = self.ppp[rows], self.ppv[rows], self.pvv[rows]
+        b = ppv / ppp if condition else torch.zeros_like(ppv)
         bm = torch.diag_embed(b)
-        v = self.v0 + b * (mu - self.mp)
-        pvv = torch.diag_embed(self.pvv - b * b * self.ppp) + bm @ sigma @ bm
+        v = self.v0[rows] + b * (mu - self.mp[rows])
+        pvv = torch.diag_embed(pvv0 - b * b * ppp) + bm @ sigma @ bm
         ppv = sigma @ bm
         x = torch.cat([mu, alt_m[:, None], v], 1)
         P = torch.zeros(n, N_STATES, N_STATES, dtype=mu.dtype, device=mu.device)
@@ -497,6 +506,12 @@ class _VelocityPrior:
 
 def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
               cfg: AcquisitionConfig, name: str) -> AcquisitionResult:
+    """Point mass (optionally handing off to the EKF) or the EKF alone.
+
+    The grid filter holds only the runs in acquisition (``rows``): runs handed off are
+    dropped from it and runs that lose lock are appended, so its cost follows the number
+    of runs still acquiring.
+    """
     ins, radar = inputs.ins_pos, inputs.radar
     n, k_steps = radar.shape[0], radar.shape[1] - 1
     dtype, device = ins.dtype, ins.device
@@ -506,14 +521,14 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
     use_pm = method.startswith("point_mass")
     use_ekf = method in ("ekf", "point_mass_ekf")
     ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device), P0) if use_ekf else None
-    pm = vel = None
-    acquiring = torch.full((n,), use_pm, dtype=torch.bool, device=device)
+    pm: PointMassFilter | None = None
+    vel = _VelocityPrior(n, P0, dtype, device)
+    rows = torch.arange(n, device=device) if use_pm else torch.zeros(0, dtype=torch.long)
     if use_pm:
         pm = PointMassFilter(torch.zeros(n, 2, dtype=pm_dtype, device=device),
                              P0[:2, :2].to(pm_dtype), scalar_mean=0.0,
                              scalar_var=float(P0[2, 2]), config=cfg.point_mass_config(),
                              dtype=pm_dtype)
-        vel = _VelocityPrior(n, P0, dtype, device)
     fast_grid = use_pm and _is_bilinear_grid(terrain)
     if fast_grid and pm_dtype == torch.float32:
         terrain = _Float32Grid(terrain)
@@ -523,9 +538,10 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
     out["err"][:, 0] = inputs.ins_error[:, 0]
     out["P"][:, 0] = P0
     acq_hist = torch.zeros(n, k_steps + 1, dtype=torch.bool, device=device)
-    acq_hist[:, 0] = acquiring
+    acq_hist[rows, 0] = True
     handoff_step = torch.full((n,), -1, dtype=torch.long, device=device)
     n_fallbacks = torch.zeros(n, dtype=torch.long, device=device)
+    recoveries = torch.zeros(n, dtype=torch.long, device=device)
     hold = torch.zeros(n, dtype=torch.long, device=device)
     since = torch.zeros(n, dtype=torch.long, device=device)
     win = max(cfg.fallback_window, 1)
@@ -536,26 +552,28 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
     for k in range(1, k_steps + 1):
         x_out = torch.zeros(n, N_STATES, dtype=dtype, device=device)
         P_out = torch.zeros(n, N_STATES, N_STATES, dtype=dtype, device=device)
-        any_acq = bool(acquiring.any())
-        if use_pm and any_acq:
-            grow = vel.step(inputs.dt, qp, qv)
-            pm.predict(Q=grow.to(pm_dtype), shift=(inputs.dt * vel.v0).to(pm_dtype),
+        acquiring = torch.zeros(n, dtype=torch.bool, device=device)
+        acquiring[rows] = True
+        grow = vel.step(inputs.dt, qp, qv)
+        if pm is not None and rows.numel() > 0:
+            pm.predict(Q=grow[rows].to(pm_dtype), shift=(inputs.dt * vel.v0[rows]).to(pm_dtype),
                        scalar_q=float(Q[2, 2]))
-            y = (ins[:, k, 2] - radar[:, k]).to(pm_dtype)
+            y = (ins[rows, k, 2] - radar[rows, k]).to(pm_dtype)
+            ins_xy = ins[rows, k, :2]
             if fast_grid:
-                pred = lattice_bilinear(terrain, ins[:, k, :2], pm.centre, pm.spacing,
-                                        pm.offsets)
+                pred = lattice_bilinear(terrain, ins_xy, pm.centre, pm.spacing, pm.offsets)
             else:
-                pred = _terrain_fn(terrain, ins[:, k, :2])
-            pm.update(y, pred, R=inputs.R, mask=acquiring)
-            updates += int(acquiring.sum()) * pm.cells**2
-            since = since + acquiring.long()
+                pred = _terrain_fn(terrain, ins_xy)
+            upd_pm = pm.update(y, pred, R=inputs.R)
+            recoveries.index_add_(0, rows, upd_pm.recovered.long())
+            updates += rows.numel() * pm.cells**2
+            since[rows] += 1
             mu, sigma = pm.mean().to(dtype), pm.cov().to(dtype)
             alt_m, alt_v = (t.to(dtype) for t in pm.scalar_moments())
-            x_pm, P_pm = vel.state(mu, sigma, alt_m, alt_v, cfg.velocity_from_grid)
-            x_out = torch.where(acquiring[:, None], x_pm, x_out)
-            P_out = torch.where(acquiring[:, None, None], P_pm, P_out)
-        if use_ekf:
+            x_pm, P_pm = vel.state(rows, mu, sigma, alt_m, alt_v, cfg.velocity_from_grid)
+            x_out[rows] = x_pm
+            P_out[rows] = P_pm
+        if ekf is not None:
             tracking = ~acquiring
             diag = tan_filter_step(ekf, ins[:, k], radar[:, k], linearizer, F=F, Q=Q,
                                    R=inputs.R, extent=inputs.extent,
@@ -567,59 +585,77 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
             out["residual"][:, k] = torch.where(upd, diag.residual, 0.0)
             out["updated"][:, k] = upd
             if use_pm and cfg.fallback_window > 0:
-                nis_win[:, (k - 1) % win] = torch.where(upd, diag.nis, nis_win[:, (k - 1) % win])
+                slot = (k - 1) % win
+                nis_win[:, slot] = torch.where(upd, diag.nis, nis_win[:, slot])
                 nis_count = nis_count + upd.long()
                 lost = tracking & lost_lock(nis_win, nis_count, prob=cfg.fallback_prob)
                 if bool(lost.any()):
-                    _fall_back(pm, vel, ekf, lost, cfg, pm_dtype)
-                    acquiring = acquiring | lost
+                    lost_rows = lost.nonzero().reshape(-1)
+                    fresh = _reacquisition_grid(ekf, vel, lost, lost_rows, cfg, pm_dtype)
+                    pm = fresh if pm is None or rows.numel() == 0 else pm.extend(fresh)
+                    rows = torch.cat([rows, lost_rows])
                     n_fallbacks += lost.long()
                     hold = torch.where(lost, 0, hold)
                     since = torch.where(lost, 0, since)
-        if use_pm and method == "point_mass_ekf" and any_acq:
+        if pm is not None and method == "point_mass_ekf" and rows.numel() > 0:
             ready = handoff_ready(pm.gaussian_affinity().to(dtype), pm.cov().to(dtype),
                                   max_sigma=cfg.handoff_sigma_m,
                                   min_affinity=cfg.handoff_affinity)
-            hold = torch.where(acquiring & ready, hold + 1, 0)
-            go = acquiring & (hold >= max(cfg.handoff_hold, 1)) & (since >= cfg.min_acquire_steps)
-            if bool(go.any()):
+            ready = ready[: rows.numel()]  # runs appended by a fall-back this step: not yet
+            if ready.numel() < rows.numel():
+                ready = torch.cat([ready, torch.zeros(rows.numel() - ready.numel(),
+                                                      dtype=torch.bool, device=device)])
+            hold[rows] = torch.where(ready, hold[rows] + 1, 0)
+            go_rows = (hold[rows] >= max(cfg.handoff_hold, 1)) & (
+                since[rows] >= cfg.min_acquire_steps)
+            if bool(go_rows.any()):
+                go = torch.zeros(n, dtype=torch.bool, device=device)
+                go[rows[go_rows]] = True
                 ekf.x = torch.where(go[:, None], x_out, ekf.x)
                 ekf.P = torch.where(go[:, None, None], P_out, ekf.P)
                 handoff_step = torch.where(go & (handoff_step < 0), k, handoff_step)
-                acquiring = acquiring & ~go
                 nis_count = torch.where(go, 0, nis_count)
                 nis_win = torch.where(go[:, None], 0.0, nis_win)
+                keep = (~go_rows).nonzero().reshape(-1)
+                rows = rows[keep]
+                pm = pm.take(keep) if keep.numel() > 0 else pm
         out["err"][:, k] = inputs.ins_error[:, k] - x_out
         out["P"][:, k] = P_out
         out["est_on_map"][:, k] = inside_extent(ins[:, k, :2] - x_out[:, :2], inputs.extent)
-        acq_hist[:, k] = acquiring
+        acq_hist[rows, k] = True
     elapsed = time.perf_counter() - start
     healthy = ekf.healthy.clone() if ekf is not None else torch.ones(n, dtype=torch.bool)
-    if pm is not None:
-        healthy = healthy & torch.isfinite(pm.weights).flatten(1).all(1)
+    if pm is not None and rows.numel() > 0:
+        finite = torch.isfinite(pm.weights).flatten(1).all(1)
+        healthy[rows] = healthy[rows] & finite
     run = _finish(inputs, out, name, healthy, elapsed)
-    recov = pm.recoveries.clone() if pm is not None else torch.zeros(n, dtype=torch.long)
     return AcquisitionResult(
-        run=run, handoff_step=handoff_step, n_fallbacks=n_fallbacks, recoveries=recov,
+        run=run, handoff_step=handoff_step, n_fallbacks=n_fallbacks, recoveries=recoveries,
         acquiring=acq_hist, elapsed_s=elapsed, cell_updates=updates,
     )
 
 
-def _fall_back(pm: PointMassFilter, vel: _VelocityPrior, ekf: BatchedEKF, lost: torch.Tensor,
-               cfg: AcquisitionConfig, pm_dtype: torch.dtype) -> None:
-    """Re-initialises the grid of the runs that lost lock around the EKF estimate."""
-    x, P = ekf.x, ekf.P
+def _reacquisition_grid(ekf: BatchedEKF, vel: _VelocityPrior, lost: torch.Tensor,
+                        lost_rows: torch.Tensor, cfg: AcquisitionConfig,
+                        pm_dtype: torch.dtype) -> PointMassFilter:
+    """A grid for the runs that lost lock, around the EKF estimate (module docstring)."""
+    x, P = ekf.x[lost_rows], ekf.P[lost_rows]
     var = torch.diagonal(P[:, :2, :2], dim1=1, dim2=2).clamp_min(cfg.reacquire_sigma_m**2)
-    cov = torch.diag_embed(var)
-    pm.reset(x[:, :2].to(pm_dtype), cov.to(pm_dtype), scalar_mean=x[:, 2].to(pm_dtype),
-             scalar_var=P[:, 2, 2].clamp_min(1.0).to(pm_dtype), mask=lost)
-    vel.reset(lost, var, torch.zeros_like(var), torch.diagonal(P[:, 3:, 3:], dim1=1, dim2=2),
-              x[:, 3:], x[:, :2])
+    fresh = PointMassFilter(x[:, :2].to(pm_dtype), torch.diag_embed(var).to(pm_dtype),
+                            scalar_mean=x[:, 2].to(pm_dtype),
+                            scalar_var=P[:, 2, 2].clamp_min(1.0).to(pm_dtype),
+                            config=cfg.point_mass_config(), dtype=pm_dtype)
+    full_var = torch.zeros(lost.shape[0], 2, dtype=var.dtype, device=var.device)
+    full_var[lost_rows] = var
+    pvv = torch.diagonal(ekf.P[:, 3:, 3:], dim1=1, dim2=2)
+    vel.reset(lost, full_var, torch.zeros_like(full_var), pvv, ekf.x[:, 3:], ekf.x[:, :2])
+    return fresh
 
 
 def acquisition_time(err_xy: torch.Tensor, bound: torch.Tensor, factor: float = 3.0,
                      dt: float = 1.0) -> torch.Tensor:
-    """Time to acquire per run: first time after which the error stays below factor·bound.
+    """Time to acquire per run: the first time after which the error stays below
+    ``factor`` times the bound.
 
     Args:
         err_xy: ``(N, K+1)`` horizontal error norms, m.
@@ -628,7 +664,7 @@ def acquisition_time(err_xy: torch.Tensor, bound: torch.Tensor, factor: float = 
         dt: Sample period, s.
 
     Returns:
-        ``(N,)`` seconds; ``inf`` for a run that is above the threshold at the last step.
+        ``(N,)`` seconds; ``inf`` for a run still above the threshold at the last sample.
     """
     above = err_xy > factor * bound[None, :]
     k1 = above.shape[1]

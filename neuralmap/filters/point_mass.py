@@ -651,8 +651,6 @@ class PointMassFilter:
         # new grids get a growth margin so that a slowly widening density does not move
         # its grid every step
         spacing = ((1.0 + cfg.grow_margin) * need / self.half).clamp_min(cfg.min_spacing)
-        # grow at most 2x per move: outside the old grid there is no information
-        spacing = torch.minimum(spacing, 2.0 * self.spacing)
         shrink = (need < cfg.shrink_ratio * halfw) & (spacing < self.spacing * (1 - 1e-6))
         move = (shrink.any(1)
                 | (off > cfg.recentre_fraction * halfw).any(1)

@@ -1,18 +1,27 @@
-"""Batched filters: the N-sample EKF, its diagnostics and input checks, the point-mass
-filter and the EKF bank (Gaussian sum)."""
+"""Batched filters: the functional Kalman core, the N-sample EKF, policies, diagnostics,
+the point-mass filter and the EKF bank (Gaussian sum)."""
 
 from neuralmap.filters.diagnostics import UpdateDiagnostics
 from neuralmap.filters.ekf import BatchedEKF, positive_definite_batchlast
 from neuralmap.filters.ekf_bank import GaussianSumEKF, lattice_prior
+from neuralmap.filters.kalman import KalmanUpdate, kalman_predict, kalman_update
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter, PointMassUpdate
+from neuralmap.filters.policy import Adaptation, FilterPolicy, Posterior, UpdateContext
 
 __all__ = [
+    "Adaptation",
     "BatchedEKF",
+    "FilterPolicy",
     "GaussianSumEKF",
+    "KalmanUpdate",
     "PointMassConfig",
     "PointMassFilter",
     "PointMassUpdate",
+    "Posterior",
+    "UpdateContext",
     "UpdateDiagnostics",
+    "kalman_predict",
+    "kalman_update",
     "lattice_prior",
     "positive_definite_batchlast",
 ]

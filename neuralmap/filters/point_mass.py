@@ -64,6 +64,15 @@ __all__ = ["PointMassConfig", "PointMassFilter", "PointMassUpdate"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
+#: Per-run state tensors (what :meth:`PointMassFilter.take` and ``extend`` carry).
+_STATE = ("weights", "scalar_mean", "scalar_var", "centre", "spacing", "recoveries", "regrids",
+          "_pending")
+
+#: Process noise is accumulated per run and applied once it reaches this many cells (1σ)
+#: on an axis: a Gaussian blur far below one cell changes nothing a grid can show, and
+#: variances add, so deferring it loses nothing but the blur of the interim steps.
+DIFFUSE_MIN_CELLS = 0.3
+
 #: Relative mass under which a cell's scalar mean is pulled to the run's mean (round-off).
 _RATIO_EPS = {torch.float32: 1e-13, torch.float64: 1e-13}
 
@@ -246,12 +255,12 @@ class PointMassFilter:
         self.weights = torch.empty(n, g, g, dtype=dtype, device=self.device)
         self.scalar_mean = torch.empty_like(self.weights)
         self.scalar_var = torch.empty(n, dtype=dtype, device=self.device)
-        self._chans = torch.empty(n, 2, g, g, dtype=dtype, device=self.device)
         self.centre = torch.empty(n, 2, dtype=dtype, device=self.device)
         self.spacing = torch.empty(n, 2, dtype=dtype, device=self.device)
-        self._points = torch.empty(n, g, g, 2, dtype=dtype, device=self.device)
         self.recoveries = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.regrids = torch.zeros(n, dtype=torch.int64, device=self.device)
+        self._pending = torch.zeros(n, 2, dtype=dtype, device=self.device)
+        self._allocate_buffers()
         self.reset(mean, cov, scalar_mean=scalar_mean, scalar_var=scalar_var)
 
     # ------------------------------------------------------------------ set-up
@@ -321,6 +330,7 @@ class PointMassFilter:
                 weights: torch.Tensor, s_mean: torch.Tensor, s_var: torch.Tensor) -> None:
         """Writes grid state for the runs in ``mask`` (all when None), in place."""
         if mask is None:
+            self._pending.zero_()
             self.centre.copy_(centre)
             self.spacing.copy_(spacing)
             self.weights.copy_(weights)
@@ -328,14 +338,16 @@ class PointMassFilter:
             self.scalar_var.copy_(s_var)
         else:
             m1, m3 = mask[:, None], mask[:, None, None]
+            self._pending.masked_fill_(m1, 0.0)
             self.centre.copy_(torch.where(m1, centre, self.centre))
             self.spacing.copy_(torch.where(m1, spacing, self.spacing))
             self.weights.copy_(torch.where(m3, weights, self.weights))
             self.scalar_mean.copy_(torch.where(m3, s_mean, self.scalar_mean))
             self.scalar_var.copy_(torch.where(mask, s_var, self.scalar_var))
-        self._refresh_points()
+        self._points_valid = False
 
     def _refresh_points(self) -> None:
+        self._points_valid = True
         off = self._offsets
         self._points[..., 0] = self.centre[:, None, None, 0] + self.spacing[:, None, None, 0] * off
         self._points[..., 1] = (self.centre[:, None, None, 1]
@@ -365,18 +377,26 @@ class PointMassFilter:
         out.config, out.dtype, out.device = self.config, self.dtype, self.device
         out.cells, out.half, out._offsets = self.cells, self.half, self._offsets
         out.n_runs = int(index.numel())
-        for name in ("weights", "scalar_mean", "scalar_var", "centre", "spacing", "_points",
-                     "recoveries", "regrids", "_chans"):
+        out._points_valid = False
+        for name in _STATE:
             setattr(out, name, getattr(self, name).index_select(0, index))
+        out._allocate_buffers()
         return out
+
+    def _allocate_buffers(self) -> None:
+        """Work buffers (cell coordinates, convolution channels) for the current N."""
+        n, g = self.n_runs, self.cells
+        self._points = torch.empty(n, g, g, 2, dtype=self.dtype, device=self.device)
+        self._chans = torch.empty(n, 2, g, g, dtype=self.dtype, device=self.device)
+        self._points_valid = False
 
     def extend(self, other: PointMassFilter) -> PointMassFilter:
         """A new filter with the runs of ``self`` followed by those of ``other``."""
         out = self.take(torch.arange(self.n_runs, device=self.device))
-        for name in ("weights", "scalar_mean", "scalar_var", "centre", "spacing", "_points",
-                     "recoveries", "regrids", "_chans"):
+        for name in _STATE:
             setattr(out, name, torch.cat([getattr(self, name), getattr(other, name)]))
         out.n_runs = self.n_runs + other.n_runs
+        out._allocate_buffers()
         return out
 
     # ------------------------------------------------------------------ views
@@ -386,7 +406,10 @@ class PointMassFilter:
         return self._offsets
 
     def points(self) -> torch.Tensor:
-        """``(N, G, G, 2)`` cell coordinates in the state space (a reused buffer)."""
+        """``(N, G, G, 2)`` cell coordinates in the state space (a reused buffer, filled
+        when the grids have moved since the last call)."""
+        if not self._points_valid:
+            self._refresh_points()
         return self._points
 
     def mean(self) -> torch.Tensor:
@@ -397,7 +420,12 @@ class PointMassFilter:
         return self.centre + self.spacing * torch.stack([ux, uy], 1)
 
     def cov(self) -> torch.Tensor:
-        """``(N, 2, 2)`` posterior covariance ``Σ w (s − s̄)(s − s̄)ᵀ`` (symmetric)."""
+        """``(N, 2, 2)`` posterior covariance ``Σ w (s − s̄)(s − s̄)ᵀ`` plus the process
+        noise not yet applied to the grid (see :data:`DIFFUSE_MIN_CELLS`); symmetric."""
+        return self._grid_cov() + torch.diag_embed(self._pending)
+
+    def _grid_cov(self) -> torch.Tensor:
+        """``(N, 2, 2)`` covariance of the masses alone."""
         w, off = self.weights, self._offsets
         wx, wy = w.sum(1), w.sum(2)
         ux, uy = (wx * off).sum(1), (wy * off).sum(1)
@@ -462,7 +490,7 @@ class PointMassFilter:
             ``(N,)`` bool, runs moved to a new grid (sized for the predicted density)
             before the convolution.
         """
-        n, g = self.n_runs, self.cells
+        n = self.n_runs
         q = torch.as_tensor(Q, dtype=self.dtype, device=self.device)
         if q.ndim >= 2 and q.shape[-1] == 2 and q.shape[-2] == 2:
             q = torch.diagonal(q, dim1=-2, dim2=-1)
@@ -471,47 +499,67 @@ class PointMassFilter:
             raise NeuralMapError("PointMassFilter.predict: Q must be finite and >= 0.")
         if shift is not None:
             self.centre.add_(_as_batch(shift, (n, 2), "shift", self.dtype, self.device))
-            self._refresh_points()
+            self._points_valid = False
         if self.config.adaptive:
             regridded = self.regrid(extra_cov=q)
         else:
             regridded = torch.zeros(n, dtype=torch.bool, device=self.device)
         sq = _as_batch(scalar_q, (n,), "scalar_q", self.dtype, self.device)
-        sigma_cells = q.sqrt() / self.spacing  # (N, 2)
-        smax = float(sigma_cells.max())
-        if smax > 1e-4:
-            half_len = min(max(1, int(math.ceil(4.0 * smax))), g - 1)
-            w, m = self.weights, self.scalar_mean
-            second = (w * m * m).sum((1, 2))
-            chans = self._chans
-            chans[:, 0].copy_(w)
-            torch.mul(w, m, out=chans[:, 1])
-            kx = self._kernels(sigma_cells[:, 0], half_len)
-            ky = self._kernels(sigma_cells[:, 1], half_len)
-            chans = _convolve_axis(chans, kx, half_len, dim=3)
-            chans = _convolve_axis(chans, ky, half_len, dim=2)
-            w0 = chans[:, 0].clamp_(min=0.0)  # FFT round-off can dip below 0
-            total = w0.sum((1, 2), keepdim=True)
-            # regularised ratio: cells with mass near the round-off level get the run's mean
-            eps = _RATIO_EPS[self.dtype] * w0.amax((1, 2), keepdim=True)
-            m_mix = (w * m).sum((1, 2))[:, None, None]
-            m_new = (chans[:, 1] + eps * m_mix) / (w0 + eps)
-            ok = (total.reshape(n) > 0) & torch.isfinite(total.reshape(n))
-            w_new = w0 / torch.where(ok[:, None, None], total, 1.0)
-            second_new = (w_new * m_new * m_new).sum((1, 2))
-            v_new = (self.scalar_var + second - second_new).clamp_min(
-                1e-6 * self.scalar_var)
-            if bool(ok.all()):
-                self.weights.copy_(w_new)
-                self.scalar_mean.copy_(m_new)
-                self.scalar_var.copy_(v_new)
-            else:
-                ok3 = ok[:, None, None]
-                self.weights.copy_(torch.where(ok3, w_new, self.weights))
-                self.scalar_mean.copy_(torch.where(ok3, m_new, m))
-                self.scalar_var.copy_(torch.where(ok, v_new, self.scalar_var))
+        self._pending.add_(q)
+        sigma_cells = self._pending.sqrt() / self.spacing  # (N, 2)
+        due = (sigma_cells >= DIFFUSE_MIN_CELLS).any(1)
+        if bool(due.all()):
+            w, m, v = self._diffuse(self.weights, self.scalar_mean, self.scalar_var,
+                                    sigma_cells, self._chans)
+            self.weights.copy_(w)
+            self.scalar_mean.copy_(m)
+            self.scalar_var.copy_(v)
+            self._pending.zero_()
+        elif bool(due.any()):
+            idx = due.nonzero().reshape(-1)
+            w, m, v = self._diffuse(self.weights.index_select(0, idx),
+                                    self.scalar_mean.index_select(0, idx),
+                                    self.scalar_var.index_select(0, idx),
+                                    sigma_cells.index_select(0, idx), None)
+            self.weights.index_copy_(0, idx, w)
+            self.scalar_mean.index_copy_(0, idx, m)
+            self.scalar_var.index_copy_(0, idx, v)
+            self._pending.masked_fill_(due[:, None], 0.0)
         self.scalar_var.add_(sq)
         return regridded
+
+    def _diffuse(self, w: torch.Tensor, m: torch.Tensor, v: torch.Tensor,
+                 sigma_cells: torch.Tensor,
+                 buf: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Convolves masses ``(M, G, G)`` with per-run Gaussians of ``sigma_cells (M, 2)``
+        cells and mixes the scalar part (module docstring); returns new ``w, m, v``."""
+        n, g = w.shape[0], self.cells
+        smax = float(sigma_cells.max())
+        half_len = min(max(1, int(math.ceil(4.0 * smax))), g - 1)
+        second = (w * m * m).sum((1, 2))
+        chans = torch.empty(n, 2, g, g, dtype=w.dtype, device=w.device) if buf is None else buf
+        chans[:, 0].copy_(w)
+        torch.mul(w, m, out=chans[:, 1])
+        kx = self._kernels(sigma_cells[:, 0], half_len)
+        ky = self._kernels(sigma_cells[:, 1], half_len)
+        chans = _convolve_axis(chans, kx, half_len, dim=3)
+        chans = _convolve_axis(chans, ky, half_len, dim=2)
+        w0 = chans[:, 0].clamp_(min=0.0)  # FFT round-off can dip below 0
+        total = w0.sum((1, 2), keepdim=True)
+        # regularised ratio: cells with mass near the round-off level get the run's mean
+        eps = _RATIO_EPS[self.dtype] * w0.amax((1, 2), keepdim=True)
+        m_mix = (w * m).sum((1, 2))[:, None, None]
+        m_new = (chans[:, 1] + eps * m_mix) / (w0 + eps)
+        ok = (total.reshape(n) > 0) & torch.isfinite(total.reshape(n))
+        w_new = w0 / torch.where(ok[:, None, None], total, 1.0)
+        second_new = (w_new * m_new * m_new).sum((1, 2))
+        v_new = (v + second - second_new).clamp_min(1e-6 * v)
+        if not bool(ok.all()):
+            ok3 = ok[:, None, None]
+            w_new = torch.where(ok3, w_new, w)
+            m_new = torch.where(ok3, m_new, m)
+            v_new = torch.where(ok, v_new, v)
+        return w_new, m_new, v_new
 
     # ------------------------------------------------------------------ update
     def update(
@@ -537,7 +585,7 @@ class PointMassFilter:
         """
         n, g = self.n_runs, self.cells
         y = _as_batch(measurement, (n,), "measurement", self.dtype, self.device)
-        gval = predicted(self._points) if callable(predicted) else predicted
+        gval = predicted(self.points()) if callable(predicted) else predicted
         gval = torch.as_tensor(gval).to(self.dtype)
         if tuple(gval.shape) != (n, g, g):
             raise NeuralMapError(
@@ -605,14 +653,14 @@ class PointMassFilter:
         saved = self.weights, self.centre, self.spacing
         self.weights, self.centre, self.spacing = w, centre, spacing
         try:
-            return self.mean(), self.cov()
+            return self.mean(), self._grid_cov()
         finally:
             self.weights, self.centre, self.spacing = saved
 
     def _sample_old(self, chans: torch.Tensor, halfw: torch.Tensor, centre: torch.Tensor,
                     spacing: torch.Tensor, anchor: torch.Tensor,
                     affine: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Bicubic samples of the old grid's channels at ``anchor + A (s − centre)``.
+        """Bilinear samples of the old grid's channels at ``anchor + A (s − centre)``.
 
         ``s`` runs over the new grid ``(centre, spacing)``; returns the clamped mass
         channel ``(N, G, G)`` and all channels ``(N, 3, G, G)``.
@@ -625,7 +673,7 @@ class PointMassFilter:
         py = anchor[:, 1, None, None] + a[:, 1, 0] * dx + a[:, 1, 1] * dy
         grid = torch.stack([(px - self.centre[:, 0, None, None]) / halfw[:, 0, None, None],
                             (py - self.centre[:, 1, None, None]) / halfw[:, 1, None, None]], -1)
-        out = nnf.grid_sample(chans, grid, mode="bicubic", padding_mode="zeros",
+        out = nnf.grid_sample(chans, grid, mode="bilinear", padding_mode="zeros",
                               align_corners=True)
         return out[:, 0].clamp_min(0.0), out
 
@@ -659,6 +707,18 @@ class PointMassFilter:
             move = move & candidates
         if not bool(move.any()):
             return move
+        idx = move.nonzero().reshape(-1)
+        sub = self.take(idx)
+        sub._move(mean[idx], cov[idx], sigma[idx], spacing[idx], halfw[idx])
+        for name in ("weights", "scalar_mean", "scalar_var", "centre", "spacing"):
+            getattr(self, name).index_copy_(0, idx, getattr(sub, name))
+        self.regrids.add_(move.long())
+        self._points_valid = False
+        return move
+
+    def _move(self, mean: torch.Tensor, cov: torch.Tensor, sigma: torch.Tensor,
+              spacing: torch.Tensor, halfw: torch.Tensor) -> None:
+        """Moves every run of this filter to the grid ``(mean, spacing)`` (see regrid)."""
         n = self.n_runs
         w = self.weights
         chans = torch.stack([w, w * self.scalar_mean], 1)
@@ -693,6 +753,5 @@ class PointMassFilter:
         mbar = (weights * m_new).sum((1, 2))
         v_new = (s_v - (weights * m_new * m_new).sum((1, 2)) + mbar * mbar).clamp_min(
             1e-6 * self.scalar_var)
-        self.regrids.add_(move.long())
-        self._assign(move, mean, spacing, weights, m_new, v_new)
-        return move
+        self._assign(None, mean, spacing, weights, m_new, v_new)
+

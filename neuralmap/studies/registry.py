@@ -41,6 +41,11 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
         "tan.yaml",
     ),
+    "acquisition": StudySpec(
+        "neuralmap.studies.acquisition", "AcquisitionStudyConfig",
+        "TAN acquisition from large initial errors: EKF, EKF bank, point mass, point mass -> EKF",
+        "acquisition.yaml",
+    ),
 }
 
 

@@ -136,3 +136,36 @@ def test_bad_input(tiny) -> None:
                         terrain=grid)
     with pytest.raises(NeuralMapError, match="handoff_affinity"):
         AcquisitionConfig(handoff_affinity=0.0).validate()
+
+
+@pytest.mark.slow
+def test_acquisition_study_end_to_end(tmp_path) -> None:  # noqa: ANN001
+    """``python evaluate.py --config configs/acquisition_tiny.yaml`` writes a complete run."""
+    import json
+    from pathlib import Path
+
+    from neuralmap.studies.cli import main
+
+    config = Path(__file__).resolve().parents[2] / "configs" / "acquisition_tiny.yaml"
+    code = main(["--config", str(config), "--runs_dir", str(tmp_path), "--sigmas_m", "[80.0]",
+                 "--methods", "[ekf,point_mass_ekf]", "--n_runs", "4", "--n_runs_flat", "2"])
+    assert code == 0
+    folder = tmp_path / "acquisition_tiny" / "version_0"
+    results = json.loads((folder / "results.json").read_text())
+    rows = results["sigmas"]["80"]
+    assert set(rows) == {"grid/ekf", "grid/point_mass_ekf"}
+    assert rows["grid/point_mass_ekf"]["n_included"] >= 1
+    assert results["flat_leg"]["final_posterior_sigma_median_m"] > 40.0  # stays wide
+    report = (folder / "report.md").read_text()
+    assert "Flat-terrain leg" in report and "Hand-off test" in report
+
+
+def test_study_config_rejects_bad_values() -> None:
+    from neuralmap.studies.acquisition import AcquisitionStudyConfig
+
+    with pytest.raises(NeuralMapError, match="methods"):
+        AcquisitionStudyConfig(methods=["kalman"]).validate()
+    with pytest.raises(NeuralMapError, match="sigmas_m"):
+        AcquisitionStudyConfig(sigmas_m=[-1.0]).validate()
+    with pytest.raises(NeuralMapError, match="maps"):
+        AcquisitionStudyConfig(maps=["lidar"]).validate()

@@ -110,8 +110,8 @@ class AcquisitionConfig:
     handoff_hold: int = 3
     min_acquire_steps: int = 5
     velocity_from_grid: bool = True
-    fallback_window: int = 10
-    fallback_prob: float = 0.999
+    fallback_window: int = 20
+    fallback_prob: float = 0.99999
     reacquire_sigma_m: float = 200.0
     bank_per_axis: int = 7
     bank_span_sigma: float = 2.5

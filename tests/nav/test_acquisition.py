@@ -109,6 +109,26 @@ def test_bank_and_point_mass_runs_are_finite(tiny) -> None:
         assert int(res.recoveries.sum()) == 0
 
 
+def test_generic_terrain_model_path_matches_grid_fast_path(tiny) -> None:
+    """A terrain model without the lattice fast path (any TerrainModel: the neural map's
+    route) gives the same point-mass run as the bilinear grid's fast path."""
+    scenario, tile, truth, grid, lin = tiny
+
+    class Wrapped(torch.nn.Module):  # hides GridTerrain's attributes: generic forward only
+        def __init__(self) -> None:
+            super().__init__()
+            self.inner = grid
+
+        def forward(self, xy: torch.Tensor) -> torch.Tensor:
+            return self.inner(xy)
+
+    inputs = tan_inputs(truth, scenario)
+    cfg = AcquisitionConfig(cells=32, dtype="float64")
+    fast = run_acquisition(inputs, method="point_mass", terrain=grid, config=cfg)
+    slow = run_acquisition(inputs, method="point_mass", terrain=Wrapped(), config=cfg)
+    torch.testing.assert_close(fast.run.err, slow.run.err, atol=1e-6, rtol=0)
+
+
 def test_acquisition_time() -> None:
     bound = torch.ones(5)
     err = torch.tensor([[9.0, 9.0, 1.0, 1.0, 1.0], [9.0, 1.0, 9.0, 1.0, 1.0],

@@ -97,6 +97,9 @@ class PointMassConfig:
         recentre_fraction: Re-centre when the mean is farther from the centre than this
             fraction of the half-width.
         grow_margin: A new grid's half-width is ``(1 + grow_margin) · span_sigma · σ``.
+        min_half_width: A grid never shrinks below this half-width (state units): cells
+            far from a posterior that collapsed early keep their (small) mass and can win
+            back when the measurements say so, as on a fixed grid.
         weight_floor: Masses below ``weight_floor × max`` are raised to it after each
             update (keeps every cell alive; 0 disables).
         outlier_prob: Probability of a measurement outlier (0 = Gaussian likelihood);
@@ -113,6 +116,7 @@ class PointMassConfig:
     recentre_fraction: float = 0.25
     weight_floor: float = 1e-30
     grow_margin: float = 0.25
+    min_half_width: float = 0.0
     outlier_prob: float = 0.0
     outlier_width: float = 1000.0
 
@@ -126,6 +130,8 @@ class PointMassConfig:
 
         if isinstance(self.cells, bool) or not isinstance(self.cells, int) or self.cells < 8:
             raise bad("cells", "an integer >= 8")
+        if not self.min_half_width >= 0.0:
+            raise bad("min_half_width", ">= 0")
         if not 0.0 <= self.grow_margin <= 1.0:
             raise bad("grow_margin", "in [0, 1]")
         for key in ("span_sigma", "min_spacing", "outlier_width"):
@@ -569,6 +575,7 @@ class PointMassFilter:
         *,
         R: float | torch.Tensor,
         mask: torch.Tensor | None = None,
+        cell_variance: torch.Tensor | None = None,
     ) -> PointMassUpdate:
         """Measurement update ``y = g(s) + a + e`` in every cell (see the module docstring).
 
@@ -579,6 +586,11 @@ class PointMassFilter:
                 cells get zero likelihood.
             R: Measurement noise variance (> 0), float or ``(N,)``.
             mask: ``(N,)`` bool, runs to update (None = all).
+            cell_variance: ``(N, G, G)`` extra variance of ``g`` within each cell (the
+                spread of the model over the cell's area), or None. Added to ``S`` in
+                the likelihood of that cell, so that a coarse grid does not miss a
+                likelihood peak narrower than a cell ("likelihood flattening"); the
+                scalar Kalman part keeps the run's ``S = v + R``.
 
         Returns:
             :class:`PointMassUpdate`.
@@ -598,8 +610,14 @@ class PointMassFilter:
         m, v = self.scalar_mean, self.scalar_var
         s_run = v + r  # (N,) innovation variance, the same in every cell
         nu = (y[:, None, None] - gval).sub_(m)
-        loglik = nu.square().mul_((-0.5 / s_run)[:, None, None])
         const = -0.5 * (_LOG_2PI + s_run.log())  # (N,) common to the run's cells
+        if cell_variance is None:
+            loglik = nu.square().mul_((-0.5 / s_run)[:, None, None])
+        else:
+            cv = torch.as_tensor(cell_variance).to(self.dtype).clamp_min(0.0)
+            s_cell = cv + s_run[:, None, None]
+            loglik = (nu.square() / s_cell).add_(
+                torch.log1p(cv / s_run[:, None, None]), alpha=1.0).mul_(-0.5)
         p_out = self.config.outlier_prob
         if p_out > 0.0:
             log_out = math.log(p_out / self.config.outlier_width) - const[:, None, None]
@@ -698,7 +716,8 @@ class PointMassFilter:
         off = (mean - self.centre).abs()
         # new grids get a growth margin so that a slowly widening density does not move
         # its grid every step
-        spacing = ((1.0 + cfg.grow_margin) * need / self.half).clamp_min(cfg.min_spacing)
+        spacing = ((1.0 + cfg.grow_margin) * need.clamp_min(cfg.min_half_width)
+                   / self.half).clamp_min(cfg.min_spacing)
         shrink = (need < cfg.shrink_ratio * halfw) & (spacing < self.spacing * (1 - 1e-6))
         move = (shrink.any(1)
                 | (off > cfg.recentre_fraction * halfw).any(1)

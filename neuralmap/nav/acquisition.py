@@ -39,6 +39,7 @@ call of :func:`neuralmap.nav.tan.tan_filter_step`.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import time
@@ -61,6 +62,7 @@ __all__ = [
     "AcquisitionResult",
     "TanInputs",
     "acquisition_time",
+    "cell_height_variance",
     "handoff_ready",
     "lattice_bilinear",
     "lost_lock",
@@ -78,7 +80,10 @@ class AcquisitionConfig:
     """Options of :func:`run_acquisition` (defaults fit the jacksboro scenario).
 
     Attributes:
-        cells: Point-mass grid cells per axis.
+        cells: Point-mass grid cells per axis; None = from the prior: the fewest cells
+            (≥ 32, ≤ ``max_cells``) that cover ± ``span_sigma`` σ at ``max_spacing_m``.
+        max_spacing_m: Largest initial spacing when ``cells`` is None, m.
+        max_cells: Most cells per axis when ``cells`` is None.
         span_sigma: Grid half-width in standard deviations.
         min_spacing_m: Finest grid spacing, m.
         dtype: Point-mass dtype, ``"float32"`` or ``"float64"``.
@@ -90,6 +95,17 @@ class AcquisitionConfig:
         min_acquire_steps: Steps of acquisition before a hand-off is allowed.
         velocity_from_grid: Condition the velocity error on the grid posterior (module
             docstring); False hands off ``δv̂ = v₀``, ``cov = P_vv`` and no correlation.
+        adaptive: Re-centre and re-size the grid (default False: the prior's grid
+            throughout; jacksboro, σ0 = 1 km, 100 runs, point mass → EKF: the fixed
+            161² grid at 50 m diverged in 0 runs, the adaptive one in 4-5 — a posterior
+            that collapses early is cut to its grid; worth it only for long point-mass
+            runs, where its speed matters).
+        min_half_width_m: The adaptive grid never shrinks below ± this, m (jacksboro,
+            σ0 = 1 km, 100 runs: without it a posterior that collapsed early onto a wrong
+            mode cut the truth off its grid in 5 runs; a fixed grid diverged in none).
+        flatten_likelihood: Add the map's height spread over each cell
+            (:func:`cell_height_variance`) to the likelihood's variance, so a coarse grid
+            cannot step over a likelihood peak narrower than a cell.
         fallback_window: NIS window W of the lost-lock test (0 disables fall-back).
         fallback_prob: Probability of the χ² threshold of the mean NIS.
         reacquire_sigma_m: Smallest per-axis standard deviation of a re-acquisition grid.
@@ -99,7 +115,9 @@ class AcquisitionConfig:
         bank_merge: Squared Mahalanobis distance under which components merge.
     """
 
-    cells: int = 64
+    cells: int | None = None
+    max_spacing_m: float = 50.0
+    max_cells: int = 256
     span_sigma: float = 4.0
     min_spacing_m: float = 2.0
     dtype: str = "float32"
@@ -110,6 +128,9 @@ class AcquisitionConfig:
     handoff_hold: int = 3
     min_acquire_steps: int = 5
     velocity_from_grid: bool = True
+    flatten_likelihood: bool = True
+    adaptive: bool = False
+    min_half_width_m: float = 600.0
     fallback_window: int = 20
     fallback_prob: float = 0.99999
     reacquire_sigma_m: float = 200.0
@@ -148,10 +169,19 @@ class AcquisitionConfig:
         self.point_mass_config()
         return self
 
-    def point_mass_config(self) -> PointMassConfig:
-        """The grid options as a :class:`PointMassConfig` (validated)."""
+    def grid_cells(self, sigma: float) -> int:
+        """Cells per axis for a prior of largest standard deviation ``sigma``."""
+        if self.cells is not None:
+            return int(self.cells)
+        need = 2.0 * self.span_sigma * sigma / self.max_spacing_m + 1.0
+        return int(min(max(math.ceil(need), 32), self.max_cells))
+
+    def point_mass_config(self, sigma: float = 0.0) -> PointMassConfig:
+        """The grid options as a :class:`PointMassConfig` (validated) for a prior of
+        largest standard deviation ``sigma``."""
         return PointMassConfig(
-            cells=self.cells, span_sigma=self.span_sigma, min_spacing=self.min_spacing_m,
+            cells=self.grid_cells(sigma), span_sigma=self.span_sigma, min_spacing=self.min_spacing_m,
+            adaptive=self.adaptive, min_half_width=self.min_half_width_m,
             outlier_prob=self.outlier_prob, outlier_width=self.outlier_width_m,
         ).validate()
 
@@ -302,6 +332,18 @@ def lattice_bilinear(
     h10 = flat[nx:].index_select(0, idx).view(shape)
     h11 = flat[nx + 1 :].index_select(0, idx).view(shape)
     return torch.lerp(south, torch.lerp(h10, h11, fu), fv)
+
+
+def cell_height_variance(heights: torch.Tensor) -> torch.Tensor:
+    """Spread of the map height over each grid cell, ``(N, G, G)`` m².
+
+    ``(Δ_x² + Δ_y²) / 12`` with ``Δ`` the central height differences between neighbouring
+    cells (one-sided at the border): the variance of a height that changes linearly by
+    ``Δ`` across the cell. It measures the terrain's variation at the grid's own scale,
+    large while the grid is coarse and negligible once it is fine.
+    """
+    gy, gx = torch.gradient(heights, dim=(1, 2))
+    return (gx.square() + gy.square()) * (1.0 / 12.0)
 
 
 def _is_bilinear_grid(terrain: Any) -> bool:
@@ -527,7 +569,8 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
     if use_pm:
         pm = PointMassFilter(torch.zeros(n, 2, dtype=pm_dtype, device=device),
                              P0[:2, :2].to(pm_dtype), scalar_mean=0.0,
-                             scalar_var=float(P0[2, 2]), config=cfg.point_mass_config(),
+                             scalar_var=float(P0[2, 2]),
+                             config=cfg.point_mass_config(float(P0[:2, :2].diagonal().max()) ** 0.5),
                              dtype=pm_dtype)
     fast_grid = use_pm and _is_bilinear_grid(terrain)
     if fast_grid and pm_dtype == torch.float32:
@@ -563,8 +606,9 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
             if fast_grid:
                 pred = lattice_bilinear(terrain, ins_xy, pm.centre, pm.spacing, pm.offsets)
             else:
-                pred = _terrain_fn(terrain, ins_xy)
-            upd_pm = pm.update(y, pred, R=inputs.R)
+                pred = _terrain_fn(terrain, ins_xy)(pm.points())
+            cell_var = cell_height_variance(pred) if cfg.flatten_likelihood else None
+            upd_pm = pm.update(y, pred, R=inputs.R, cell_variance=cell_var)
             recoveries.index_add_(0, rows, upd_pm.recovered.long())
             updates += rows.numel() * pm.cells**2
             since[rows] += 1
@@ -591,7 +635,9 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
                 lost = tracking & lost_lock(nis_win, nis_count, prob=cfg.fallback_prob)
                 if bool(lost.any()):
                     lost_rows = lost.nonzero().reshape(-1)
-                    fresh = _reacquisition_grid(ekf, vel, lost, lost_rows, cfg, pm_dtype)
+                    same = cfg if pm is None or rows.numel() == 0 else dataclasses.replace(
+                        cfg, cells=pm.cells)  # appended grids must match the filter's G
+                    fresh = _reacquisition_grid(ekf, vel, lost, lost_rows, same, pm_dtype)
                     pm = fresh if pm is None or rows.numel() == 0 else pm.extend(fresh)
                     rows = torch.cat([rows, lost_rows])
                     n_fallbacks += lost.long()
@@ -644,7 +690,8 @@ def _reacquisition_grid(ekf: BatchedEKF, vel: _VelocityPrior, lost: torch.Tensor
     fresh = PointMassFilter(x[:, :2].to(pm_dtype), torch.diag_embed(var).to(pm_dtype),
                             scalar_mean=x[:, 2].to(pm_dtype),
                             scalar_var=P[:, 2, 2].clamp_min(1.0).to(pm_dtype),
-                            config=cfg.point_mass_config(), dtype=pm_dtype)
+                            config=cfg.point_mass_config(float(var.max()) ** 0.5),
+                            dtype=pm_dtype)
     full_var = torch.zeros(lost.shape[0], 2, dtype=var.dtype, device=var.device)
     full_var[lost_rows] = var
     pvv = torch.diagonal(ekf.P[:, 3:, 3:], dim1=1, dim2=2)

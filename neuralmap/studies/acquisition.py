@@ -49,7 +49,12 @@ class AcquisitionStudyConfig(StudyConfig):
             the tile. Without one, the neural rows are skipped and the report says so.
         n_runs_neural: Runs for the neural-map rows (its forward over every grid cell is
             the expensive part); None = ``n_runs``.
-        grid_cells: Point-mass cells per axis.
+        grid_cells: Point-mass cells per axis; None = the fewest covering ±4σ0 at
+            ``max_spacing_m`` (at most ``max_cells``).
+        max_spacing_m: Largest initial grid spacing when ``grid_cells`` is None, m.
+        max_cells: Most cells per axis when ``grid_cells`` is None.
+        adaptive_point_mass: Adaptive grid (re-centred, re-sized) for the point-mass-only
+            method, which runs the whole flight; point mass → EKF keeps the prior's grid.
         grid_dtype: Point-mass precision.
         min_spacing_m: Finest point-mass spacing, m.
         handoff_sigma_m: Hand-off when the largest posterior σ is below this (m) ...
@@ -77,7 +82,10 @@ class AcquisitionStudyConfig(StudyConfig):
     maps: list[str] = field(default_factory=lambda: ["grid", "neural"])
     map: str | None = None
     n_runs_neural: int | None = 100
-    grid_cells: int = 64
+    grid_cells: int | None = None
+    max_spacing_m: float = 50.0
+    max_cells: int = 256
+    adaptive_point_mass: bool = True
     grid_dtype: str = "float32"
     min_spacing_m: float = 2.0
     handoff_sigma_m: float = 40.0
@@ -118,7 +126,8 @@ class AcquisitionStudyConfig(StudyConfig):
         from neuralmap.nav.acquisition import AcquisitionConfig
 
         return AcquisitionConfig(
-            cells=self.grid_cells, dtype=self.grid_dtype, min_spacing_m=self.min_spacing_m,
+            cells=self.grid_cells, max_spacing_m=self.max_spacing_m, max_cells=self.max_cells,
+            dtype=self.grid_dtype, min_spacing_m=self.min_spacing_m,
             handoff_sigma_m=self.handoff_sigma_m, handoff_affinity=self.handoff_affinity,
             handoff_hold=self.handoff_hold, fallback_window=self.fallback_window,
             fallback_prob=self.fallback_prob,
@@ -128,14 +137,35 @@ class AcquisitionStudyConfig(StudyConfig):
 
 def scenario_at_sigma(scenario: Any, sigma: float, extent: tuple[float, ...]) -> Any:
     """The scenario with initial horizontal error σ per axis, P0 matched, and the start
-    moved (along the diagonal) so that ±3σ of the prior stays on the tile."""
-    start = list(scenario.start_xy or [0.5 * (extent[1] - extent[0]),
-                                      0.5 * (extent[3] - extent[2])])
+    moved so that ±3σ of the prior stays on the tile.
+
+    With waypoints, the start slides along the first leg (toward the first waypoint) until
+    it is ``3σ + 500 m`` inside the tile, and the flight is shortened by the distance
+    skipped, so that the path (and its end) stays the scenario's; without, it is clamped.
+    """
+    xmin, xmax, ymin, ymax = extent
     margin = 3.0 * sigma + 500.0
-    start = [max(start[0], margin), max(start[1], margin)]
+    start = np.array(scenario.start_xy if scenario.start_xy is not None
+                     else [0.5 * (xmax - xmin), 0.5 * (ymax - ymin)], dtype=float)
+    size = np.array([xmax - xmin, ymax - ymin])
+
+    def inside(p: np.ndarray) -> bool:
+        return bool(np.all(p >= margin) and np.all(p <= size - margin))
+
+    duration = scenario.duration_s
+    if not inside(start) and scenario.waypoints:
+        target = np.array(scenario.waypoints[0], dtype=float)
+        for t in np.linspace(0.0, 1.0, 201):
+            p = start + t * (target - start)
+            if inside(p):
+                duration -= float(np.linalg.norm(p - start)) / scenario.speed_mps
+                start = p
+                break
+    start = np.clip(start, margin, np.maximum(size - margin, margin))
     p0 = [sigma**2, sigma**2, *scenario.P0_diag[2:]]
     return dataclasses.replace(scenario, init_pos_sigma_m=sigma, P0_diag=p0,
-                               start_xy=start).validate()
+                               start_xy=[float(start[0]), float(start[1])],
+                               duration_s=max(duration, 10.0 * scenario.dt)).validate()
 
 
 def _flat_tile(tile: Any) -> Any:
@@ -261,8 +291,11 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
             inputs = tan_inputs(truth, scenario)
             inputs = dataclasses.replace(inputs, R=inputs.R + extra_r)
             for method in config.methods:
+                cfg = acq_cfg
+                if method == "point_mass" and config.adaptive_point_mass:
+                    cfg = dataclasses.replace(acq_cfg, adaptive=True)
                 res = run_acquisition(inputs, method=method, terrain=terrain, linearizer=lin,
-                                      config=acq_cfg, name=f"{method}/{kind}")
+                                      config=cfg, name=f"{method}/{kind}")
                 m = _row_metrics(res, bound, config, scenario.dt)
                 per_sigma[f"{kind}/{method}"] = m
                 curves[f"{sigma:g}/{kind}/{method}"] = m["rmse_pos_curve"]
@@ -341,8 +374,11 @@ def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: l
         f"{config.fallback_prob:g}. **Time to acquire**: "
         "the first time after which the horizontal error stays below 3× the PCRB. RMSE and "
         "PCRB are RMS over all included runs and the last half of the flight; "
-        f"divergence: {results['divergence_rule']} Grid: {config.grid_cells}² cells, "
-        f"{config.grid_dtype}, adaptive (±4σ, re-centred and re-sized). Wall time and "
+        f"divergence: {results['divergence_rule']} Grid: "
+        f"{config.grid_cells or f'up to {config.max_cells}'}² cells over ±4σ0 (at most "
+        f"{config.max_spacing_m:g} m apart when the count allows), {config.grid_dtype}; "
+        "point mass → EKF keeps the prior's grid, point mass alone re-centres and "
+        f"re-sizes it (adaptive: {config.adaptive_point_mass}). Wall time and "
         "cell-updates/s on this machine (shared CPUs: compare within the table)."
     )
     for note in notes:

@@ -4,8 +4,9 @@ Measures in one run, on the jacksboro tile, grid-point updates per second (one p
 one altimeter update of one grid cell counts as one), and prints the ratio:
 
 (a) :class:`neuralmap.filters.point_mass.PointMassFilter` over N runs at once (default
-    N = 1000, G = 64 cells per axis, float32 and float64), likelihood on the bilinear DEM
-    through :func:`neuralmap.nav.acquisition.lattice_bilinear`, adaptive grid on;
+    N = 1000, G = 64 cells per axis; float32 adaptive, float32 fixed grid, float64
+    adaptive), likelihood on the bilinear DEM through
+    :func:`neuralmap.nav.acquisition.lattice_bilinear`;
 (b) Stone Soup's ``PointMassPredictor`` (eigen-aligned re-grid + FFT convolution) with a
     NumPy Bayes update, one run at a time (when ``stonesoup`` is installed; its row is
     reported, the ratio column stays against (c));
@@ -160,10 +161,12 @@ def stonesoup_reference(heights, origin, spacing, ins, radar, cells: int) -> flo
     return n * steps * cells * cells / elapsed
 
 
-def batched(heights_grid, ins, radar, cells: int, dtype: torch.dtype) -> float:
+def batched(heights_grid, ins, radar, cells: int, dtype: torch.dtype,
+            adaptive: bool = True) -> float:
     n, steps = ins.shape[0], ins.shape[1]
     f = PointMassFilter(torch.zeros(n, 2, dtype=dtype), torch.eye(2, dtype=dtype) * SIGMA0**2,
-                        scalar_var=900.0, config=PointMassConfig(cells=cells), dtype=dtype)
+                        scalar_var=900.0, config=PointMassConfig(cells=cells, adaptive=adaptive),
+                        dtype=dtype)
     ins_t = torch.as_tensor(ins)
     y = torch.as_tensor(radar).to(dtype)
     start = time.perf_counter()
@@ -214,13 +217,16 @@ def main() -> None:
           f"{torch.__version__}, {args.threads} thread(s); N = {args.runs}, G = {args.cells}, "
           f"{args.steps} steps, sigma0 = {SIGMA0:g} m")
     rows = []
-    for dtype in (torch.float32, torch.float64):
+    for dtype, adaptive in ((torch.float32, True), (torch.float32, False),
+                            (torch.float64, True)):
         grid = _Grid(torch.as_tensor(heights, dtype=dtype), origin, spacing)
         batched(grid, ins[: min(10, args.runs), :2], radar[: min(10, args.runs), :2],
-                args.cells, dtype)  # warm-up
-        rates = [batched(grid, ins, radar, args.cells, dtype) for _ in range(args.repeats)]
-        rows.append((f"batched torch {str(dtype).replace('torch.', '')}, N = {args.runs}",
-                     statistics.median(rates), max(rates)))
+                args.cells, dtype, adaptive)  # warm-up
+        rates = [batched(grid, ins, radar, args.cells, dtype, adaptive)
+                 for _ in range(args.repeats)]
+        label = "adaptive" if adaptive else "fixed grid"
+        rows.append((f"batched torch {str(dtype).replace('torch.', '')} {label}, "
+                     f"N = {args.runs}", statistics.median(rates), max(rates)))
     ref_rates = [numpy_reference(heights, origin, spacing, ins[: args.ref_runs],
                                  err[: args.ref_runs], radar[: args.ref_runs], args.cells)
                  for _ in range(args.repeats)]

@@ -46,6 +46,22 @@ STUDIES: dict[str, StudySpec] = {
         "TAN acquisition from large initial errors: EKF, EKF bank, point mass, point mass -> EKF",
         "acquisition.yaml",
     ),
+    "tan_outliers": StudySpec(
+        "neuralmap.studies.tan_outliers", "TanOutliersConfig",
+        "TAN under radar-altimeter faults: robust and adaptive update policies",
+        "tan_outliers.yaml",
+    ),
+    "wind": StudySpec(
+        "neuralmap.studies.wind", "WindStudyConfig",
+        "Wind-field estimation: TVAR-model filters (KF, Sage-Husa, RAF, VB) against the LTI "
+        "model, clean / outliers / shear, and track correction",
+        "wind.yaml",
+    ),
+    "dem_errors": StudySpec(
+        "neuralmap.studies.dem_errors", "DemErrorsStudyConfig",
+        "DEM-related error models: identification, linearisation error m2, 5/6/7-state filters",
+        "dem_errors.yaml",
+    ),
 }
 
 

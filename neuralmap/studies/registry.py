@@ -46,6 +46,11 @@ STUDIES: dict[str, StudySpec] = {
         "Stored bytes vs map error vs navigation accuracy: neural maps against compressed grids",
         "map_size.yaml",
     ),
+    "acquisition": StudySpec(
+        "neuralmap.studies.acquisition", "AcquisitionStudyConfig",
+        "TAN acquisition from large initial errors: EKF, EKF bank, point mass, point mass -> EKF",
+        "acquisition.yaml",
+    ),
     "tan_outliers": StudySpec(
         "neuralmap.studies.tan_outliers", "TanOutliersConfig",
         "TAN under radar-altimeter faults: robust and adaptive update policies",

@@ -218,6 +218,7 @@ def mechanize(
     dt: float,
     *,
     every: int = 1,
+    hold_height: bool = False,
 ) -> torch.Tensor:
     """Runs the mechanisation over a whole IMU record (pure INS, no aiding).
 
@@ -227,6 +228,9 @@ def mechanize(
         accel: ``(K, 3)`` or ``(N, K, 3)`` specific forces (m/s²).
         dt: IMU interval (s), > 0.
         every: Keep every ``every``-th state in the output.
+        hold_height: Ideal height aiding: keep the initial height and zero vertical velocity
+            after every step. The free-inertial vertical channel is unstable (error growth
+            ``∝ e^{t/τ}``, ``τ = √(R/2g)`` ≈ 9.5 min), so runs of hours need it.
 
     Returns:
         ``(N, K', 10)`` packed states at samples ``0, every, 2·every, …`` (K' = ⌈K/every⌉).
@@ -255,6 +259,9 @@ def mechanize(
         y = strapdown_step(
             y, gyro[..., k, :], accel[..., k, :], gyro[..., k + 1, :], accel[..., k + 1, :], dt
         )
+        if hold_height:
+            y = torch.cat([y[:, :2], initial.packed[:, 2:3], y[:, 3:5],
+                           torch.zeros_like(y[:, 5:6]), y[:, 6:]], dim=1)
         if (k + 1) % every == 0:
             out.append(y)
     return torch.stack(out, dim=1)

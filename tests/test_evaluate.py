@@ -13,7 +13,7 @@ import pytest
 import torch
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-TINY_CONFIG = REPO_ROOT / "configs" / "evaluate_tiny.yaml"
+TINY_CONFIG = REPO_ROOT / "configs" / "tan_tiny.yaml"
 METHODS = ["neural", "bilinear", "nine_point", "mean_point", "lsq_adaptive", "lsq_min"]
 
 
@@ -116,7 +116,10 @@ def test_evaluate_end_to_end(
             "sigma_pos_m",
             "divergence_rate",
             "nees_in_band",
-            "pcrb_ratio",
+            "nees_time_avg",
+            "pcrb_ratio_all",
+            "pcrb_ratio_converged",
+            "numerical_failure_rate",
         ):
             assert key in entry, (name, key)
         assert entry["n_runs"] == 16
@@ -125,9 +128,12 @@ def test_evaluate_end_to_end(
     assert "diverged" in results["divergence_rule"]
     assert results["config"]["n_runs"] == 16
     assert results["config"]["map"].endswith("neural_map.pt")  # the newest map was found
-    fit_rmse = results["map"]["fit_metrics"]["rmse_m"]
-    uncovered = fit_rmse**2 - results["scenario"]["fit_variance_m2"]
+    measured = results["map"]["error_vs_truth"]
+    assert measured["n_points"] == 2000 and measured["rmse_m"] > 0
+    uncovered = measured["mse_m2"] - results["scenario"]["fit_variance_m2"]
     assert results["map"]["neural_extra_variance_m2"] == pytest.approx(max(uncovered, 0.0))
+    assert results["truth_model"]["kind"] == "dem" and results["pcrb_kind"] == "bound"
+    assert results["study"] == "tan"
     assert set(results["off_map"]["per_method"]) == set(METHODS)
     assert len(results["curves"]["t"]) == 41  # tiny: 40 steps
     # the run is a real filter: the estimate beats the prior's radial RMS error
@@ -140,7 +146,9 @@ def test_evaluate_end_to_end(
     assert " nan " not in report.lower()
 
     # the saved config parses back to the same options
-    again = evaluate.parse_config(["--config", str(folder / "config.yaml")])
+    from neuralmap.studies.cli import parse_config
+
+    again = parse_config(["--config", str(folder / "config.yaml")])
     assert again.methods == METHODS and again.n_runs == 16 and again.map == results["config"]["map"]
 
     # a second run gets the next version folder
@@ -217,10 +225,12 @@ def test_bad_options_exit_2(evaluate: ModuleType, capsys: pytest.CaptureFixture[
         assert "CUDA is not available" in capsys.readouterr().err
 
 
-def test_find_latest_map_prefers_newest(evaluate: ModuleType, tmp_path: Path) -> None:
+def test_find_latest_map_prefers_newest(tmp_path: Path) -> None:
     import os
 
-    assert evaluate.find_latest_map(tmp_path) is None
+    from neuralmap.studies.maps import find_latest_map
+
+    assert find_latest_map(tmp_path) is None
     paths = []
     for i, exp in enumerate(["a", "b", "a"]):
         path = tmp_path / exp / f"version_{i}" / "neural_map.pt"
@@ -228,9 +238,9 @@ def test_find_latest_map_prefers_newest(evaluate: ModuleType, tmp_path: Path) ->
         path.write_bytes(b"x")
         os.utime(path, (1000 + i, 1000 + i))
         paths.append(path)
-    assert evaluate.find_latest_map(tmp_path) == paths[2]
+    assert find_latest_map(tmp_path) == paths[2]
     os.utime(paths[1], (5000, 5000))
-    assert evaluate.find_latest_map(tmp_path) == paths[1]
+    assert find_latest_map(tmp_path) == paths[1]
 
 
 def test_bench_filter_quick(capsys: pytest.CaptureFixture[str]) -> None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -23,6 +23,12 @@ class UpdateDiagnostics:
         healthy: ``(N,)`` bool health flags after this update (False = frozen sample).
         applied: ``(N,)`` bool, True where the update changed the state (sample healthy,
             not masked out, and the result finite and positive definite).
+        x_prior: ``(N, n)`` predicted state ``x⁻`` the update started from.
+        P_prior: ``(N, n, n)`` predicted covariance ``P⁻`` (before any policy).
+        log_likelihood: ``(N,)`` Gaussian log-likelihood of the innovation,
+            ``−½ (m ln 2π + ln det S + NIS)`` (the loss for learning through the filter).
+        policy_info: What the policy did, per sample (weights, factors, adapted
+            variances), by name; empty without a policy.
     """
 
     innovation: torch.Tensor
@@ -31,3 +37,7 @@ class UpdateDiagnostics:
     gain: torch.Tensor
     healthy: torch.Tensor
     applied: torch.Tensor | None = None
+    x_prior: torch.Tensor | None = None
+    P_prior: torch.Tensor | None = None
+    log_likelihood: torch.Tensor | None = None
+    policy_info: dict[str, torch.Tensor] = field(default_factory=dict)

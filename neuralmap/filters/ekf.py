@@ -35,13 +35,22 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.diagnostics import UpdateDiagnostics
+from neuralmap.filters.kalman import (
+    SMALL_STATE_MAX,
+    TransitionPlan,
+    gaussian_log_likelihood,
+    predict_upper,
+    transition_plan,
+    update_dense,
+    update_scalar_upper,
+)
+from neuralmap.filters.policy import Adaptation, FilterPolicy, Posterior, UpdateContext
 from neuralmap.filters.validation import (
     as_float_tensor,
     check_covariance,
@@ -52,11 +61,6 @@ from neuralmap.filters.validation import (
 )
 
 __all__ = ["BatchedEKF", "positive_definite_batchlast"]
-
-#: Largest state size handled entry by entry (fast paths); larger ones use batched
-#: matrix kernels (``matmul``, ``cholesky_ex``).
-SMALL_STATE_MAX = 8
-
 
 def _pd_from_entries(get: Callable[[int, int], torch.Tensor], n: int) -> torch.Tensor:
     """Cholesky pivots of symmetric matrices given entry by entry (``get(i, j)``, i ≥ j).
@@ -116,17 +120,6 @@ def _sum_rows(rows: Sequence[torch.Tensor]) -> torch.Tensor:
     for row in rows[1:]:
         acc = acc + row
     return acc
-
-
-@dataclass
-class _Transition:
-    """A validated shared transition matrix and its precomputed propagation plan."""
-
-    F: torch.Tensor  # (n, n) or (N, n, n)
-    coef_sum: float  # max over outputs of Σ|c| (shared F; 0 for per-sample F)
-    n_terms: int  # max number of terms per output entry
-    terms: list[list[tuple[int, float]]] | None  # sparse plan: per upper output, (input, coef)
-    m_tri: torch.Tensor | None  # dense plan: (T, n*n) symmetrised Kronecker rows
 
 
 class BatchedEKF:
@@ -210,6 +203,9 @@ class BatchedEKF:
         #: every stored P passed a positive-definiteness check (False after assignment)
         self._p_checked = True
         self._cache: dict[str, tuple[Any, int, Any]] = {}
+        #: process noise of the last predict (for policies), and updates made so far
+        self._last_Q: torch.Tensor | None = None
+        self._n_updates = 0
 
     # ------------------------------------------------------------------ properties
     @property
@@ -357,43 +353,14 @@ class BatchedEKF:
         return take
 
     # ------------------------------------------------------------------ predict
-    def _transition(self, F: Any) -> _Transition:
-        """Validates ``F`` and, when shared, builds its covariance-propagation plan.
-
-        ``(F P Fᵀ)_il = Σ_{j≤k} c_{il,jk} P_jk`` with ``c = F_ij F_lk + F_ik F_lj`` for
-        ``j < k`` and ``F_ij F_lj`` for ``j = k`` (P symmetric). A sparse ``F`` (as the TAN
-        Φ) has few nonzero ``c`` and is applied entry by entry; a dense one through one
-        matrix product ``vec(F P Fᵀ) = (F ⊗ F) vec(P)`` on the upper-triangle rows, with
-        the rows of ``(i, l)`` and ``(l, i)`` averaged (the symmetrisation).
-        """
+    def _transition(self, F: Any) -> TransitionPlan:
+        """Validates ``F`` and, when shared, builds its covariance-propagation plan."""
         where = "BatchedEKF.predict"
         F = self._float(F, "F", where)
         check_matrix_shape(F, name="F", where=where, n=self._n, batch=self._batch)
-        if F.ndim == 3:
-            return _Transition(F, 0.0, 0, None, None)
-        check_finite(F, name="F", where=where)
-        n = self._n
-        if self._small and not F.requires_grad:
-            f = F.tolist()
-            index = {ij: t for t, ij in enumerate(self._upper)}
-            terms: list[list[tuple[int, float]]] = []
-            for i, m in self._upper:
-                row = []
-                for j, k in self._upper:
-                    c = f[i][j] * f[m][k] + (f[i][k] * f[m][j] if j != k else 0.0)
-                    if c != 0.0:
-                        row.append((index[j, k], c))
-                terms.append(row)
-            if sum(len(t) for t in terms) <= 4 * len(self._upper):
-                coef_sum = max(sum(abs(c) for _, c in t) for t in terms)
-                n_terms = max(len(t) for t in terms)
-                return _Transition(F, coef_sum, n_terms, terms, None)
-        kron = torch.kron(F, F)  # kron[i*n+l, j*n+k] = F_ij F_lk
-        upper = torch.tensor([i * n + j for i, j in self._upper], device=self._device)
-        lower = torch.tensor([j * n + i for i, j in self._upper], device=self._device)
-        m_tri = 0.5 * (kron[upper] + kron[lower])
-        coef_sum = float(m_tri.detach().abs().sum(1).max())
-        return _Transition(F, coef_sum, n * n, None, m_tri)
+        if F.ndim == 2:
+            check_finite(F, name="F", where=where)
+        return transition_plan(F)
 
     def _process_noise(self, Q: Any) -> tuple[torch.Tensor, float, float]:
         """Validated ``Q`` with ``(λ_min(Q), max |Q_ij|)`` for a shared ``Q`` (else 0, 0)."""
@@ -406,7 +373,7 @@ class BatchedEKF:
         q = Q.detach().double()
         return Q, float(torch.linalg.eigvalsh(q)[0]), float(q.abs().max())
 
-    def _certified_pd(self, plan: _Transition, q_min: float, q_max: float) -> bool:
+    def _certified_pd(self, plan: TransitionPlan, q_min: float, q_max: float) -> bool:
         """Whether every computed ``P⁻ = fl(F P Fᵀ) + Q`` is provably positive definite.
 
         Each computed entry ``P⁻_il = fl(Σ_t c_t P_t + Q_il)`` (at most ``k`` terms) has
@@ -429,12 +396,15 @@ class BatchedEKF:
         bound = n * eps * (1.1 * (plan.n_terms + 3) * plan.coef_sum * trace.amax() + q_max)
         return bool(bound < q_min)
 
-    def predict(self, F: torch.Tensor, Q: torch.Tensor) -> None:
+    def predict(
+        self, F: torch.Tensor, Q: torch.Tensor, *, policy: FilterPolicy | None = None
+    ) -> None:
         """Time update of every healthy sample: ``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q``.
 
         ``P⁻`` is computed on its upper triangle and mirrored (exactly symmetric; for a
         dense shared ``F`` the Kronecker rows are symmetrised, for per-sample ``F`` the
-        product is symmetrised as ``(A + Aᵀ)/2``). Unhealthy samples are not touched; a
+        product is symmetrised as ``(A + Aᵀ)/2``) by
+        :func:`neuralmap.filters.kalman.predict_upper`. Unhealthy samples are not touched; a
         sample whose ``P⁻`` is not finite and positive definite is flagged and keeps its
         previous ``x``, ``P``.
 
@@ -442,40 +412,26 @@ class BatchedEKF:
             F: ``(n, n)`` shared or ``(N, n, n)`` per-sample transition matrix.
             Q: ``(n, n)`` shared or ``(N, n, n)`` per-sample process-noise covariance
                 (symmetric positive semi-definite).
+            policy: Optional :class:`~neuralmap.filters.policy.FilterPolicy` whose
+                ``process_noise`` hook may return an adapted per-sample ``Q`` (Sage-Husa).
 
         Raises:
             NeuralMapError: Wrong shapes, non-finite shared ``F``, or ``Q`` not symmetric
                 positive semi-definite / with negative variances.
         """
-        plan: _Transition = self._cached("F", F, self._transition)
+        plan: TransitionPlan = self._cached("F", F, self._transition)
         Q, q_min, q_max = self._cached("Q", Q, self._process_noise)
+        if policy is not None:
+            n, batch = self._n, self._batch
+            F_b = plan.F if plan.F.ndim == 3 else plan.F.expand(batch, n, n)
+            Q_b = Q if Q.ndim == 3 else Q.expand(batch, n, n)
+            adapted = policy.process_noise(F=F_b, Q=Q_b, P=self.P)
+            if adapted is not None:
+                Q = self._process_noise(adapted)[0]
+                q_min = q_max = 0.0
+        self._last_Q = Q
         certified = self._check_pd and self._certified_pd(plan, q_min, q_max)
-        n, batch = self._n, self._batch
-        F = plan.F
-        if F.ndim == 2:
-            xt = F @ self._xt
-            if Q.ndim == 2:
-                q_up: list[torch.Tensor] = [Q[i, j] for i, j in self._upper]
-            else:
-                q_up = [Q[:, i, j] for i, j in self._upper]
-            if plan.terms is not None:
-                rows = self._rows(self._Pt)
-                p_up = []
-                for terms, q in zip(plan.terms, q_up, strict=True):
-                    acc = None
-                    for s, c in terms:
-                        acc = rows[s] * c if acc is None else torch.add(acc, rows[s], alpha=c)
-                    p_up.append(q.expand(batch) + 0.0 if acc is None else acc + q)
-            else:
-                assert plan.m_tri is not None
-                p_tri = plan.m_tri @ self._Pt.reshape(n * n, batch)
-                p_up = [p_tri[t] + q for t, q in enumerate(q_up)]
-        else:
-            P = self.P
-            xt = torch.einsum("bij,jb->ib", F, self._xt)
-            fpf = torch.matmul(torch.matmul(F, P), F.transpose(1, 2))
-            full = (0.5 * (fpf + fpf.transpose(1, 2)) + Q).permute(1, 2, 0)
-            p_up = self._rows(full)
+        xt, p_up = predict_upper(self._xt, self._Pt, plan, Q)
         self._commit(xt, p_up, None, certified=certified)
 
     # ------------------------------------------------------------------ update
@@ -566,13 +522,19 @@ class BatchedEKF:
         R: torch.Tensor | float,
         *,
         mask: torch.Tensor | None = None,
+        policy: FilterPolicy | None = None,
     ) -> UpdateDiagnostics:
         """Measurement update of every healthy, unmasked sample (Joseph form).
 
         ``S = H P⁻ Hᵀ + R``; ``K = P⁻ Hᵀ S⁻¹``; ``x⁺ = x⁻ + K r``;
-        ``P⁺ = (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ`` (symmetric); ``NIS = rᵀ S⁻¹ r``.
-        Scalar measurements (m = 1) with n ≤ 8 take a fast path of elementwise kernels;
-        vector measurements use ``cholesky_ex`` / ``cholesky_solve`` on ``(N, m, m)``.
+        ``P⁺ = (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ`` (symmetric); ``NIS = rᵀ S⁻¹ r``;
+        ``ℓ = −½ (m ln 2π + ln det S + NIS)``. Scalar measurements (m = 1) with n ≤ 8 take
+        a fast path of elementwise kernels; vector measurements use ``cholesky_ex`` /
+        ``cholesky_solve`` on ``(N, m, m)`` (:mod:`neuralmap.filters.kalman`).
+
+        Masked samples are sanitised before any arithmetic (residual and H set to 0, R to
+        1), so a NaN in a skipped sample's inputs cannot reach its outputs or the gradients
+        of the others.
 
         Args:
             residual: ``(N,)`` or ``(N, m)`` innovation ``z − h(x⁻)`` computed by the
@@ -585,9 +547,12 @@ class BatchedEKF:
                 (of unmasked samples) are errors.
             mask: ``(N,)`` bool, False = skip this sample (no measurement, off the map);
                 its ``x``, ``P`` and health are left unchanged whatever its inputs hold.
+            policy: Optional :class:`~neuralmap.filters.policy.FilterPolicy` (robust or
+                adaptive update); see that module for the protocol.
 
         Returns:
-            :class:`UpdateDiagnostics` (innovation, S, NIS, gain, health, applied).
+            :class:`UpdateDiagnostics` (innovation, S, NIS, gain, health, applied, prior
+            x and P, log-likelihood, what the policy did).
 
         Raises:
             NeuralMapError: Shape mismatches (expected vs received shapes), a shared ``R``
@@ -598,93 +563,158 @@ class BatchedEKF:
         if mask is not None:
             mask = check_mask(mask, where=where, batch=self._batch, device=self._device)
         R = self._parse_noise(R, m, mask)
+        if mask is not None and not bool(mask.all()):
+            r, H, R = self._sanitise(r, H, R, mask)
+        if policy is not None:
+            return self._update_policy(r, H, R, mask, policy)
         if m == 1 and R.ndim <= 1 and self._small:
             return self._update_scalar(r[:, 0], H, R, mask)
         return self._update_vector(r, H, R, mask)
 
+    def _sanitise(
+        self, r: torch.Tensor, H: torch.Tensor, R: torch.Tensor, mask: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Neutral inputs (r = 0, H = 0, R = 1) for masked samples, before any arithmetic."""
+        r = torch.where(mask.unsqueeze(-1), r, 0.0)
+        if H.ndim == 3:
+            H = torch.where(mask.reshape(-1, 1, 1), H, 0.0)
+        if R.ndim == 1:
+            R = torch.where(mask, R, 1.0)
+        elif R.ndim == 3:
+            eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
+            R = torch.where(mask.reshape(-1, 1, 1), R, eye)
+        return r, H, R
+
+    def _dense_R(self, R: torch.Tensor, m: int) -> torch.Tensor:
+        """Any accepted R form as ``(N, m, m)``."""
+        batch = self._batch
+        if R.ndim == 0:
+            return (R * torch.eye(m, dtype=self._dtype, device=self._device)).expand(batch, m, m)
+        if R.ndim == 1:
+            return R.reshape(batch, 1, 1)
+        if R.ndim == 2:
+            return R.expand(batch, m, m)
+        return R
+
     def _update_scalar(
         self, r: torch.Tensor, H: torch.Tensor, R: torch.Tensor, mask: torch.Tensor | None
     ) -> UpdateDiagnostics:
-        """Fast path for one scalar measurement per sample (m = 1, n ≤ 8).
-
-        Everything is a length-N vector: ``u = P⁻ hᵀ`` (= ``(h P⁻)ᵀ``, P symmetric),
-        ``S = h u + R`` (a scalar per sample, so ``S⁻¹`` is a division),
-        ``K = u / S``. The Joseph form with a scalar measurement, expanded using
-        ``h P hᵀ + R = S``, is
-
-            P⁺ = (I − K h) P (I − K h)ᵀ + K R Kᵀ
-               = P − K (h P) − (P hᵀ) Kᵀ + K S Kᵀ
-               = P − u Kᵀ + K wᵀ,        w = S K − u   (= S Kᵀ − h P, transposed)
-
-        i.e. ``P⁺_ij = P_ij − u_i K_j + K_i w_j``, evaluated for ``i ≤ j`` and mirrored.
-        Like the Joseph form it is insensitive to first-order errors in ``K`` (``w``
-        carries the rounding of ``K S − u``), and it is exactly symmetric.
-        """
+        """Fast path for one scalar measurement per sample (m = 1, n ≤ 8)."""
         n, batch = self._n, self._batch
-        pt = self._Pt
         if H.ndim == 3:
             ht = H[:, 0, :].t().contiguous()  # (n, N): contiguous rows are ~2x faster
             h = [ht[j] for j in range(n)]
         else:
             h = [H[0, j] for j in range(n)]
-        u = []
-        for i in range(n):
-            acc = pt[i, 0] * h[0]
-            for j in range(1, n):
-                acc = torch.addcmul(acc, pt[i, j], h[j])
-            u.append(acc)
-        S = R
-        for j in range(n):
-            S = torch.addcmul(S, h[j], u[j])  # S = h P hᵀ + R
-        if S.ndim == 0:
-            S = S.expand(batch)
-        ut = torch.stack(u)  # (n, N) = P hᵀ
-        kt = ut / S  # K = P hᵀ S⁻¹
-        wt = kt * S - ut  # w = S K − u
-        xt = torch.addcmul(self._xt, kt, r)  # x⁺ = x⁻ + K r
-        p_up = [
-            torch.addcmul(torch.addcmul(pt[i, j], kt[i], wt[j]), ut[i], kt[j], value=-1.0)
-            for i, j in self._upper
-        ]  # P⁺_ij = P_ij + K_i w_j − u_i K_j   (Joseph form, expanded)
+        x_prior, p_prior = self.x, self.P
+        xt, p_up, S, kt = update_scalar_upper(self._xt, self._Pt, r, h, R)
         applied = self._commit(xt, p_up, mask, extra_ok=(S > 0) & (S < math.inf))
+        nis = r * r / S
         return UpdateDiagnostics(
             innovation=r.unsqueeze(-1),
             S=S.reshape(batch, 1, 1),
-            nis=r * r / S,
+            nis=nis,
             gain=kt.t().unsqueeze(-1),
             healthy=self._healthy,
             applied=applied,
+            x_prior=x_prior,
+            P_prior=p_prior,
+            log_likelihood=gaussian_log_likelihood(nis, S.log(), 1),
         )
 
     def _update_vector(
         self, r: torch.Tensor, H: torch.Tensor, R: torch.Tensor, mask: torch.Tensor | None
     ) -> UpdateDiagnostics:
         """General path: ``(N, m, m)`` innovation covariances and Cholesky solves."""
-        n, batch, m = self._n, self._batch, r.shape[1]
-        P = self.P  # (N, n, n) view
+        batch, m = self._batch, r.shape[1]
         if H.ndim == 2:
-            H = H.expand(batch, m, n)
-        if R.ndim == 0:
-            R = R.reshape(1, 1, 1).expand(batch, 1, 1)
-        elif R.ndim == 1:
-            R = R.reshape(batch, 1, 1)
-        pht = torch.matmul(P, H.transpose(1, 2))  # P Hᵀ (N, n, m)
-        S = torch.matmul(H, pht) + R
-        S = 0.5 * (S + S.transpose(1, 2))
-        chol, info = torch.linalg.cholesky_ex(S)
-        # K = P Hᵀ S⁻¹  <=>  S Kᵀ = H P: two triangular solves with the Cholesky factor.
-        gain = torch.cholesky_solve(pht.transpose(1, 2), chol).transpose(1, 2)  # (N, n, m)
-        x_new = self.x + torch.matmul(gain, r.unsqueeze(-1)).squeeze(-1)
-        ikh = self._eye - torch.matmul(gain, H)
-        p_new = torch.matmul(torch.matmul(ikh, P), ikh.transpose(1, 2))
-        p_new = p_new + torch.matmul(torch.matmul(gain, R), gain.transpose(1, 2))
-        p_new = 0.5 * (p_new + p_new.transpose(1, 2))  # Joseph form, symmetrised
-        white = torch.linalg.solve_triangular(chol, r.unsqueeze(-1), upper=False)
-        nis = white.squeeze(-1).square().sum(-1)  # rᵀ S⁻¹ r = |L⁻¹ r|²
-        s_ok = (info == 0) & torch.isfinite(S.reshape(batch, -1).sum(-1))
+            H = H.expand(batch, m, self._n)
+        x_prior, p_prior = self.x, self.P
+        out = update_dense(x_prior, p_prior, r, H, self._dense_R(R, m))
         applied = self._commit(
-            x_new.t().contiguous(), self._rows(p_new.permute(1, 2, 0)), mask, extra_ok=s_ok
+            out.x.t().contiguous(), self._rows(out.P.permute(1, 2, 0)), mask, extra_ok=out.s_ok
         )
         return UpdateDiagnostics(
-            innovation=r, S=S, nis=nis, gain=gain, healthy=self._healthy, applied=applied
+            innovation=r, S=out.S, nis=out.nis, gain=out.gain, healthy=self._healthy,
+            applied=applied, x_prior=x_prior, P_prior=p_prior,
+            log_likelihood=gaussian_log_likelihood(out.nis, out.log_det_S, m),
         )
+
+    def _update_policy(
+        self,
+        r: torch.Tensor,
+        H: torch.Tensor,
+        R: torch.Tensor,
+        mask: torch.Tensor | None,
+        policy: FilterPolicy,
+    ) -> UpdateDiagnostics:
+        """Update driven by a policy (see :mod:`neuralmap.filters.policy`)."""
+        n, batch, m = self._n, self._batch, r.shape[1]
+        H = H.expand(batch, m, n) if H.ndim == 2 else H
+        R = self._dense_R(R, m)
+        x_prior, p_prior = self.x, self.P
+        active = self._healthy if mask is None else self._healthy & mask
+        hpht = torch.matmul(torch.matmul(H, p_prior), H.transpose(1, 2))
+        context = UpdateContext(
+            x_prior=x_prior, P_prior=p_prior, residual=r, H=H, R=R,
+            HPHt=0.5 * (hpht + hpht.transpose(1, 2)), mask=active,
+            process_noise=None if self._last_Q is None else (
+                self._last_Q if self._last_Q.ndim == 3 else self._last_Q.expand(batch, n, n)
+            ),
+            step=self._n_updates,
+        )
+        adaptation = policy.adapt(context)
+        posterior: Posterior | None = None
+        out = None
+        for _ in range(max(1, int(policy.iterations))):
+            p_use, r_use, res_use, h_use, any_kept = self._adapted_inputs(
+                context, adaptation
+            )
+            out = update_dense(x_prior, p_use, res_use, h_use, r_use)
+            posterior = Posterior(x=out.x, P=out.P, P_prior=p_use, R=r_use, S=out.S,
+                                  gain=out.gain, residual=res_use)
+            nxt = policy.refine(context, adaptation, posterior)
+            if nxt is None:
+                break
+            adaptation = nxt
+        assert out is not None and posterior is not None
+        candidates = any_kept if mask is None else any_kept & mask
+        applied = self._commit(
+            out.x.t().contiguous(), self._rows(out.P.permute(1, 2, 0)), candidates,
+            extra_ok=out.s_ok,
+        )
+        policy.commit(context, adaptation, posterior, applied)
+        self._n_updates += 1
+        return UpdateDiagnostics(
+            innovation=r, S=out.S, nis=out.nis, gain=out.gain, healthy=self._healthy,
+            applied=applied, x_prior=x_prior, P_prior=p_prior,
+            log_likelihood=gaussian_log_likelihood(out.nis, out.log_det_S, m),
+            policy_info=dict(adaptation.info),
+        )
+
+    def _adapted_inputs(
+        self, context: UpdateContext, adaptation: Adaptation
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """P⁻, R, residual, H after an adaptation; rejected components dropped exactly.
+
+        Returns ``(P⁻, R, r, H, any_kept)``; ``any_kept`` ``(N,)`` is False for samples
+        whose every component was rejected (they are not updated).
+        """
+        p_use = context.P_prior if adaptation.P_prior is None else adaptation.P_prior
+        if adaptation.p_scale is not None:
+            p_use = p_use * adaptation.p_scale.reshape(-1, 1, 1)
+        r_use = context.R if adaptation.R is None else adaptation.R
+        res_use, h_use = context.residual, context.H
+        any_kept = torch.ones(self._batch, dtype=torch.bool, device=self._device)
+        if adaptation.keep is not None:
+            keep = adaptation.keep.to(torch.bool)
+            m = keep.shape[1]
+            both = keep.unsqueeze(-1) & keep.unsqueeze(-2)
+            eye = torch.eye(m, dtype=self._dtype, device=self._device)
+            # A rejected component: residual 0, H row 0, R row/column of the identity —
+            # exactly the update without that component.
+            r_use = torch.where(both, r_use, eye)
+            res_use = torch.where(keep, res_use, 0.0)
+            h_use = torch.where(keep.unsqueeze(-1), h_use, 0.0)
+            any_kept = keep.any(-1)
+        return p_use, r_use, res_use, h_use, any_kept

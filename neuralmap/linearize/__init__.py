@@ -17,6 +17,7 @@ from neuralmap.linearize.region import (
     SIGMA_MIN_M,
     RegionPlaneLinearizer,
 )
+from neuralmap.linearize.region_variance import RegionReport, region_miss_variance
 from neuralmap.linearize.taylor import TaylorLinearizer
 
 __all__ = [
@@ -31,7 +32,9 @@ __all__ = [
     "NinePointLinearizer",
     "PlaneFitLinearizer",
     "RegionPlaneLinearizer",
+    "RegionReport",
     "TaylorLinearizer",
     "describe_linearizer",
     "make_linearizer",
+    "region_miss_variance",
 ]

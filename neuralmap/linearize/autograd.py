@@ -8,6 +8,8 @@ from torch import nn
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.base import Linearization, Linearizer
 from neuralmap.linearize.checks import check_nonnegative, check_points
+from neuralmap.linearize.region_variance import RegionReport, region_miss_variance
+from neuralmap.terrain.base import TerrainModel
 
 
 class AutogradLinearizer(Linearizer):
@@ -38,7 +40,15 @@ class AutogradLinearizer(Linearizer):
             analogue of the plane-fit residual over Ω_adp, SEEDS 000). Computed with the
             3 x 3 Gauss-Hermite rule (nodes 0, ±sqrt(3); weights 2/3, 1/6 per axis; exact
             for a quadratic terrain): 8 extra height evaluations per point, no gradients.
-            Needs ``pos_cov``.
+            Needs ``pos_cov``. Nodes outside a :class:`TerrainModel`'s extent are not used
+            (mirrored or dropped with renormalised weights) and a covariance that is not
+            positive definite gets an eigen-clamped square root; see
+            :mod:`neuralmap.linearize.region_variance`. What was done per sample is kept in
+            :attr:`region_report` after each call.
+
+    Attributes:
+        region_report: The :class:`RegionReport` of the last region-variance evaluation
+            (``None`` before the first one).
 
     Raises:
         NeuralMapError: ``terrain`` is not an ``nn.Module`` or ``fit_variance`` is negative.
@@ -62,6 +72,7 @@ class AutogradLinearizer(Linearizer):
         self.create_graph = bool(create_graph)
         self.fit_variance = check_nonnegative(fit_variance, "fit_variance", "AutogradLinearizer")
         self.region_variance = bool(region_variance)
+        self.region_report: RegionReport | None = None
 
     def extra_repr(self) -> str:
         """Short description for ``print(linearizer)``."""
@@ -136,14 +147,8 @@ class AutogradLinearizer(Linearizer):
                 f"AutogradLinearizer: pos_cov must be (N, 2, 2) = ({n}, 2, 2), got "
                 f"{tuple(pos_cov.shape)}."
             )
-        root3 = 3.0**0.5
-        nodes_1d = torch.tensor([-root3, root3, 0.0], dtype=xy.dtype, device=xy.device)
-        weights_1d = torch.tensor([1 / 6, 1 / 6, 2 / 3], dtype=xy.dtype, device=xy.device)
-        u = torch.cartesian_prod(nodes_1d, nodes_1d)[:-1]  # (8, 2): the centre has no miss
-        w = torch.cartesian_prod(weights_1d, weights_1d).prod(-1)[:-1]  # (8,)
-        sym = 0.5 * (pos_cov + pos_cov.transpose(-1, -2))
-        chol, _ = torch.linalg.cholesky_ex(sym)  # a non-PD covariance gives a partial factor
-        offsets = torch.einsum("nij,kj->nki", chol, u)  # (N, 8, 2)
-        around = self.terrain(xy.unsqueeze(1) + offsets).to(xy.dtype)  # (N, 8)
-        miss = around - height.unsqueeze(1) - (offsets * slope.unsqueeze(1)).sum(-1)
-        return (w * miss.square()).sum(-1)
+        on_map = self.terrain.contains if isinstance(self.terrain, TerrainModel) else None
+        variance, self.region_report = region_miss_variance(
+            self.terrain, xy=xy, pos_cov=pos_cov, height=height, slope=slope, on_map=on_map
+        )
+        return variance

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from torch import nn
@@ -19,40 +20,61 @@ from neuralmap.linearize.region import SIGMA_MAX_M, SIGMA_MEAN_M, SIGMA_MIN_M
 from neuralmap.linearize.taylor import TaylorLinearizer
 from neuralmap.terrain.grid import GridTerrain
 
-#: Every name :func:`make_linearizer` accepts.
-LINEARIZER_NAMES = (
-    "neural",
-    "neural_region",
-    "bilinear",
-    "bicubic",
-    "nine_point",
-    "mean_point",
-    "lsq_max",
-    "lsq_mean",
-    "lsq_min",
-    "lsq_adaptive",
-)
 
-_DESCRIPTIONS = {
-    "neural": "autograd on the given terrain model (neural map), variance = fit_variance",
-    "neural_region": (
-        "autograd on the neural map, variance = fit_variance + the tangent plane's mean "
-        "squared miss over the position uncertainty (Gauss-Hermite)"
-    ),
-    "bilinear": "first-order Taylor on the bilinear DEM grid",
-    "bicubic": "autograd on the bicubic DEM grid",
-    "nine_point": "least-squares plane through the 3 x 3 nodes around the estimate",
-    "mean_point": "plane through half-region mean points, adaptive region",
-    "lsq_max": f"least-squares plane over Omega_max (sigma = {SIGMA_MAX_M:g} m)",
-    "lsq_mean": f"least-squares plane over Omega_mean (sigma = {SIGMA_MEAN_M:g} m)",
-    "lsq_min": f"least-squares plane over Omega_min (sigma = {SIGMA_MIN_M:g} m)",
-    "lsq_adaptive": "least-squares plane over Omega_adp (sigma from the position covariance)",
+@dataclass(frozen=True)
+class MethodInfo:
+    """A linearisation method's report label and one-line description."""
+
+    label: str
+    description: str
+
+
+#: Every linearisation method by name: the one list that configs, the factory and the
+#: reports use (in the order reports show them).
+METHODS: dict[str, MethodInfo] = {
+    "neural": MethodInfo(
+        "neural map + autograd",
+        "autograd on the given terrain model (neural map), variance = the map's error "
+        "variance"),
+    "neural_region": MethodInfo(
+        "neural map + autograd, region variance",
+        "autograd on the neural map, variance = the map's error variance + the tangent "
+        "plane's mean squared miss over the position uncertainty (Gauss-Hermite)"),
+    "bilinear": MethodInfo("bilinear grid (Taylor)",
+                           "first-order Taylor on the bilinear DEM grid"),
+    "bicubic": MethodInfo("bicubic grid (Taylor)", "autograd on the bicubic DEM grid"),
+    "nine_point": MethodInfo("nine-point fit",
+                             "least-squares plane through the 3 x 3 nodes around the estimate"),
+    "mean_point": MethodInfo("mean-point selection",
+                             "plane through half-region mean points, adaptive region"),
+    "lsq_max": MethodInfo(f"least squares Ω_max (σ = {SIGMA_MAX_M:g} m)",
+                          f"least-squares plane over Omega_max (sigma = {SIGMA_MAX_M:g} m)"),
+    "lsq_mean": MethodInfo(f"least squares Ω_mean (σ = {SIGMA_MEAN_M:g} m)",
+                           f"least-squares plane over Omega_mean (sigma = {SIGMA_MEAN_M:g} m)"),
+    "lsq_min": MethodInfo(f"least squares Ω_min (σ = {SIGMA_MIN_M:g} m)",
+                          f"least-squares plane over Omega_min (sigma = {SIGMA_MIN_M:g} m)"),
+    "lsq_adaptive": MethodInfo(
+        "least squares Ω_adp",
+        "least-squares plane over Omega_adp (sigma from the position covariance)"),
 }
+
+#: Every name :func:`make_linearizer` accepts.
+LINEARIZER_NAMES: tuple[str, ...] = tuple(METHODS)
+
+#: Methods that need a neural (or any given) terrain model rather than the DEM grid.
+TERRAIN_MODEL_METHODS: tuple[str, ...] = ("neural", "neural_region")
+
+
+def method_label(name: str) -> str:
+    """Human-readable label of a method name (the name itself when unknown)."""
+    info = METHODS.get(name)
+    return info.label if info else name
 
 
 def describe_linearizer(name: str) -> str:
     """One-line description of a linearizer name, for reports."""
-    return _DESCRIPTIONS.get(name, name)
+    info = METHODS.get(name)
+    return info.description if info else name
 
 
 def _check_kwargs(name: str, target: Callable[..., Any], kw: dict[str, Any], fixed: set[str]) -> None:

@@ -11,8 +11,10 @@ Definitions (the report quotes them; ``e`` is the error of the corrected estimat
 - RMSE curve: ``sqrt(mean_n e_{n,k}²)`` per step. Time-averaged RMSE: root of the mean of
   ``e²`` over the runs and the **last half** of the samples (indices ``(K+1)//2 … K``).
   Final: the RMSE at the last sample.
-- Divergence: :data:`DIVERGENCE_RULE`. "Converged" runs are the included runs that did not
-  diverge.
+- Divergence: :data:`DIVERGENCE_RULE`. Numerical failures (the filter's covariance became
+  non-finite or lost positive definiteness: ``n_unhealthy``) are counted apart from
+  estimate divergence. "Converged" runs are the included runs that neither diverged nor
+  failed numerically.
 - ``sigma_pos_m`` (the papers' 1σ): ``sqrt(var(e_x) + var(e_y))`` with the sample variance
   (about the mean, ddof = 1) pooled over the converged runs and the last-half samples;
   ``sigma_vel_mps`` likewise for the velocity.
@@ -21,8 +23,14 @@ Definitions (the report quotes them; ``e`` is the error of the corrected estimat
   ``nees_in_band`` is the fraction of the K+1 samples with ``ε̄_k`` inside the two-sided
   95 % band ``[χ²_{0.025}(5M)/M, χ²_{0.975}(5M)/M]``. ``nees_in_band_all`` is the same
   over every included run, diverged ones too (the stricter figure).
-- ``pcrb_ratio``: converged time-averaged RMSE divided by the time-averaged (RMS over the
-  last half) PCRB position bound.
+- ``pcrb_ratio_all`` (the headline): time-averaged RMSE over **all** included runs divided
+  by the time-averaged (RMS over the last half) PCRB position bound;
+  ``pcrb_ratio_converged``: the same over the converged runs (labelled; it cannot see
+  the diverged runs).
+- Time-averaged NEES (Bar-Shalom): ``ε̄ = mean over the M converged runs and the K
+  filter steps`` of ``ε_{n,k}``; for a consistent filter ``M·K·ε̄ ~ χ²(n·M·K)`` (treating
+  the steps as independent), giving the band ``nees_time_band`` at
+  ``nees_confidence``; ``nees_time_in_band`` says whether ``ε̄`` lies inside it.
 
 Outputs never contain NaN: an empty subset gives ``None`` (and curves of ``None``).
 """
@@ -40,28 +48,26 @@ from neuralmap.nav.monte_carlo import FilterRun
 
 #: Human-readable divergence rule (default factors), written into reports and results.json.
 DIVERGENCE_RULE = (
-    "A run diverged when its final horizontal position error exceeds 5x the final PCRB "
-    "position bound sqrt(J^-1_xx + J^-1_yy), or exceeds 3x the filter's own final 3-sigma "
-    "horizontal bound 3*sqrt(P_xx + P_yy); a run whose filter became unhealthy (covariance "
-    "non-finite or not positive definite) or whose estimate left the map also counts as "
-    "diverged. Runs whose truth left the map are excluded from every metric and counted as "
-    "off-map."
+    "A run diverged when its final horizontal position error exceeds {pcrb}x the final PCRB "
+    "position bound sqrt(J^-1_xx + J^-1_yy), or exceeds {sigma}x the filter's own final 1-sigma "
+    "horizontal bound sqrt(P_xx + P_yy), or when its estimate left the map. A run whose "
+    "filter failed numerically (covariance non-finite or not positive definite) is counted "
+    "apart as a numerical failure. Neither counts as converged. Runs whose truth left the "
+    "map are excluded from every metric and counted as off-map."
 )
 
 
-def divergence_rule(pcrb_factor: float = 5.0, sigma_factor: float = 3.0) -> str:
+def divergence_rule(pcrb_factor: float = 5.0, divergence_sigma: float = 9.0) -> str:
     """:data:`DIVERGENCE_RULE` with the given factors.
 
     Args:
         pcrb_factor: Multiple of the final PCRB position bound.
-        sigma_factor: Multiple of the filter's final 3σ horizontal bound.
+        divergence_sigma: Multiple of the filter's final 1σ horizontal bound.
 
     Returns:
         The rule as one sentence group.
     """
-    return DIVERGENCE_RULE.replace("5x the final PCRB", f"{pcrb_factor:g}x the final PCRB").replace(
-        "exceeds 3x the filter's", f"exceeds {sigma_factor:g}x the filter's"
-    )
+    return DIVERGENCE_RULE.format(pcrb=f"{pcrb_factor:g}", sigma=f"{divergence_sigma:g}")
 
 
 def _nees_in_band(
@@ -153,12 +159,31 @@ def nees(err: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
     return torch.where(ok, out, torch.full_like(out, float("nan")))
 
 
+def _time_averaged_nees(err: torch.Tensor, P: torch.Tensor, confidence: float
+                        ) -> dict[str, Any]:
+    """Time-averaged NEES over runs and filter steps 1…K, with its χ² band (Bar-Shalom)."""
+    m_runs, n_samples, n_states = err.shape
+    if m_runs == 0 or n_samples < 2:
+        return {"nees_time_avg": None, "nees_time_band": None, "nees_time_in_band": None}
+    eps = nees(err[:, 1:], P[:, 1:])
+    eps = eps[torch.isfinite(eps)]
+    count = int(eps.numel())
+    if count == 0:
+        return {"nees_time_avg": None, "nees_time_band": None, "nees_time_in_band": None}
+    mean = float(eps.mean())
+    alpha = 1.0 - confidence
+    lo = chi2_quantile(0.5 * alpha, n_states * count) / count
+    hi = chi2_quantile(1.0 - 0.5 * alpha, n_states * count) / count
+    return {"nees_time_avg": mean, "nees_time_band": [lo, hi],
+            "nees_time_in_band": bool(lo <= mean <= hi)}
+
+
 def navigation_metrics(
     run: FilterRun,
     pcrb_pos: torch.Tensor,
     *,
     pcrb_factor: float = 5.0,
-    sigma_factor: float = 3.0,
+    divergence_sigma: float = 9.0,
     nees_confidence: float = 0.95,
 ) -> dict[str, Any]:
     """Metrics of one method's Monte Carlo run (definitions in the module docstring).
@@ -168,7 +193,8 @@ def navigation_metrics(
         pcrb_pos: ``(K+1,)`` PCRB position bound ``sqrt(J⁻¹_xx + J⁻¹_yy)``, m
             (:func:`neuralmap.nav.pcrb.pcrb_position`).
         pcrb_factor: Divergence threshold as a multiple of the final PCRB bound.
-        sigma_factor: Divergence threshold as a multiple of the filter's final 3σ bound.
+        divergence_sigma: Divergence threshold as a multiple of the filter's final 1σ
+            horizontal bound ``sqrt(P_xx + P_yy)``.
         nees_confidence: Two-sided probability of the NEES band.
 
     Returns:
@@ -195,10 +221,11 @@ def navigation_metrics(
             f"navigation_metrics: pcrb_pos must have shape (K+1,) = ({n_samples},) like the "
             f"run's time axis, got {tuple(pcrb_pos.shape)}."
         )
-    if not (pcrb_factor > 0 and sigma_factor > 0 and 0.0 < nees_confidence < 1.0):
+    if not (pcrb_factor > 0 and divergence_sigma > 0 and 0.0 < nees_confidence < 1.0):
         raise NeuralMapError(
-            "navigation_metrics: pcrb_factor and sigma_factor must be > 0 and nees_confidence "
-            f"in (0, 1), got {pcrb_factor!r}, {sigma_factor!r}, {nees_confidence!r}."
+            "navigation_metrics: pcrb_factor and divergence_sigma must be > 0 and "
+            f"nees_confidence in (0, 1), got {pcrb_factor!r}, {divergence_sigma!r}, "
+            f"{nees_confidence!r}."
         )
     half = n_samples // 2
     off_map = run.off_map.detach().cpu().bool()
@@ -208,19 +235,21 @@ def navigation_metrics(
     e_pos2 = err[..., 0] ** 2 + err[..., 1] ** 2
     e_vel2 = err[..., 3] ** 2 + err[..., 4] ** 2
     final_e = e_pos2[:, -1].sqrt()
-    bound3 = 3.0 * (P[:, -1, 0, 0] + P[:, -1, 1, 1]).clamp(min=0.0).sqrt()
+    bound1 = (P[:, -1, 0, 0] + P[:, -1, 1, 1]).clamp(min=0.0).sqrt()
     pcrb_final = float(pcrb_pos[-1])
-    too_far = (final_e > pcrb_factor * pcrb_final) | (final_e > sigma_factor * bound3)
+    too_far = (final_e > pcrb_factor * pcrb_final) | (final_e > divergence_sigma * bound1)
     est_left = ~run.est_on_map.detach().cpu().bool().all(dim=1)
-    diverged = included & (too_far | ~healthy | est_left)
-    converged = included & ~diverged
+    failed = included & ~healthy
+    diverged = included & healthy & (too_far | est_left)
+    converged = included & ~diverged & ~failed
     n_included, n_conv = int(included.sum()), int(converged.sum())
 
     out: dict[str, Any] = {
         "n_runs": n_runs,
         "n_off_map": int(off_map.sum()),
         "n_nonfinite": int((~off_map & ~finite).sum()),
-        "n_unhealthy": int((included & ~healthy).sum()),
+        "n_unhealthy": int(failed.sum()),
+        "numerical_failure_rate": (int(failed.sum()) / n_included) if n_included else None,
         "n_estimate_left_map": int((included & est_left).sum()),
         "n_included": n_included,
         "n_diverged": int(diverged.sum()),
@@ -237,11 +266,11 @@ def navigation_metrics(
         "pcrb_pos_m": _rms(pcrb_pos[half:] ** 2),
         "pcrb_pos_final_m": _none_if_bad(pcrb_final),
     }
-    out["pcrb_ratio"] = (
-        out["rmse_pos_converged_m"] / out["pcrb_pos_m"]
-        if out["rmse_pos_converged_m"] is not None and out["pcrb_pos_m"]
-        else None
-    )
+    def ratio(rmse: float | None) -> float | None:
+        return rmse / out["pcrb_pos_m"] if rmse is not None and out["pcrb_pos_m"] else None
+
+    out["pcrb_ratio_all"] = ratio(out["rmse_pos_m"])
+    out["pcrb_ratio_converged"] = ratio(out["rmse_pos_converged_m"])
     out["rmse_pos_curve"] = _curve(e_pos2[included], n_samples)
     out["rmse_pos_converged_curve"] = _curve(e_pos2[converged], n_samples)
     out["rmse_vel_curve"] = _curve(e_vel2[included], n_samples)
@@ -266,6 +295,7 @@ def navigation_metrics(
         out["nees_mean"] = None
         out["nees_band"] = None
         out["nees_curve"] = [None] * n_samples
+    out.update(_time_averaged_nees(err[converged], P[converged], nees_confidence))
     out["diverged"] = diverged.tolist()
-    out["divergence_rule"] = divergence_rule(pcrb_factor, sigma_factor)
+    out["divergence_rule"] = divergence_rule(pcrb_factor, divergence_sigma)
     return out

@@ -212,6 +212,7 @@ def run_monte_carlo(
     device: str | torch.device = "cpu",
     dtype: torch.dtype = torch.float64,
     tile: DemTile | None = None,
+    truth_terrain: Any = None,
 ) -> MonteCarloResult:
     """Simulates the truth once and runs the TAN EKF with every linearisation method.
 
@@ -228,6 +229,8 @@ def run_monte_carlo(
         device: Device of the truth and the filters.
         dtype: Filter dtype (float64 default).
         tile: The scenario's tile, when already loaded (else :func:`scenario_tile`).
+        truth_terrain: The truth terrain, when already built
+            (:func:`neuralmap.nav.truth_terrain.true_terrain`; else built from the seed).
 
     Returns:
         :class:`MonteCarloResult` ``(truth, runs)``.
@@ -243,7 +246,8 @@ def run_monte_carlo(
         )
     if tile is None:
         tile = scenario_tile(scenario)
-    truth = simulate(scenario, tile, n_runs=n_runs, seed=seed, dtype=dtype, device=device)
+    truth = simulate(scenario, tile, n_runs=n_runs, seed=seed, dtype=dtype, device=device,
+                     truth_terrain=truth_terrain)
     for name, linearizer in methods.items():
         check_map_matches(linearizer, truth, method=name)
     bar = None

@@ -25,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,12 +33,14 @@ import yaml
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import atomic_write_text, load_yaml
+from neuralmap.resources import config_dir
 
 #: Names of the shipped scenarios (``configs/scenarios/<name>.yaml``).
 SCENARIO_NAMES = ("paper", "jacksboro", "tiny")
 
 #: Folder of the shipped scenario files (repository checkout / editable install).
-SCENARIO_DIR = Path(__file__).resolve().parents[2] / "configs" / "scenarios"
+SCENARIO_DIR = config_dir() / "scenarios"
 
 _FLOAT_FIELDS = (
     "dt", "duration_s", "start_spread_m", "speed_mps", "heading_deg", "turn_rate_dps",
@@ -101,6 +102,10 @@ class Scenario:
             ``exp(-r²/L²)``).
         outlier_prob: Probability that an altimeter sample is an outlier.
         outlier_sigma_m: 1σ of the extra error added to an outlier sample, m.
+        truth_model: ``"dem"`` (truth = bicubic DEM + DEM-making error) or ``"subgrid"``
+            (also fractal detail below the grid spacing, on a finer grid; see
+            :mod:`neuralmap.nav.truth_terrain`).
+        subgrid_factor: Refinement of the ``subgrid`` truth grid (2 … 8).
         P0_diag: Filter's initial covariance diagonal ``(5,)``, m², m², m², (m/s)², (m/s)².
         Q_diag: Filter's process-noise diagonal per step ``(5,)``.
         R_m2: Altimeter noise variance the filter assumes, m².
@@ -134,6 +139,8 @@ class Scenario:
     dem_error_corr_m: float = 300.0
     outlier_prob: float = 0.0
     outlier_sigma_m: float = 100.0
+    truth_model: str = "dem"
+    subgrid_factor: int = 4
     P0_diag: list[float] = field(default_factory=lambda: [1e4, 1e4, 100.0, 1.0, 1.0])
     Q_diag: list[float] = field(default_factory=lambda: [1.0, 1.0, 1.0, 0.0025, 0.0025])
     R_m2: float = 100.0
@@ -154,6 +161,16 @@ class Scenario:
         qp = self.pos_noise_sigma_m**2
         qv = self.vel_random_walk**2 * self.dt
         return [qp, qp, self.alt_noise_sigma_m**2, qv, qv]
+
+    def pcrb_kind(self) -> str:
+        """``"bound"``, or ``"reference"`` when the initial error is fixed.
+
+        The Bayesian PCRB takes the initial error as drawn from N(mean, P0). With a fixed
+        (deterministic) initial error, as in paper 004's own scenario, it bounds nothing:
+        reports label it a reference curve.
+        """
+        fixed = max(self.init_error_sigma()) == 0.0 or any(v != 0.0 for v in self.init_error_mean)
+        return "reference" if fixed else "bound"
 
     def init_error_sigma(self) -> list[float]:
         """1σ of the initial INS error per state ``[σ_p, σ_p, σ_h, σ_v, σ_v]``."""
@@ -253,6 +270,12 @@ class Scenario:
         if self.dem_error_sigma_m > 0.0 and self.dem_error_corr_m <= 0.0:
             raise bad("dem_error_corr_m", self.dem_error_corr_m,
                       "> 0 when dem_error_sigma_m > 0")
+        if self.truth_model not in ("dem", "subgrid"):
+            raise bad("truth_model", self.truth_model, "'dem' or 'subgrid'")
+        if isinstance(self.subgrid_factor, bool) or not isinstance(self.subgrid_factor, int) or (
+            not 2 <= self.subgrid_factor <= 8
+        ):
+            raise bad("subgrid_factor", self.subgrid_factor, "an integer in 2 ... 8")
         self.init_error_mean = vector("init_error_mean", self.init_error_mean, 5)
         self.P0_diag = vector("P0_diag", self.P0_diag, 5)
         self.Q_diag = vector("Q_diag", self.Q_diag, 5)
@@ -309,11 +332,14 @@ def load_scenario(name_or_path: str | os.PathLike[str] | Scenario) -> Scenario:
         return name_or_path.validate()
     path = _scenario_path(name_or_path)
     try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as exc:
+        data = load_yaml(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
         raise NeuralMapError(f"{path}: cannot read the scenario YAML ({exc}).") from exc
-    if data is None:
-        data = {}
+    if data is None or data == {}:
+        raise NeuralMapError(
+            f"{path}: the scenario file is empty. Copy a shipped scenario "
+            f"({', '.join(SCENARIO_NAMES)}: configs/scenarios/<name>.yaml) and edit it."
+        )
     if isinstance(data, dict) and "name" not in data:
         data = {**data, "name": path.stem}
     return Scenario.from_dict(data, where=str(path))
@@ -330,17 +356,7 @@ def save_scenario(scenario: Scenario, path: str | os.PathLike[str]) -> Path:
         The written path.
     """
     scenario.validate()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as handle:
-            yaml.safe_dump(scenario.to_dict(), handle, sort_keys=False)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return atomic_write_text(path, yaml.safe_dump(scenario.to_dict(), sort_keys=False))
 
 
 def scenario_tile(scenario: Scenario) -> DemTile:

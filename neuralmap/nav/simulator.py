@@ -32,7 +32,9 @@ import torch
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.nav.scenario import Scenario
-from neuralmap.terrain.grid import GridTerrain
+from neuralmap.nav.truth_terrain import TrueTerrain, dem_error_field, true_terrain
+
+__all__ = ["Truth", "dem_error_field", "nominal_path", "simulate"]
 
 
 @dataclass
@@ -57,6 +59,7 @@ class Truth:
         scenario: The scenario simulated.
         seed: The seed used.
         dem_error: ``(ny, nx)`` DEM-making error field added to the tile (m), or None.
+        terrain: The truth terrain flown over (:func:`~neuralmap.nav.truth_terrain.true_terrain`).
     """
 
     t: torch.Tensor
@@ -75,6 +78,7 @@ class Truth:
     scenario: Scenario
     seed: int
     dem_error: np.ndarray | None = field(default=None, repr=False)
+    terrain: TrueTerrain | None = field(default=None, repr=False)
 
     @property
     def n_runs(self) -> int:
@@ -85,52 +89,6 @@ class Truth:
     def n_steps(self) -> int:
         """Number of filter steps K (``K + 1`` samples)."""
         return int(self.pos.shape[1]) - 1
-
-
-def dem_error_field(
-    shape: tuple[int, int],
-    spacing: tuple[float, float],
-    *,
-    sigma_m: float,
-    corr_m: float,
-    seed: int,
-) -> np.ndarray:
-    """Smooth Gaussian random field modelling the DEM-making error (SEEDS 000, ``m_d``).
-
-    White noise on a padded grid is convolved (via FFT) with a Gaussian kernel of standard
-    deviation ``corr_m / 2`` metres, which gives the correlation function
-    ``exp(−r² / corr_m²)``; the cropped field is shifted to zero mean and scaled to the
-    sample standard deviation ``sigma_m`` exactly.
-
-    Args:
-        shape: ``(ny, nx)`` grid nodes.
-        spacing: ``(dx, dy)`` grid spacing, m.
-        sigma_m: Standard deviation, m (0 gives zeros).
-        corr_m: Correlation length, m (> 0).
-        seed: Seed of the NumPy generator.
-
-    Returns:
-        ``(ny, nx)`` float64 field in metres.
-    """
-    ny, nx = shape
-    if sigma_m == 0.0:
-        return np.zeros((ny, nx))
-    s_nodes = (0.5 * corr_m / spacing[0], 0.5 * corr_m / spacing[1])
-    pad_x = int(math.ceil(4.0 * s_nodes[0])) + 1
-    pad_y = int(math.ceil(4.0 * s_nodes[1])) + 1
-    py, px = ny + 2 * pad_y, nx + 2 * pad_x
-    rng = np.random.default_rng([int(seed), 0xD3E])
-    noise = rng.standard_normal((py, px))
-    fy = np.fft.fftfreq(py)[:, None]
-    fx = np.fft.rfftfreq(px)[None, :]
-    transfer = np.exp(-2.0 * np.pi**2 * ((s_nodes[0] * fx) ** 2 + (s_nodes[1] * fy) ** 2))
-    smooth = np.fft.irfft2(np.fft.rfft2(noise) * transfer, s=(py, px))
-    smooth = smooth[pad_y : pad_y + ny, pad_x : pad_x + nx]
-    smooth = smooth - smooth.mean()
-    std = float(smooth.std())
-    if std <= 0.0:  # pragma: no cover - degenerate single-node field
-        return np.zeros((ny, nx))
-    return smooth * (sigma_m / std)
 
 
 def _heading_vector(psi: float) -> np.ndarray:
@@ -198,6 +156,7 @@ def simulate(
     seed: int | None = None,
     dtype: torch.dtype = torch.float64,
     device: str | torch.device = "cpu",
+    truth_terrain: TrueTerrain | None = None,
 ) -> Truth:
     """Simulates N truth trajectories, their INS outputs and radar-altimeter measurements.
 
@@ -209,6 +168,8 @@ def simulate(
             and ``n_runs`` give identical truth.
         dtype: Floating dtype of the returned tensors.
         device: Device of the returned tensors.
+        truth_terrain: The truth terrain (built from the scenario and ``seed`` when None;
+            pass it to share one world between several simulations or the PCRB).
 
     Returns:
         :class:`Truth` with ``K = scenario.n_steps``.
@@ -253,17 +214,11 @@ def simulate(
     dh = err0[:, None, 2:3] + w_sum[..., 2:3]
     ins_error = torch.cat([dp, dh, dv], dim=-1)
 
-    # true terrain (bicubic DEM + DEM-making error) and the radar altimeter
-    dem_error = None
-    true_tile = tile
-    if scenario.dem_error_sigma_m > 0.0:
-        dem_error = dem_error_field(
-            tile.shape, tile.spacing, sigma_m=scenario.dem_error_sigma_m,
-            corr_m=scenario.dem_error_corr_m, seed=seed,
-        )
-        true_tile = DemTile(heights=tile.heights + dem_error, spacing=tile.spacing,
-                            origin=tile.origin, name=tile.name, source=tile.source)
-    terrain = GridTerrain(true_tile, method="bicubic", dtype=f64)
+    # true terrain (DEM + DEM-making error [+ sub-grid detail]) and the radar altimeter
+    if truth_terrain is None:
+        truth_terrain = true_terrain(scenario, tile, seed=seed)
+    terrain = truth_terrain.model
+    dem_error = truth_terrain.dem_error
     with torch.no_grad():
         terrain_true = terrain(xy)
     on_map = terrain.contains(xy)
@@ -282,5 +237,5 @@ def simulate(
         on_map=on_map.to(device), ins_error=cast(ins_error),
         extent=tuple(float(e) for e in tile.extent),  # type: ignore[arg-type]
         tile_name=tile.name, tile_fingerprint=tile.fingerprint(), scenario=scenario,
-        seed=seed, dem_error=dem_error,
+        seed=seed, dem_error=dem_error, terrain=truth_terrain,
     )

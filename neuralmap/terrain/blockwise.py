@@ -13,6 +13,7 @@ see metres.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,44 @@ from neuralmap.terrain.block_layout import BlockLayout, layout_for_tile
 from neuralmap.terrain.grouped import TileGroups
 
 ENCODINGS = ("fourier", "none")
+
+
+@dataclass(frozen=True)
+class BlockwiseDefaults:
+    """Default architecture of :class:`BlockwiseTerrainNet`, the one place it is set.
+
+    The net's constructor, :meth:`BlockwiseTerrainNet.from_tile` and the training module
+    take their defaults from :data:`NET_DEFAULTS`; a config states a value only to
+    override it. These are the values ``python train.py`` fits with (``frequency_scale``
+    1.0 was chosen on the jacksboro fit).
+
+    Attributes:
+        block_nodes: Core block width in node intervals.
+        overlap_nodes: Blending zone width across a border, in node intervals.
+        encoding: ``"fourier"`` or ``"none"``.
+        n_frequencies: Fourier frequencies per block.
+        frequency_scale: Std of the Gaussian frequencies, cycles per block half-width.
+        hidden: Hidden width.
+        depth: Hidden layers.
+        activation: Activation name.
+        blend: Smooth blending between blocks.
+        seed: Seed of the initial weights and frequencies.
+    """
+
+    block_nodes: int = 24
+    overlap_nodes: float = 4.0
+    encoding: str = "fourier"
+    n_frequencies: int = 16
+    frequency_scale: float = 1.0
+    hidden: int = 32
+    depth: int = 2
+    activation: str = "sine"
+    blend: bool = True
+    seed: int = 0
+
+
+#: The default architecture (single source for the net, its trainer and the configs).
+NET_DEFAULTS = BlockwiseDefaults()
 
 
 class BlockwiseTerrainNet(TerrainModel):
@@ -58,14 +97,14 @@ class BlockwiseTerrainNet(TerrainModel):
         extent: tuple[float, float, float, float],
         num_blocks: tuple[int, int],
         blend_width: tuple[float, float],
-        encoding: str = "fourier",
-        n_frequencies: int = 16,
-        frequency_scale: float = 2.0,
-        hidden: int = 32,
-        depth: int = 2,
-        activation: str = "sine",
-        blend: bool = True,
-        seed: int = 0,
+        encoding: str = NET_DEFAULTS.encoding,
+        n_frequencies: int = NET_DEFAULTS.n_frequencies,
+        frequency_scale: float = NET_DEFAULTS.frequency_scale,
+        hidden: int = NET_DEFAULTS.hidden,
+        depth: int = NET_DEFAULTS.depth,
+        activation: str = NET_DEFAULTS.activation,
+        blend: bool = NET_DEFAULTS.blend,
+        seed: int = NET_DEFAULTS.seed,
         tile_info: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
@@ -143,17 +182,17 @@ class BlockwiseTerrainNet(TerrainModel):
         cls,
         tile: DemTile,
         *,
-        block_nodes: int | None = 24,
-        overlap_nodes: float = 4,
+        block_nodes: int | None = NET_DEFAULTS.block_nodes,
+        overlap_nodes: float = NET_DEFAULTS.overlap_nodes,
         num_blocks: tuple[int, int] | list[int] | None = None,
-        encoding: str = "fourier",
-        n_frequencies: int = 16,
-        frequency_scale: float = 2.0,
-        hidden: int = 32,
-        depth: int = 2,
-        activation: str = "sine",
-        blend: bool = True,
-        seed: int = 0,
+        encoding: str = NET_DEFAULTS.encoding,
+        n_frequencies: int = NET_DEFAULTS.n_frequencies,
+        frequency_scale: float = NET_DEFAULTS.frequency_scale,
+        hidden: int = NET_DEFAULTS.hidden,
+        depth: int = NET_DEFAULTS.depth,
+        activation: str = NET_DEFAULTS.activation,
+        blend: bool = NET_DEFAULTS.blend,
+        seed: int = NET_DEFAULTS.seed,
     ) -> BlockwiseTerrainNet:
         """Builds the network for a tile, blocks sized in grid nodes.
 

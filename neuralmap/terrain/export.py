@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import atomic_write_torch
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet
 
 FORMAT = "neuralmap-terrain-map"
@@ -39,7 +39,6 @@ def save_map(
         The path written.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
@@ -49,15 +48,7 @@ def save_map(
         "metrics": dict(metrics or {}),
         "extra": dict(extra or {}),
     }
-    fd, tmp = tempfile.mkstemp(prefix=".neural_map.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    return path
+    return atomic_write_torch(path, payload)
 
 
 def load_map_payload(path: str | os.PathLike[str]) -> dict[str, Any]:

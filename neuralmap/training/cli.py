@@ -33,11 +33,10 @@ EXIT_BAD_INPUT = 2
 
 
 def default_config_path() -> Path | None:
-    """The repository's ``configs/train.yaml`` (next to the package, else in the cwd)."""
-    candidates = [
-        Path(__file__).resolve().parents[2] / "configs" / "train.yaml",
-        Path.cwd() / "configs" / "train.yaml",
-    ]
+    """The shipped ``configs/train.yaml`` (package data), else one in the cwd."""
+    from neuralmap.resources import config_file
+
+    candidates = [config_file("train.yaml"), Path.cwd() / "configs" / "train.yaml"]
     for candidate in candidates:
         if candidate.is_file():
             return candidate

@@ -12,7 +12,7 @@ from lightning.pytorch.utilities.rank_zero import rank_zero_warn
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+from neuralmap.terrain.blockwise import NET_DEFAULTS, BlockwiseTerrainNet
 from neuralmap.training.evaluation import FitAccumulator, height_and_slope
 
 OPTIMIZERS = ("adam", "sgd")
@@ -37,6 +37,9 @@ class TerrainFitModule(pl.LightningModule):
     Logged per epoch: ``train/loss``, ``train/lr``, ``val/rmse_m``, ``val/max_abs_m``,
     ``val/mean_m`` (metres) and ``val/slope_rmse`` (m/m, RMS norm of the slope error against
     the bicubic DEM slopes at the validation nodes).
+
+    The network arguments default to :data:`neuralmap.terrain.blockwise.NET_DEFAULTS`
+    (the net's own defaults), so the module, the net and ``configs/train.yaml`` cannot drift.
 
     Args:
         block_nodes: Block core width in node intervals (``None`` with ``num_blocks``).
@@ -64,23 +67,23 @@ class TerrainFitModule(pl.LightningModule):
 
     def __init__(
         self,
-        block_nodes: int | None = 24,
-        overlap_nodes: float = 4.0,
+        block_nodes: int | None = NET_DEFAULTS.block_nodes,
+        overlap_nodes: float = NET_DEFAULTS.overlap_nodes,
         num_blocks: list[int] | None = None,
-        encoding: str = "fourier",
-        n_frequencies: int = 16,
-        frequency_scale: float = 8.0,
-        hidden: int = 32,
-        depth: int = 2,
-        activation: str = "sine",
-        blend: bool = True,
+        encoding: str = NET_DEFAULTS.encoding,
+        n_frequencies: int = NET_DEFAULTS.n_frequencies,
+        frequency_scale: float = NET_DEFAULTS.frequency_scale,
+        hidden: int = NET_DEFAULTS.hidden,
+        depth: int = NET_DEFAULTS.depth,
+        activation: str = NET_DEFAULTS.activation,
+        blend: bool = NET_DEFAULTS.blend,
         optimizer: str = "adam",
         lr: float = 3e-3,
         momentum: float = 0.9,
         weight_decay: float = 0.0,
         lr_schedule: str = "cosine",
         target_rmse: float | None = None,
-        seed: int = 0,
+        seed: int = NET_DEFAULTS.seed,
     ) -> None:
         super().__init__()
         if optimizer not in OPTIMIZERS:

@@ -7,7 +7,6 @@ no display needed) and can save it atomically as PNG.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -17,33 +16,13 @@ from matplotlib.figure import Figure
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.nav.report import default_mode
+from neuralmap.io import atomic_write_figure
 from neuralmap.viz.hillshade import hillshade
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 120) -> Path:
-    """Saves a figure as PNG through a temporary file and :func:`os.replace`.
-
-    Args:
-        fig: The figure.
-        path: Destination ``.png``; its folder must exist.
-        dpi: Resolution.
-
-    Returns:
-        The destination path.
-    """
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
-        os.chmod(tmp, default_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    """Saves a figure as PNG atomically (:func:`neuralmap.io.atomic_write_figure`)."""
+    return atomic_write_figure(path, fig, dpi=dpi)
 
 
 def _curve(values: object, n: int, what: str) -> np.ndarray:

@@ -30,8 +30,8 @@ def build_run() -> tuple[FilterRun, torch.Tensor]:
     run 0: converged, err (3, 4 | 0.3, 0.4), P = diag(25, 25, 1, 1, 1)
     run 1: converged, err (-6, 8 | 0, 0), same P
     run 2: diverged by the PCRB rule (e = 100 > 5 x 10; 3σ bound large)
-    run 3: diverged by the 3σ rule (e = 20 < 50; P = I: 3 x 3 sqrt(2) = 12.7 < 20)
-    run 4: off-map (excluded), run 5: unhealthy (diverged), err 0
+    run 3: diverged by the 9σ rule (e = 20 < 50; P = I: 9 sqrt(2) = 12.7 < 20)
+    run 4: off-map (excluded), run 5: unhealthy (a numerical failure, not a divergence), err 0
     """
     n, k1 = 6, 4
     err = torch.zeros(n, k1, 5, dtype=F64)
@@ -59,9 +59,10 @@ def test_known_answers() -> None:
     run, pcrb = build_run()
     m = navigation_metrics(run, pcrb)
     assert m["n_runs"] == 6 and m["n_off_map"] == 1 and m["n_included"] == 5
-    assert m["diverged"] == [False, False, True, True, False, True]
-    assert m["n_diverged"] == 3 and m["n_converged"] == 2 and m["n_unhealthy"] == 1
-    assert m["divergence_rate"] == pytest.approx(3 / 5)
+    assert m["diverged"] == [False, False, True, True, False, False]
+    assert m["n_diverged"] == 2 and m["n_converged"] == 2 and m["n_unhealthy"] == 1
+    assert m["divergence_rate"] == pytest.approx(2 / 5)
+    assert m["numerical_failure_rate"] == pytest.approx(1 / 5)
     assert m["rmse_pos_converged_m"] == pytest.approx(math.sqrt((25 + 100) / 2))
     assert m["rmse_pos_m"] == pytest.approx(math.sqrt((25 + 100 + 1e4 + 400 + 0) / 5))
     assert m["final_pos_m"] == pytest.approx(m["rmse_pos_m"])
@@ -73,7 +74,13 @@ def test_known_answers() -> None:
     vx, vy = np.array([0.3, 0.3, 0.0, 0.0]), np.array([0.4, 0.4, 0.0, 0.0])
     assert m["sigma_vel_mps"] == pytest.approx(math.sqrt(vx.var(ddof=1) + vy.var(ddof=1)))
     assert m["pcrb_pos_m"] == pytest.approx(10.0) and m["pcrb_pos_final_m"] == 10.0
-    assert m["pcrb_ratio"] == pytest.approx(math.sqrt(62.5) / 10.0)
+    assert m["pcrb_ratio_converged"] == pytest.approx(math.sqrt(62.5) / 10.0)
+    assert m["pcrb_ratio_all"] == pytest.approx(m["rmse_pos_m"] / 10.0)
+    # time-averaged NEES over the converged runs 0, 1 and steps 1..3: (1.25 + 4) / 2
+    assert m["nees_time_avg"] == pytest.approx(2.625)
+    lo6, hi6 = chi2.ppf(0.025, 30) / 6, chi2.ppf(0.975, 30) / 6
+    assert m["nees_time_band"] == pytest.approx([lo6, hi6])
+    assert m["nees_time_in_band"] is bool(lo6 <= 2.625 <= hi6)
     # curves over the K+1 samples
     assert m["rmse_pos_converged_curve"][1] == pytest.approx(math.sqrt(62.5))
     assert m["rmse_pos_converged_curve"][0] == pytest.approx(math.sqrt(6250.0))
@@ -89,13 +96,14 @@ def test_known_answers() -> None:
 
 def test_divergence_factors_change_the_verdict() -> None:
     run, pcrb = build_run()
-    loose = navigation_metrics(run, pcrb, pcrb_factor=20.0, sigma_factor=5.0)
-    assert loose["diverged"] == [False, False, False, False, False, True]
+    loose = navigation_metrics(run, pcrb, pcrb_factor=20.0, divergence_sigma=15.0)
+    assert loose["diverged"] == [False, False, False, False, False, False]
     assert "20x the final PCRB" in loose["divergence_rule"]
-    assert "5x the filter's" in loose["divergence_rule"]
-    tight = navigation_metrics(run, pcrb, pcrb_factor=0.1, sigma_factor=5.0)
-    assert tight["diverged"] == [True, True, True, True, False, True]
-    assert divergence_rule() == DIVERGENCE_RULE
+    assert "15x the filter's own final 1-sigma" in loose["divergence_rule"]
+    tight = navigation_metrics(run, pcrb, pcrb_factor=0.1, divergence_sigma=15.0)
+    assert tight["diverged"] == [True, True, True, True, False, False]
+    assert tight["n_unhealthy"] == 1
+    assert divergence_rule() == DIVERGENCE_RULE.format(pcrb="5", sigma="9")
 
 
 def test_empty_subsets_give_none_not_nan() -> None:
@@ -104,7 +112,8 @@ def test_empty_subsets_give_none_not_nan() -> None:
     m = navigation_metrics(run, pcrb)
     assert m["n_included"] == 0 and m["n_off_map"] == 6
     for key in ("rmse_pos_m", "rmse_pos_converged_m", "rmse_vel_mps", "sigma_pos_m",
-                "divergence_rate", "nees_in_band", "pcrb_ratio", "final_pos_m"):
+                "divergence_rate", "nees_in_band", "pcrb_ratio_all", "pcrb_ratio_converged",
+                "nees_time_avg", "final_pos_m"):
         assert m[key] is None, key
     assert m["rmse_pos_curve"] == [None] * 4
     json.dumps(m, allow_nan=False)
@@ -150,9 +159,9 @@ def test_estimate_leaving_the_map_counts_as_diverged_not_excluded() -> None:
     run, pcrb = build_run()
     run.est_on_map[0, 2] = False  # run 0's estimate wandered off the tile at one step
     m = navigation_metrics(run, pcrb)
-    assert m["diverged"] == [True, False, True, True, False, True]
+    assert m["diverged"] == [True, False, True, True, False, False]
     assert m["n_included"] == 5 and m["n_estimate_left_map"] == 1
-    assert m["divergence_rate"] == pytest.approx(4 / 5)
+    assert m["divergence_rate"] == pytest.approx(3 / 5)
     assert "estimate left the map" in m["divergence_rule"]
 
 

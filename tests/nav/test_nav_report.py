@@ -12,14 +12,13 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import atomic_write_json, to_jsonable
 from neuralmap.nav.report import (
     METHOD_KEYS,
-    atomic_write_json,
     build_results,
     check_claims,
     format_table,
     render_report,
-    to_jsonable,
 )
 
 K1 = 11  # samples (K + 1)
@@ -35,11 +34,16 @@ def _metrics(sigma: float, *, vel: float = 1.0, rate: float = 0.0, ratio: float 
         "sigma_vel_mps": vel * 0.8,
         "divergence_rate": rate,
         "nees_in_band": 0.9,
-        "pcrb_ratio": ratio,
+        "nees_time_avg": 5.1,
+        "numerical_failure_rate": 0.0,
+        "pcrb_ratio_all": ratio,
+        "pcrb_ratio_converged": ratio * 0.9,
         "final_pos_m": sigma,
         "n_runs": 100,
         "n_off_map": 2,
+        "n_included": 98,
         "n_diverged": int(rate * 98),
+        "n_converged": 98 - int(rate * 98),
         "nees_band": [4.0, 6.0],
         "rmse_pos_curve": curve,
         "rmse_pos_converged_curve": curve,
@@ -113,8 +117,8 @@ def test_build_results_structure() -> None:
 
 def test_build_results_rejects_missing_keys_and_bad_curves() -> None:
     bad = _metrics(10.0)
-    del bad["pcrb_ratio"]
-    with pytest.raises(NeuralMapError, match="pcrb_ratio"):
+    del bad["pcrb_ratio_all"]
+    with pytest.raises(NeuralMapError, match="pcrb_ratio_all"):
         build_results(
             method_metrics={"x": bad},
             t=[0.0] * K1,
@@ -178,9 +182,23 @@ def test_claims_without_neural_or_with_missing_values() -> None:
     assert checks[0].verdict == "not checked" and checks[2].verdict == "not checked"
 
 
+def test_claims_need_enough_converged_runs() -> None:
+    """A hopeless tuning: 3 survivors of 100 give no verdict, and no method is dropped."""
+    results = _results(20.0, (60.0, 70.0))
+    results["methods"]["neural"].update(n_converged=3, n_diverged=95, divergence_rate=0.97)
+    checks = check_claims(results)
+    assert all("not enough converged runs (neural: 3 of 98" in c.verdict for c in checks[:3])
+    assert checks[4].verdict == "does not hold"  # the divergence target still judges
+    results = _results(20.0, (60.0, 70.0))
+    results["methods"]["classic1"].update(n_converged=0, n_diverged=98)
+    checks = check_claims(results)
+    assert checks[0].verdict == "holds"
+    assert "classic1: 0 of 98" in checks[2].verdict
+
+
 def test_tables_and_report_text() -> None:
     results = _results()
-    results["methods"]["classic0"]["pcrb_ratio"] = None
+    results["methods"]["classic0"]["pcrb_ratio_all"] = None
     text = format_table(results)
     lines = text.splitlines()
     assert lines[0].split()[0] == "method" and len(lines) == 2 + 3 + 1  # header, rule, 3, PCRB

@@ -27,36 +27,95 @@ def _points(tile: DemTile, n: int, seed: int = 0) -> torch.Tensor:
     return torch.stack([xmin + u[:, 0] * (xmax - xmin), ymin + u[:, 1] * (ymax - ymin)], -1)
 
 
-@torch.no_grad()
-def _reference_height(net: BlockwiseTerrainNet, xy: torch.Tensor) -> torch.Tensor:
-    """Independent evaluation: a Python loop over points and their blocks."""
-    layout = net.layout
-    out = torch.zeros(xy.shape[0], dtype=torch.float64)
-    nbx = layout.num_blocks[0]
-    act = net._act
-    for p in range(xy.shape[0]):
-        ix0, wx0, ix1, wx1 = (t[0] for t in layout.axis_candidates(xy[p : p + 1, 0], 0))
-        iy0, wy0, iy1, wy1 = (t[0] for t in layout.axis_candidates(xy[p : p + 1, 1], 1))
-        for iy, wy in ((iy0, wy0), (iy1, wy1)):
-            for ix, wx in ((ix0, wx0), (ix1, wx1)):
-                w = float(wx * wy)
-                if w == 0.0:
+def _smoothstep_np(t: np.ndarray) -> np.ndarray:
+    """Quintic smoothstep 6t^5 - 15t^4 + 10t^3 on t clamped to [0, 1]."""
+    t = np.clip(t, 0.0, 1.0)
+    return 6.0 * t**5 - 15.0 * t**4 + 10.0 * t**3
+
+
+def _axis_weights_np(u: float, lo: float, core: float, half: float, n: int) -> np.ndarray:
+    """Blend weight of each of the ``n`` blocks along one axis, from the layout's formula.
+
+    Block ``i`` owns the core ``[b_i, b_{i+1}]`` with ``b_i = lo + i core``; across each
+    interior border ``b`` its weight ramps over ``[b - half, b + half]`` as the smoothstep of
+    ``t = (u - (b - half)) / (2 half)``: up at its lower border, down at its upper one.
+    """
+    weights = np.ones(n)
+    for i in range(n):
+        if i > 0:
+            weights[i] *= _smoothstep_np((u - (lo + i * core - half)) / (2.0 * half))
+        if i < n - 1:
+            weights[i] *= 1.0 - _smoothstep_np((u - (lo + (i + 1) * core - half)) / (2.0 * half))
+    return weights
+
+
+def _reference_height(net: BlockwiseTerrainNet, xy: torch.Tensor) -> np.ndarray:
+    """Independent NumPy evaluation: loops over points and blocks, blend weights, block
+    frames and Fourier features rebuilt from the documented formulas (only the learnt
+    parameters and the per-block height statistics are read from the net)."""
+    assert net.activation_name == "sine" and net.encoding == "fourier"
+    xmin, xmax, ymin, ymax = net.layout.extent
+    nbx, nby = net.layout.num_blocks
+    cx, cy = (xmax - xmin) / nbx, (ymax - ymin) / nby
+    wx, wy = net.layout.blend_width
+    freq = net.frequencies.detach().double().numpy()  # (2, F)
+    weights = [w.detach().double().numpy() for w in net.weights]
+    biases = [b.detach().double().numpy() for b in net.biases]
+    out_w = net.out_weight.detach().double().numpy()
+    out_b = net.out_bias.detach().double().numpy()
+    mean = net.height_mean.double().numpy()
+    std = net.height_std.double().numpy()
+    points = xy.detach().double().numpy()
+    out = np.zeros(len(points))
+    for p, (x, y) in enumerate(points):
+        blend = np.outer(
+            _axis_weights_np(y, ymin, cy, wy, nby), _axis_weights_np(x, xmin, cx, wx, nbx)
+        )  # (nby, nbx)
+        for iy in range(nby):
+            for ix in range(nbx):
+                if blend[iy, ix] == 0.0:
                     continue
-                b = int(iy * nbx + ix)
-                local = (xy[p] - net.block_center[b]) / net.block_half_width[b]
-                feats = net._features(local.unsqueeze(0))[0]
-                hidden = feats
-                for weight, bias in zip(net.weights, net.biases, strict=True):
-                    hidden = act(hidden @ weight[b] + bias[b])
-                y = hidden @ net.out_weight[b] + net.out_bias[b]
-                out[p] += w * (net.height_mean[b] + net.height_std[b] * y)
+                b = iy * nbx + ix
+                centre = np.array([xmin + (ix + 0.5) * cx, ymin + (iy + 0.5) * cy])
+                half = np.array([0.5 * cx + wx, 0.5 * cy + wy])  # core + blend zone
+                local = (np.array([x, y]) - centre) / half
+                angle = 2.0 * np.pi * (local @ freq)
+                hidden = np.concatenate([local, np.sin(angle), np.cos(angle)])
+                for weight, bias in zip(weights, biases, strict=True):
+                    hidden = np.sin(hidden @ weight[b] + bias[b])
+                normalised = hidden @ out_w[b] + out_b[b]
+                out[p] += blend[iy, ix] * (mean[b] + std[b] * normalised)
     return out
+
+
+def test_blend_weights_match_the_formula_and_sum_to_one(tile: DemTile) -> None:
+    net = BlockwiseTerrainNet.from_tile(tile, block_nodes=12, overlap_nodes=4).double()
+    xy = _points(tile, 300, seed=4)
+    point, block, weight = net.layout.assign(xy)
+    got = np.zeros((300, net.layout.count))
+    got[point.numpy(), block.numpy()] = weight.numpy()
+    (xmin, xmax, ymin, ymax), (nbx, nby) = net.layout.extent, net.layout.num_blocks
+    wx, wy = net.layout.blend_width
+    assert wx > 0 and wy > 0
+    expected = np.stack([
+        np.outer(
+            _axis_weights_np(float(y), ymin, (ymax - ymin) / nby, wy, nby),
+            _axis_weights_np(float(x), xmin, (xmax - xmin) / nbx, wx, nbx),
+        ).ravel()
+        for x, y in xy.numpy()
+    ])
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(expected.sum(1), 1.0, rtol=0, atol=1e-12)
+    assert ((expected > 0) & (expected < 1)).any()  # some points do sit in a blend zone
 
 
 def test_grouped_blocks_equal_per_block_loop(tile: DemTile) -> None:
     net = BlockwiseTerrainNet.from_tile(tile, block_nodes=12, overlap_nodes=4, hidden=8).double()
     xy = _points(tile, 64)
     np.testing.assert_allclose(net(xy).detach(), _reference_height(net, xy), rtol=0, atol=1e-9)
+    # The sample crosses blend zones (several blocks per point), so the blending is checked.
+    point, _, _ = net.layout.assign(xy)
+    assert point.shape[0] > xy.shape[0]
 
 
 def test_all_points_in_one_block_same_result(tile: DemTile) -> None:
@@ -168,7 +227,7 @@ def test_outputs_are_metres_and_dtype_follows_input(tile: DemTile) -> None:
     assert out.dtype == torch.float64 and out.shape == (10,)
     assert net(xy.float().reshape(2, 5, 2)).shape == (2, 5)
     # Untrained output stays near the block means (metres, not normalised units).
-    assert 250.0 < float(out.mean()) < 600.0
+    assert 250.0 < float(out.detach().mean()) < 600.0
 
 
 @pytest.mark.parametrize(

@@ -187,7 +187,7 @@ def test_paper_preset_config(tile_path: Path, tmp_path: Path) -> None:
 
 
 def test_default_config_is_the_repo_train_yaml(capsys: pytest.CaptureFixture[str]) -> None:
-    assert default_config_path() == REPO / "configs" / "train.yaml"
+    assert default_config_path().resolve() == (REPO / "configs" / "train.yaml").resolve()
     with pytest.raises(SystemExit) as exit_info:
         main(["--print_config"])
     assert exit_info.value.code == 0

@@ -2,59 +2,27 @@
 
 from __future__ import annotations
 
-import json
-import math
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 from matplotlib.figure import Figure
 from torch import nn
 
+from neuralmap.io import atomic_write_figure, atomic_write_json, to_jsonable
+
 #: File names written into the run folder ``runs/<experiment>/version_N/``.
 MAP_FILENAME = "neural_map.pt"
 METRICS_FILENAME = "metrics.json"
 
 
-def _json_safe(value: Any) -> Any:
-    """Replaces non-finite floats by None (strict JSON) and tuples by lists, recursively."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
-
-
 def write_json(path: Path, payload: dict[str, Any]) -> Path:
-    """Writes JSON atomically (temporary file in the same folder, then ``os.replace``)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            json.dump(_json_safe(payload), handle, indent=2, sort_keys=True)
-            handle.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Writes strict JSON atomically (:func:`neuralmap.io.atomic_write_json`)."""
+    return atomic_write_json(path, payload)
 
 
 def save_figure(figure: Figure, path: Path, *, dpi: int = 110) -> Path:
-    """Saves a figure as PNG atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".png")
-    os.close(fd)
-    try:
-        figure.savefig(tmp, dpi=dpi, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Saves a figure as PNG atomically (:func:`neuralmap.io.atomic_write_figure`)."""
+    return atomic_write_figure(path, figure, dpi=dpi)
 
 
 def export_map(
@@ -82,7 +50,7 @@ def export_map(
 
     run_dir.mkdir(parents=True, exist_ok=True)
     map_path = run_dir / MAP_FILENAME
-    save_map(net, map_path, metrics=_json_safe(metrics), extra=_json_safe(extra or {}))
+    save_map(net, map_path, metrics=to_jsonable(metrics), extra=to_jsonable(extra or {}))
     payload = dict(metrics)
     payload["file_bytes"] = map_path.stat().st_size
     write_json(run_dir / METRICS_FILENAME, payload)

@@ -1,0 +1,250 @@
+"""Output files written whole or not at all: atomic writes, strict JSON, version folders.
+
+Every writer goes through a temporary file in the destination folder and
+:func:`os.replace`, so a reader (or a crash) never sees a half-written file. Files get the
+permission bits a plain ``open`` would give under the current umask (``tempfile`` alone
+would leave them owner-only). Run folders are built under a hidden temporary name and
+published as the next free ``version_<N>``; the number is reserved with an atomic
+``mkdir`` so two concurrent runs can never take the same folder.
+"""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import math
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import asdict
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+import yaml
+
+from neuralmap.exceptions import NeuralMapError
+
+__all__ = [
+    "atomic_write",
+    "atomic_write_bytes",
+    "atomic_write_figure",
+    "atomic_write_json",
+    "atomic_write_text",
+    "atomic_write_torch",
+    "check_writable_dir",
+    "default_mode",
+    "next_version_dir",
+    "publish_dir",
+    "staging_dir",
+    "to_jsonable",
+    "version_number",
+]
+
+_VERSION = re.compile(r"version_(\d+)")
+
+
+def default_mode(*, directory: bool = False) -> int:
+    """Permission bits a plain ``open``/``mkdir`` would give under the current umask."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return (0o777 if directory else 0o666) & ~mask
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], None]) -> Path:
+    """Writes ``path`` through ``write(handle)`` on a temporary file, then renames it.
+
+    Args:
+        path: Destination file; its folder is created when missing.
+        write: Writes the whole content into the binary handle it is given.
+
+    Returns:
+        The destination path. On any error the temporary file is removed and the
+        destination is left as it was.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            write(handle)
+        os.chmod(tmp, default_mode())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+    """Writes bytes atomically (see :func:`atomic_write`)."""
+    return atomic_write(path, lambda handle: handle.write(data))
+
+
+def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
+    """Writes UTF-8 text atomically (see :func:`atomic_write`)."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def to_jsonable(value: Any) -> Any:
+    """Converts tensors, numpy values and non-finite floats to strict-JSON values.
+
+    NaN and ±inf become ``None`` (strict JSON has no NaN); tensors and arrays become
+    (nested) lists; tuples and sets become lists; dataclasses become dicts; paths become
+    strings; anything else its ``str``.
+    """
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, (float, np.floating)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, Path):
+        return str(value)
+    if hasattr(value, "detach") and hasattr(value, "cpu"):  # torch.Tensor
+        return to_jsonable(value.detach().cpu().numpy())
+    if isinstance(value, np.ndarray):
+        return to_jsonable(value.tolist())
+    if isinstance(value, Mapping):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, set)):
+        return [to_jsonable(v) for v in value]
+    if hasattr(value, "__dataclass_fields__"):
+        return to_jsonable(asdict(value))
+    return str(value)
+
+
+def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
+    """Writes ``obj`` as strict, indented JSON (see :func:`to_jsonable`) atomically."""
+    text = json.dumps(to_jsonable(obj), indent=2, allow_nan=False, ensure_ascii=False)
+    return atomic_write_text(path, text + "\n")
+
+
+def atomic_write_torch(path: str | os.PathLike[str], obj: Any) -> Path:
+    """Saves ``obj`` with :func:`torch.save` atomically."""
+    import torch
+
+    buffer = _io.BytesIO()
+    torch.save(obj, buffer)
+    return atomic_write_bytes(path, buffer.getvalue())
+
+
+def atomic_write_figure(path: str | os.PathLike[str], fig: Any, *, dpi: int = 120) -> Path:
+    """Saves a matplotlib figure as PNG atomically."""
+    return atomic_write(
+        path, lambda handle: fig.savefig(handle, format="png", dpi=dpi, bbox_inches="tight")
+    )
+
+
+def version_number(path: str | os.PathLike[str]) -> int:
+    """``N`` of a ``version_N`` folder name, −1 for any other name."""
+    match = _VERSION.fullmatch(Path(path).name)
+    return int(match.group(1)) if match else -1
+
+
+def check_writable_dir(root: str | os.PathLike[str], *, option: str = "--runs_dir") -> Path:
+    """Checks, before any work, that ``root`` is (or can become) a writable folder.
+
+    Nothing is created: the nearest existing ancestor must be a writable folder.
+
+    Raises:
+        NeuralMapError: ``root`` or one of its ancestors is a regular file, or the nearest
+            existing ancestor is not writable.
+    """
+    root = Path(root)
+    for parent in (root, *root.parents):
+        if not parent.exists():
+            continue
+        if not parent.is_dir():
+            raise NeuralMapError(
+                f"{option} {root}: {parent} is a file, not a folder. Pass a folder path "
+                "(it is created when missing)."
+            )
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise NeuralMapError(
+                f"{option} {root}: {parent} is not writable; pick another folder."
+            )
+        break
+    return root
+
+
+def next_version_dir(root: str | os.PathLike[str]) -> Path:
+    """Reserves and creates the next free ``root/version_<N>`` (atomic ``mkdir``).
+
+    Two processes calling this at once get different folders: the ``mkdir`` of a name
+    already taken fails and the next number is tried.
+    """
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    for _ in range(1000):
+        existing = [version_number(p) for p in root.glob("version_*")]
+        target = root / f"version_{max(existing, default=-1) + 1}"
+        try:
+            target.mkdir(mode=default_mode(directory=True))
+        except FileExistsError:
+            continue
+        return target
+    raise NeuralMapError(f"could not reserve a free version folder under {root}.")
+
+
+def publish_dir(staging: Path, root: str | os.PathLike[str]) -> Path:
+    """Renames a complete staging folder to the next free ``root/version_<N>``."""
+    target = next_version_dir(root)
+    os.replace(staging, target)  # replaces the empty reserved folder atomically
+    return target
+
+
+@contextmanager
+def staging_dir(root: str | os.PathLike[str]) -> Iterator[Path]:
+    """A hidden temporary folder in ``root``, removed again unless it was published.
+
+    Used as ``with staging_dir(root) as tmp: ...write...; out = publish_dir(tmp, root)``:
+    an exception or Ctrl-C inside the block leaves no ``.tmp-version_*`` folder behind.
+    """
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    path = Path(tempfile.mkdtemp(prefix=".tmp-version_", dir=root))
+    os.chmod(path, default_mode(directory=True))
+    try:
+        yield path
+    finally:
+        if path.exists():
+            shutil.rmtree(path, ignore_errors=True)
+
+
+class _NumberLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with YAML 1.2 floats: ``1e20`` and ``1.0e20`` are numbers.
+
+    PyYAML follows YAML 1.1, where an exponent needs a sign and a dot (``1.0e+20``), so
+    ``1e20`` or ``9e0`` silently become strings; every config of the toolkit means numbers.
+    """
+
+
+_NumberLoader.yaml_implicit_resolvers = {
+    key: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:float"]
+    for key, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.copy().items()
+}
+_NumberLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(
+        r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+        |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+        |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+        |[-+]?\.(?:inf|Inf|INF)
+        |\.(?:nan|NaN|NAN))$""",
+        re.X,
+    ),
+    list("-+0123456789."),
+)
+
+
+def load_yaml(text: str) -> Any:
+    """Parses YAML text like ``yaml.safe_load``, reading ``1e20``/``1.0e20`` as floats."""
+    return yaml.load(text, Loader=_NumberLoader)  # noqa: S506 - a SafeLoader subclass

@@ -1,0 +1,203 @@
+"""One outputs writer for every study: report.md, results.json, PNGs, TensorBoard, config.yaml.
+
+A study writes through :class:`StudyOutputs` while it runs; everything lands in a hidden
+staging folder under ``<runs_dir>/<experiment>/`` and is published as the next free
+``version_<N>`` only by :meth:`StudyOutputs.finalize`, so an interrupted or failed study
+leaves nothing that looks complete (and no staging folder either).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from neuralmap.io import (
+    atomic_write_figure,
+    atomic_write_json,
+    atomic_write_text,
+    default_mode,
+    publish_dir,
+    to_jsonable,
+)
+
+__all__ = ["Claim", "StudyOutputs", "markdown_table"]
+
+
+@dataclass
+class Claim:
+    """A paper's claim beside the measured number.
+
+    Attributes:
+        paper: Which paper (e.g. ``"SEEDS 004"``).
+        claim: The claim in words.
+        measured: What this run measured, in words and numbers.
+        verdict: ``holds``, ``does not hold``, ``partly`` or ``not enough data (...)``.
+    """
+
+    paper: str
+    claim: str
+    measured: str
+    verdict: str
+
+
+def _cell(value: Any) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}" if abs(value) < 1e4 else f"{value:.3e}"
+    return "n/a" if value is None else str(value)
+
+
+def markdown_table(headers: list[str], rows: list[list[Any]]) -> str:
+    """A GitHub-flavoured markdown table (floats to 4 significant digits, None as n/a)."""
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+class StudyOutputs:
+    """Collects a study's outputs and publishes them as one complete run folder.
+
+    Use as a context manager (the CLI does this)::
+
+        with StudyOutputs(root, config=config, title="...") as outputs:
+            run(config, outputs)
+            out_dir = outputs.finalize()
+
+    Attributes:
+        dir: The staging folder to write extra files into (published by finalize).
+        results: The dict that becomes ``results.json`` (the study fills it).
+        claims: The claims added with :meth:`add_claim`.
+    """
+
+    def __init__(self, root: str | Path, *, config: Any, title: str, echo: bool = True,
+                 tensorboard: bool = True) -> None:
+        self.root = Path(root)
+        self.config = config
+        self.title = title
+        self.echo = echo
+        self.tensorboard = tensorboard
+        self.results: dict[str, Any] = {}
+        self.claims: list[Claim] = []
+        self._sections: list[str] = []
+        self._writer: Any = None
+        self._staging: Path | None = None
+        self.published: Path | None = None
+        self._report: str | None = None
+
+    def __enter__(self) -> StudyOutputs:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        if self._staging is not None and self._staging.exists():
+            shutil.rmtree(self._staging, ignore_errors=True)
+
+    @property
+    def dir(self) -> Path:
+        """The staging folder (created on first use, so a study that fails early writes
+        nothing at all)."""
+        if self._staging is None:
+            self.root.mkdir(parents=True, exist_ok=True)
+            self._staging = Path(tempfile.mkdtemp(prefix=".tmp-version_", dir=self.root))
+            os.chmod(self._staging, default_mode(directory=True))
+        return self._staging
+
+    # ------------------------------------------------------------------ content
+    def add_text(self, markdown: str) -> None:
+        """Appends a markdown paragraph (or section) to the report."""
+        self._sections.append(markdown.rstrip() + "\n")
+
+    def add_table(self, title: str, headers: list[str], rows: list[list[Any]],
+                  *, note: str | None = None) -> str:
+        """Appends a table to the report (and prints it); returns its markdown."""
+        table = markdown_table(headers, rows)
+        text = f"### {title}\n\n{table}\n" + (f"\n{note}\n" if note else "")
+        self._sections.append(text)
+        if self.echo:
+            print(f"\n{title}\n{table}" + (f"\n{note}" if note else ""), flush=True)
+        return table
+
+    def add_figure(self, name: str, fig: Any, caption: str) -> Path:
+        """Saves ``fig`` as ``<name>.png``, shows it in the report and in TensorBoard."""
+        path = atomic_write_figure(self.dir / f"{name}.png", fig)
+        self._sections.append(f"![{caption}]({name}.png)\n\n*{caption}*\n")
+        writer = self.writer()
+        if writer is not None:
+            writer.add_figure(f"figures/{name}", fig)
+        return path
+
+    def add_claim(self, paper: str, claim: str, measured: str, verdict: str) -> Claim:
+        """Records a paper's claim beside the measured number (report and results.json)."""
+        item = Claim(paper, claim, measured, verdict)
+        self.claims.append(item)
+        if self.echo:
+            print(f"claim ({paper}): {claim}: {measured} -> {verdict}", flush=True)
+        return item
+
+    def writer(self) -> Any:
+        """The TensorBoard ``SummaryWriter`` of this run (None when disabled)."""
+        if not self.tensorboard:
+            return None
+        if self._writer is None:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(log_dir=str(self.dir))
+        return self._writer
+
+    def log_scalar(self, tag: str, value: float, step: int = 0) -> None:
+        """Logs one scalar to TensorBoard (ignored when disabled or not finite)."""
+        writer = self.writer()
+        if writer is not None and value is not None and value == value:
+            writer.add_scalar(tag, float(value), step)
+
+    def log_curve(self, tag: str, values: Any, *, step_scale: float = 1.0) -> None:
+        """Logs a curve (sequence of values) as TensorBoard scalars, step = index·scale."""
+        for k, value in enumerate(list(values)):
+            if value is not None:
+                self.log_scalar(tag, float(value), int(round(k * step_scale)))
+
+    # ------------------------------------------------------------------ publish
+    def set_report(self, markdown: str) -> None:
+        """Uses ``markdown`` as the whole report (a study that renders its own layout)."""
+        self._report = markdown
+
+    def render(self) -> str:
+        """The report markdown: title, sections in order, then the claims table."""
+        if self._report is not None:
+            return self._report
+        parts = [f"# {self.title}\n"] + self._sections
+        if self.claims:
+            rows = [[c.paper, c.claim, c.measured, c.verdict] for c in self.claims]
+            parts.append("## Papers' claims beside the measurements\n\n"
+                         + markdown_table(["paper", "claim", "measured", "verdict"], rows) + "\n")
+        return "\n".join(parts)
+
+    def finalize(self) -> Path:
+        """Writes report.md, results.json and config.yaml and publishes the run folder.
+
+        Returns:
+            The published ``<runs_dir>/<experiment>/version_<N>`` folder.
+        """
+        config_dump = to_jsonable(asdict(self.config)) if hasattr(
+            self.config, "__dataclass_fields__") else to_jsonable(self.config)
+        results = {"study": getattr(self.config, "study", ""), **self.results,
+                   "claims": [asdict(c) for c in self.claims], "config": config_dump}
+        atomic_write_json(self.dir / "results.json", results)
+        atomic_write_text(self.dir / "report.md", self.render())
+        atomic_write_text(
+            self.dir / "config.yaml",
+            "# configuration used for this run (python evaluate.py --config <this file>)\n"
+            + yaml.safe_dump(config_dump, sort_keys=False),
+        )
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+        self.published = publish_dir(self.dir, self.root)
+        return self.published

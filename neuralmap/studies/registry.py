@@ -1,0 +1,60 @@
+"""The studies ``evaluate.py`` can run, by the ``study:`` key of their config.
+
+Each entry names the module that holds the study's config dataclass (a subclass of
+:class:`~neuralmap.studies.base.StudyConfig`) and its ``run(config, outputs)``. Modules are
+imported on demand, so a study's optional dependencies are needed only when it runs.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from neuralmap.exceptions import NeuralMapError
+
+__all__ = ["STUDIES", "StudySpec", "get_study"]
+
+
+@dataclass(frozen=True)
+class StudySpec:
+    """Where a study lives.
+
+    Attributes:
+        module: Import path of the study module.
+        config: Name of its config dataclass in that module.
+        description: One line for ``--help`` and the report.
+        default_config: File name of its shipped YAML under ``configs/``.
+    """
+
+    module: str
+    config: str
+    description: str
+    default_config: str
+
+
+#: Every study, by its ``study:`` key.
+STUDIES: dict[str, StudySpec] = {
+    "tan": StudySpec(
+        "neuralmap.studies.tan", "TanStudyConfig",
+        "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
+        "tan.yaml",
+    ),
+}
+
+
+def get_study(name: str) -> tuple[type[Any], Callable[..., Any], StudySpec]:
+    """The config class, ``run`` function and spec of the study ``name``.
+
+    Raises:
+        NeuralMapError: No such study.
+    """
+    spec = STUDIES.get(name)
+    if spec is None:
+        raise NeuralMapError(
+            f"study: unknown study {name!r}; known: {', '.join(sorted(STUDIES))} "
+            "(the 'study:' key of the config picks one)."
+        )
+    module = importlib.import_module(spec.module)
+    return getattr(module, spec.config), module.run, spec

@@ -23,6 +23,7 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters import BatchedEKF
+from neuralmap.filters.policy import FilterPolicy
 from neuralmap.ins.error_model import (
     continuous_noise,
     discretize,
@@ -144,6 +145,7 @@ def run_loosely_coupled(
     *,
     generator: torch.Generator,
     measurement_noise: Callable[[int, torch.Tensor], torch.Tensor] | None = None,
+    policy: FilterPolicy | None = None,
 ) -> LooselyCoupledResult:
     """Runs the closed-loop error-state EKF over a drive for the N runs of ``imu``.
 
@@ -156,6 +158,8 @@ def run_loosely_coupled(
         measurement_noise: Optional ``(epoch index, base R (m, m)) -> R`` hook (shared
             ``(m, m)`` or per-run ``(N, m, m)``), e.g. a quality-based R; default: the
             reported σ times ``r_scale``.
+        policy: Optional update policy of the batched Kalman core (adaptive factor on
+            ``P⁻``, robust R...), passed to every GNSS update.
 
     Returns:
         :class:`LooselyCoupledResult`.
@@ -230,7 +234,7 @@ def run_loosely_coupled(
         R = torch.diag(sig[:m].square())
         if measurement_noise is not None:
             R = measurement_noise(j, R)
-        diag = ekf.update(resid[:, :m], H[:, :m], R, mask=finite)
+        diag = ekf.update(resid[:, :m], H[:, :m], R, mask=finite, policy=policy)
         nis[:, j] = torch.where(diag.applied, diag.nis, math.nan)
         applied[:, j] = diag.applied
         x = ekf.x

@@ -41,6 +41,11 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
         "tan.yaml",
     ),
+    "gnss_ins": StudySpec(
+        "neuralmap.studies.gnss_ins", "GnssInsStudyConfig",
+        "Monte Carlo GNSS/MEMS-IMU loosely coupled navigation on an urban drive (paper 003)",
+        "gnss_ins.yaml",
+    ),
 }
 
 

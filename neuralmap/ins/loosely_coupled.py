@@ -35,7 +35,7 @@ from neuralmap.ins.gnss import GnssRecord, sanitize_quality
 from neuralmap.ins.imu_model import ImuErrorProcess, ImuGrade, imu_grade
 from neuralmap.ins.measurement import check_lever_arm, gnss_measurement_model
 from neuralmap.ins.mechanization import strapdown_step
-from neuralmap.ins.trajectory import Trajectory
+from neuralmap.ins.trajectory import Trajectory, check_continuity
 
 __all__ = ["LooselyCoupledConfig", "LooselyCoupledResult", "initial_covariance",
            "run_loosely_coupled"]
@@ -165,7 +165,11 @@ def run_loosely_coupled(
         :class:`LooselyCoupledResult`.
 
     Raises:
-        NeuralMapError: Bad config, run counts that differ, GNSS epochs out of order.
+        NeuralMapError: Bad config, run counts that differ, GNSS epochs out of order, a
+            trajectory with a discontinuity.
+
+    Device: everything runs on the trajectory's device (``traj.to(device)``); the IMU
+    process and the GNSS record must live there too.
     """
     config.validate()
     n = imu.n_runs
@@ -175,30 +179,33 @@ def run_loosely_coupled(
             f"IMU process has {n}; simulate both with the same n_runs."
         )
     dtype = traj.states.dtype
+    device = traj.states.device
+    kw = {"dtype": dtype, "device": device}
+    check_continuity(traj)
     quality, counts = sanitize_quality(gnss.quality)
     grade = imu_grade(config.grade)
     arm = (gnss.lever_arm if config.lever_arm is None
-           else check_lever_arm(config.lever_arm, where="run_loosely_coupled")).to(dtype)
-    qc = process_noise_density(grade).to(dtype)
+           else check_lever_arm(config.lever_arm, where="run_loosely_coupled")).to(**kw)
+    qc = process_noise_density(grade).to(dtype=dtype, device=device)
     tau_g, tau_a = grade.gyro_corr_time, grade.accel_corr_time
-    p0 = initial_covariance(config, dtype=dtype)
+    p0 = initial_covariance(config, dtype=dtype).to(device)
     chol = torch.linalg.cholesky(p0[:9, :9])
-    e0 = torch.randn(n, 9, generator=generator, dtype=dtype) @ chol.T
+    e0 = torch.randn(n, 9, generator=generator, dtype=dtype).to(device) @ chol.T
     y = inject(traj.states[0].expand(n, 10), e0)
-    ekf = BatchedEKF(torch.zeros(n, 15, dtype=dtype), p0)
-    zeros = torch.zeros(n, 15, dtype=dtype)
-    bg_hat = torch.zeros(n, 3, dtype=dtype)
-    ba_hat = torch.zeros(n, 3, dtype=dtype)
+    ekf = BatchedEKF(torch.zeros(n, 15, **kw), p0)
+    zeros = torch.zeros(n, 15, **kw)
+    bg_hat = torch.zeros(n, 3, **kw)
+    ba_hat = torch.zeros(n, 3, **kw)
     m = 6 if config.use_velocity else 3
     k_epochs = quality.n_epochs
     epoch_of = {int(i): j for j, i in enumerate(quality.imu_index.tolist())}
-    out = {name: torch.full((n, k_epochs, 3), math.nan, dtype=dtype)
+    out = {name: torch.full((n, k_epochs, 3), math.nan, **kw)
            for name in ("pos", "vel", "att")}
-    std = torch.full((n, k_epochs, 15), math.nan, dtype=dtype)
-    nees_p = torch.full((n, k_epochs), math.nan, dtype=dtype)
-    nees_n = torch.full((n, k_epochs), math.nan, dtype=dtype)
-    nis = torch.full((n, k_epochs), math.nan, dtype=dtype)
-    applied = torch.zeros(n, k_epochs, dtype=torch.bool)
+    std = torch.full((n, k_epochs, 15), math.nan, **kw)
+    nees_p = torch.full((n, k_epochs), math.nan, **kw)
+    nees_n = torch.full((n, k_epochs), math.nan, **kw)
+    nis = torch.full((n, k_epochs), math.nan, **kw)
+    applied = torch.zeros(n, k_epochs, dtype=torch.bool, device=device)
     counts["skipped_epochs"] = 0
     counts["nan_measurements"] = 0
     dt = traj.dt

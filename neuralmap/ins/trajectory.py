@@ -73,6 +73,11 @@ class Trajectory:
     accel: torch.Tensor
     dt: float
 
+    def to(self, device: torch.device | str) -> Trajectory:
+        """The same trajectory with its tensors on ``device``."""
+        return Trajectory(time=self.time.to(device), states=self.states.to(device),
+                          gyro=self.gyro.to(device), accel=self.accel.to(device), dt=self.dt)
+
     @property
     def n_samples(self) -> int:
         """Number of IMU samples K."""

@@ -19,7 +19,7 @@ N_RUNS = 40
 
 
 def _run(config: LooselyCoupledConfig, *, seed: int = 0, effects: UrbanEffects | None = None,
-         duration: float = 40.0, n_runs: int = N_RUNS, gnss_hook=None):
+         duration: float = 40.0, n_runs: int = N_RUNS, gnss_hook=None, traj_hook=None):
     gen = torch.Generator().manual_seed(seed)
     traj = short_drive(duration=duration, dt=0.05)
     imu = ImuErrorProcess("tactical_mems", n_runs=n_runs, dt=traj.dt, generator=gen,
@@ -27,6 +27,8 @@ def _run(config: LooselyCoupledConfig, *, seed: int = 0, effects: UrbanEffects |
     rec = simulate_gnss(traj, n_runs=n_runs, lever_arm=ARM, generator=gen, effects=effects)
     if gnss_hook is not None:
         rec = gnss_hook(rec)
+    if traj_hook is not None:
+        traj = traj_hook(traj)
     return run_loosely_coupled(traj, imu, rec, config, generator=gen)
 
 
@@ -93,6 +95,14 @@ def test_bad_input() -> None:
 
     with pytest.raises(NeuralMapError, match="out of order"):
         _run(LooselyCoupledConfig(), gnss_hook=shuffle, n_runs=2, duration=10.0)
+
+    def jump(traj):
+        states = traj.states.clone()
+        states[100:, 1] += 1e-5  # a 55 m east jump at sample 100
+        return dataclasses.replace(traj, states=states)
+
+    with pytest.raises(NeuralMapError, match="jumps between samples 99 and 100"):
+        _run(LooselyCoupledConfig(), traj_hook=jump, n_runs=2, duration=10.0)
 
 
 def test_nan_quality_and_measurements_are_counted() -> None:

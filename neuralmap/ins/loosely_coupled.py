@@ -198,7 +198,15 @@ def run_loosely_coupled(
     ba_hat = torch.zeros(n, 3, **kw)
     m = 6 if config.use_velocity else 3
     k_epochs = quality.n_epochs
-    epoch_of = {int(i): j for j, i in enumerate(quality.imu_index.tolist())}
+    index = quality.imu_index.tolist()
+    if any(b <= a for a, b in zip(index, index[1:], strict=False)) or (
+            index and (index[0] < 0 or index[-1] >= traj.n_samples)):
+        raise NeuralMapError(
+            "run_loosely_coupled: the GNSS epochs' IMU sample indices must increase strictly "
+            f"and lie in [0, {traj.n_samples - 1}]; got {index[:5]}... Rebuild the record "
+            "against this trajectory (simulate_gnss) or sort it by time."
+        )
+    epoch_of = {int(i): j for j, i in enumerate(index)}
     out = {name: torch.full((n, k_epochs, 3), math.nan, **kw)
            for name in ("pos", "vel", "att")}
     std = torch.full((n, k_epochs, 15), math.nan, **kw)

@@ -159,7 +159,8 @@ class ImuErrorProcess:
         grade: Grade name or :class:`ImuGrade`.
         n_runs: Number of runs N.
         dt: IMU interval (s).
-        generator: Torch random generator (seeded by the caller for reproducibility).
+        generator: Torch random generator (seeded by the caller for reproducibility), on
+            ``device``.
         dtype, device: Of the generated tensors.
         scale_factor: Draw the scale-factor errors (default True).
 

@@ -131,7 +131,7 @@ class GnssInsStudyConfig(StudyConfig):
 
 def _shade(ax: Any, quality: Any) -> None:
     t = quality.time.numpy()
-    for mask, color, label in ((quality.degraded.numpy(), "tab:orange", "degraded GNSS"),
+    for mask, color, label in ((quality.degraded.numpy(), "khaki", "degraded GNSS"),
                                (~quality.valid.numpy(), "0.6", "GNSS outage")):
         start = None
         first = True

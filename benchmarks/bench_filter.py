@@ -13,7 +13,11 @@ Measures in one run, on the scenario's tile (default: jacksboro), and prints rat
     central differences), for the same problem at small N;
 (d) height + slope queries per second: neural map (autograd), torch bilinear and bicubic
     (``GridTerrain.height_and_slope``) and scipy ``RegularGridInterpolator`` (cubic, slope
-    from its spline derivatives ``nu=(1, 0)``, ``(0, 1)``).
+    from its spline derivatives ``nu=(1, 0)``, ``(0, 1)``);
+(e) the float32 bilinear TAN step of (a) with every robust/adaptive update policy
+    (:mod:`neuralmap.filters.policies`), each with its cost ratio to the plain step
+    measured in the same run (targets: weight/factor policies ≤ 1.5×, the variational
+    filter ≤ 10× at 3 iterations).
 
 Throughput is trajectory-steps (or queries) per second: the median over repeats after a
 warm-up (the fastest repeat is printed too: on a shared machine it shows what the code does
@@ -105,21 +109,17 @@ def load_bench_tile(scenario_name: str) -> tuple[Any, DemTile, str]:
 
 def neural_map_for(tile: DemTile, runs_dir: Path) -> tuple[torch.nn.Module, str]:
     """The newest trained map of ``tile`` under ``runs_dir``, else an untrained default net."""
+    from neuralmap.studies.maps import find_latest_map
     from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+    from neuralmap.terrain.export import load_map
 
-    candidates = sorted(
-        runs_dir.glob("*/version_*/neural_map.pt"), key=lambda p: p.stat().st_mtime, reverse=True
-    )
-    try:
-        from neuralmap.terrain.export import load_map
-    except ImportError:
-        candidates = []
-    for path in candidates:
+    path = find_latest_map(runs_dir, tile_fingerprint=tile.fingerprint())
+    if path is not None:
         try:
             model = load_map(path)
         except NeuralMapError:
-            continue
-        if getattr(model, "tile_fingerprint", "") == tile.fingerprint():
+            model = None
+        if model is not None and getattr(model, "tile_fingerprint", "") == tile.fingerprint():
             return model, f"trained map {path}"
     net = BlockwiseTerrainNet.from_tile(tile)
     return net, "untrained BlockwiseTerrainNet.from_tile(tile) (default config; same cost)"
@@ -135,15 +135,17 @@ def bench_tan_step(
 ) -> tuple[float, float]:
     """(median, best) trajectory-steps per second of the batched TAN filter over K steps."""
     from neuralmap.filters.ekf import BatchedEKF
-    from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+    from neuralmap.nav.model import N_STATES, TanModel
+    from neuralmap.nav.tan import tan_filter_step
 
     n, k_steps = truth.n_runs, truth.n_steps
     ins_pos = truth.ins_pos.to(dtype)
     radar = truth.radar.to(dtype)
-    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype))
-    F = transition_matrix(scenario.dt, dtype=dtype)
-    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype))
-    R = scenario.R_m2 + scenario.fit_variance_m2
+    model = TanModel.from_scenario(scenario)
+    p0 = model.filter_prior(dtype=dtype)
+    F = model.transition(dtype=dtype)
+    Q = model.filter_process_noise(dtype=dtype)
+    R = model.base_R
 
     def run() -> None:
         ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype), p0)
@@ -161,6 +163,101 @@ def bench_tan_step(
                 )
 
     return _rates(n * k_steps, timed(run, repeats=repeats, warmup=1))
+
+
+def policy_factories() -> dict[str, Callable[[], Any]]:
+    """The policies of benchmark (e), by report name (fresh objects: per-sample state)."""
+    from neuralmap.filters.policies import (
+        IGG3,
+        ChiSquareGate,
+        Compose,
+        Huber,
+        InnovationInflation,
+        QualityR,
+        RobustAdaptive,
+        SageHusa,
+        VariationalAdaptive,
+        YangAdaptive,
+    )
+
+    return {
+        "plain EKF": lambda: None,
+        "ChiSquareGate(0.99)": lambda: ChiSquareGate(0.99),
+        "Huber(1.345)": lambda: Huber(1.345),
+        "IGG3(1.5, 4.5)": lambda: IGG3(1.5, 4.5),
+        "YangAdaptive(1, 3)": lambda: YangAdaptive(1.0, 3.0),
+        "RobustAdaptive (RAF)": lambda: RobustAdaptive(1.5, 4.5, 1.0, 3.0),
+        "InnovationInflation(1.2)": lambda: InnovationInflation(1.2),
+        "QualityR.altimeter": lambda: QualityR.altimeter(),
+        "QualityR + InnovationInflation": lambda: Compose(QualityR.altimeter(),
+                                                          InnovationInflation(1.2)),
+        "SageHusa(0.97)": lambda: SageHusa(0.97, 1.0, 1e4),
+        "SageHusa(0.97, adapt_Q)": lambda: SageHusa(0.97, 1.0, 1e4, adapt_Q=True),
+        "VariationalAdaptive(3)": lambda: VariationalAdaptive(iterations=3),
+    }
+
+
+def bench_policy_steps(
+    truth: Any,
+    scenario: Any,
+    linearizer: torch.nn.Module,
+    *,
+    dtype: torch.dtype,
+    repeats: int,
+) -> list[tuple[str, float, float]]:
+    """(name, median, best) trajectory-steps/s of the TAN step with each update policy.
+
+    The quality policies get per-epoch altimeter indicators (roughness, height above
+    ground, lock; drawn once, outside the timing) through ``set_quality`` before each
+    step. The plain step is timed first and again last; its faster median is the
+    reference (the machine is shared).
+    """
+    from neuralmap.filters.ekf import BatchedEKF
+    from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+
+    n, k_steps = truth.n_runs, truth.n_steps
+    ins_pos = truth.ins_pos.to(dtype)
+    radar = truth.radar.to(dtype)
+    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype))
+    F = transition_matrix(scenario.dt, dtype=dtype)
+    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype))
+    R = scenario.R_m2 + scenario.fit_variance_m2
+    gen = torch.Generator().manual_seed(1)
+    quality = torch.stack(
+        [
+            20.0 * torch.rand(k_steps + 1, n, generator=gen),
+            torch.full((k_steps + 1, n), 500.0),
+            (torch.rand(k_steps + 1, n, generator=gen) > 0.01).float(),
+        ],
+        dim=-1,
+    ).to(dtype)
+
+    def runner(make: Callable[[], Any]) -> Callable[[], None]:
+        def run() -> None:
+            policy = make()
+            takes_quality = "Quality" in type(policy).__name__ or any(
+                "Quality" in type(p).__name__ for p in getattr(policy, "policies", [])
+            )
+            ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype), p0)
+            with torch.no_grad():
+                for k in range(1, k_steps + 1):
+                    if takes_quality:
+                        policy.set_quality(quality[k])
+                    tan_filter_step(ekf, ins_pos[:, k], radar[:, k], linearizer, F=F, Q=Q,
+                                    R=R, extent=truth.extent, policy=policy)
+
+        return run
+
+    out = []
+    factories = policy_factories()
+    for name, make in factories.items():
+        med, best = _rates(n * k_steps, timed(runner(make), repeats=repeats, warmup=1))
+        out.append((name, med, best))
+    med, best = _rates(n * k_steps, timed(runner(factories["plain EKF"]), repeats=repeats,
+                                          warmup=1))
+    plain = out[0]
+    out[0] = (plain[0], max(plain[1], med), max(plain[2], best))
+    return out
 
 
 def filterpy_tan(
@@ -233,16 +330,15 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
     """
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+    from neuralmap.nav.model import N_STATES, TanModel
+    from neuralmap.nav.tan import tan_filter_step
 
     lin = make_linearizer("bilinear", tile=tile, variance="zero")
     dtype = torch.float64
-    ekf = BatchedEKF(
-        torch.zeros(n_runs, N_STATES, dtype=dtype),
-        torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype)),
-    )
-    F = transition_matrix(scenario.dt, dtype=dtype)
-    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype))
+    model = TanModel.from_scenario(scenario)
+    ekf = BatchedEKF(torch.zeros(n_runs, N_STATES, dtype=dtype), model.filter_prior(dtype=dtype))
+    F = model.transition(dtype=dtype)
+    Q = model.filter_process_noise(dtype=dtype)
     with torch.no_grad():
         for k in range(1, truth.n_steps + 1):
             tan_filter_step(
@@ -252,7 +348,7 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
                 lin,
                 F=F,
                 Q=Q,
-                R=scenario.R_m2 + scenario.fit_variance_m2,
+                R=model.base_R,
                 extent=truth.extent,
             )
     return ekf.x.numpy()
@@ -407,6 +503,24 @@ def run(args: argparse.Namespace) -> list[Row]:
     )
 
     stage("(c) FilterPy + cross-check")
+    if not args.skip_policies:
+        lin = make_linearizer("bilinear", tile=tile, dtype=torch.float32)
+        policy_rows = bench_policy_steps(truth, scenario, lin, dtype=torch.float32,
+                                         repeats=args.repeats)
+        plain_med, plain_best = policy_rows[0][1], policy_rows[0][2]
+        for name, rate, best in policy_rows:
+            rows.append(
+                Row(
+                    "(e) TAN step + policy",
+                    f"{name} (float32)",
+                    rate,
+                    best,
+                    "traj-steps/s",
+                    f"N = {n}, {args.steps} steps; cost {plain_med / rate:.2f}x the plain "
+                    f"step (best repeats: {plain_best / best:.2f}x)",
+                )
+            )
+        stage("(e) policies")
     rows += bench_queries(
         tile, neural, n_points=args.n_queries, n_scipy=args.n_scipy, repeats=args.repeats
     )
@@ -461,6 +575,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats (median)")
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
     parser.add_argument("--runs_dir", default="runs", help="where to look for a trained map")
+    parser.add_argument("--skip_policies", action="store_true", help="skip benchmark (e)")
     args = parser.parse_args(argv)
     if args.quick:
         args.n, args.n_neural, args.n_filterpy = 2000, 1000, 10

@@ -249,7 +249,8 @@ def test_bench_filter_quick(capsys: pytest.CaptureFixture[str]) -> None:
     assert bench.main(argv) == 0
     out = capsys.readouterr().out
     table = [line for line in out.splitlines() if line.startswith("| (")]
-    assert len(table) == 11  # (a) 2, (b) 2, (c) 1, (d) neural + 4 torch grids + scipy
+    # (a) 2, (b) 2, (c) 1, (d) neural + 4 torch grids + scipy, (e) plain + 11 policies
+    assert len(table) == 23
     assert any("FilterPy" in line for line in table) and any("scipy" in line for line in table)
     cross = next(line for line in out.splitlines() if "cross-check" in line)
     assert float(cross.rsplit("=", 1)[1]) < 1e-6  # torch and FilterPy solve the same problem

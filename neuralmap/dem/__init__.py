@@ -1,14 +1,21 @@
 """DEM tiles: the grid container, file readers, sample tiles and synthetic terrain."""
 
-from neuralmap.dem.readers import SAMPLE_NAMES, SUPPORTED_EXTENSIONS, load_tile
+from neuralmap.dem.readers import (
+    PLAUSIBLE_HEIGHT_M,
+    SAMPLE_NAMES,
+    SUPPORTED_EXTENSIONS,
+    load_tile,
+)
 from neuralmap.dem.synthetic import synthetic_tile
-from neuralmap.dem.tile import DemTile, GeoReference
+from neuralmap.dem.tile import DemTile, GeoReference, ProjectedReference
 
 __all__ = [
+    "PLAUSIBLE_HEIGHT_M",
     "SAMPLE_NAMES",
     "SUPPORTED_EXTENSIONS",
     "DemTile",
     "GeoReference",
+    "ProjectedReference",
     "load_tile",
     "synthetic_tile",
 ]

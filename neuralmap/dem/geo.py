@@ -134,15 +134,56 @@ def geographic_grid(
     return spacing, origin_m, geo
 
 
-def looks_geographic(
-    x_first: float, y_first: float, dx: float, dy: float, shape: tuple[int, int]
-) -> bool:
-    """Heuristic: do a grid's coordinates look like lon/lat degrees rather than metres?
+#: Accepted spellings of the two coordinate units of a grid file.
+UNIT_NAMES = {"metres": "metres", "meters": "metres", "metre": "metres", "meter": "metres",
+              "m": "metres", "degrees": "degrees", "degree": "degrees", "deg": "degrees"}
+#: Largest cell size read as degrees (1°); smallest plausible metric cell (1 cm).
+MAX_DEGREE_CELL = 1.0
+MIN_METRE_CELL = 0.01
+#: How to settle the units, for messages.
+UNITS_HINT = (
+    "Say which: load_tile(path, units='metres') or units='degrees' from Python, "
+    "--data.units metres|degrees for train.py, tile_options: {units: metres} in a scenario "
+    "YAML, or put a .prj sidecar (the file's CRS) next to the file."
+)
 
-    Rule: the cell size is at most 0.1 (0.1° ≈ 11 km; a metric DEM with cells ≤ 0.1 m is
-    rare) and the whole node extent lies within longitude ``[-180, 360]`` and latitude
-    ``[-90, 90]``. Projected grids (UTM eastings of 10⁵–10⁶ m) and local metric grids with
-    cells above 0.1 m are metric. Callers override the rule with ``geographic=True/False``.
+
+def canonical_units(units: str | None, where: str) -> str | None:
+    """``"metres"`` / ``"degrees"`` / None from a user spelling, or raises NeuralMapError."""
+    if units is None:
+        return None
+    key = str(units).strip().lower()
+    if key not in UNIT_NAMES:
+        raise NeuralMapError(
+            f"{where}: units must be 'metres' or 'degrees', got {units!r}."
+        )
+    return UNIT_NAMES[key]
+
+
+def decide_units(
+    x_first: float,
+    y_first: float,
+    dx: float,
+    dy: float,
+    shape: tuple[int, int],
+    *,
+    where: str = "grid",
+) -> tuple[str, str]:
+    """Decides from the corner and cell-size ranges whether a grid is in degrees or metres.
+
+    Evidence, together: the grid can be lon/lat degrees only when every node lies within
+    longitude ``[-180, 360]`` and latitude ``[-90, 90]`` and the cell is at most
+    :data:`MAX_DEGREE_CELL` (1°); a metric grid is implausible when its cell is below
+    :data:`MIN_METRE_CELL` (1 cm). So:
+
+    * not possible as degrees → metres (e.g. UTM eastings, or 30 m cells), unless the cell
+      would then be sub-centimetre too: neither reading fits, refused;
+    * possible as degrees and a sub-centimetre cell if metres → degrees (1″ = 0.000278);
+    * possible both ways (e.g. 0.1 m lidar at origin (0, 0) vs 0.1° cells) → refused:
+      the two readings differ by a factor of ~10⁵ in cell size.
+
+    A ``.prj`` sidecar or GeoTIFF CRS, or the caller's ``units``, settles it before this
+    rule is consulted.
 
     Args:
         x_first: x (or lon) of the first node.
@@ -150,27 +191,62 @@ def looks_geographic(
         dx: Cell size along x.
         dy: Cell size along y.
         shape: ``(ny, nx)`` node counts.
+        where: Name of the source, for messages.
 
     Returns:
-        True when the grid is taken as geographic.
+        ``(units, reason)``: ``"metres"`` or ``"degrees"`` and a sentence saying why.
+
+    Raises:
+        NeuralMapError: When both readings are plausible (says how to settle it).
     """
     ny, nx = shape
     x_last = x_first + (nx - 1) * dx
     y_last = y_first + (ny - 1) * dy
-    return bool(
-        max(dx, dy) <= 0.1
-        and -180.0 <= min(x_first, x_last) <= max(x_first, x_last) <= 360.0
-        and -90.0 <= min(y_first, y_last) <= max(y_first, y_last) <= 90.0
+    cell = max(dx, dy)
+    lon_ok = -180.0 <= min(x_first, x_last) and max(x_first, x_last) <= 360.0
+    lat_ok = -90.0 <= min(y_first, y_last) and max(y_first, y_last) <= 90.0
+    if not (lon_ok and lat_ok and cell <= MAX_DEGREE_CELL):
+        why = []
+        if not lon_ok:
+            why.append(f"x {min(x_first, x_last):.6g}..{max(x_first, x_last):.6g} is no longitude")
+        if not lat_ok:
+            why.append(f"y {min(y_first, y_last):.6g}..{max(y_first, y_last):.6g} is no latitude")
+        if cell > MAX_DEGREE_CELL:
+            why.append(f"a cell of {cell:.6g} would be over 1 degree")
+        if min(dx, dy) < MIN_METRE_CELL:
+            raise NeuralMapError(
+                f"{where}: neither metres nor degrees fit: as degrees "
+                + "; ".join(why) + f", and as metres the cells ({dx:.6g} x {dy:.6g}) would be "
+                "sub-centimetre. Check the header (corner and cellsize). " + UNITS_HINT
+            )
+        return "metres", "the coordinates cannot be lon/lat degrees (" + "; ".join(why) + ")"
+    m_lon, m_lat = metres_per_degree(min(max(0.5 * (y_first + y_last), -90.0), 90.0))
+    as_degrees = f"{dx * m_lon:.4g} m x {dy * m_lat:.4g} m cells"
+    if min(dx, dy) < MIN_METRE_CELL:
+        return "degrees", (
+            f"a cell of {min(dx, dy):.6g} would be sub-centimetre in metres, and the nodes fit "
+            f"lon/lat ranges (as degrees: {as_degrees})"
+        )
+    raise NeuralMapError(
+        f"{where}: cannot tell whether the coordinates are metres or degrees: corner "
+        f"({x_first:.6g}, {y_first:.6g}) and cell {dx:.6g} x {dy:.6g} fit both readings "
+        f"(as metres: {dx:.6g} m x {dy:.6g} m cells; as degrees: {as_degrees}) and there is "
+        f"no .prj sidecar. {UNITS_HINT}"
     )
 
 
 __all__ = [
     "EARTH_MODEL",
+    "MAX_DEGREE_CELL",
+    "MIN_METRE_CELL",
+    "UNITS_HINT",
+    "UNIT_NAMES",
+    "canonical_units",
+    "decide_units",
     "WGS84_A",
     "WGS84_E2",
     "WGS84_F",
     "geographic_grid",
     "geographic_reference",
-    "looks_geographic",
     "metres_per_degree",
 ]

@@ -4,7 +4,8 @@ Every reader returns heights in DemTile order (row 0 = south, column 0 = west), 
 and a metric grid spacing. Geographic (lon/lat) sources are projected to metres with the
 equirectangular map of :mod:`neuralmap.dem.geo` (WGS-84 radii of curvature at the tile's
 centre latitude), kept on the tile as ``tile.geo``. Node ``[0, 0]`` sits at ``origin``
-(default ``(0, 0)``; metric ``.asc``/GeoTIFF files keep their own coordinates).
+(default ``(0, 0)``) for every source: metric ``.asc``/GeoTIFF files keep their absolute
+coordinates in ``tile.projected`` only (float32 near a 4e6 m northing rounds to 0.25–0.5 m).
 
 Supported sources:
 
@@ -19,22 +20,31 @@ Supported sources:
                           ``nodata``.
 ``.hgt`` (SRTM)           1″ (3601²) or 3″ (1201²) big-endian int16, −32768 = void, SW corner
                           from the name (``N36W085.hgt``); first row north.
-``.asc`` (ESRI ASCII)     header + rows, first row north, ``NODATA_value`` → void.
+``.asc`` (ESRI ASCII)     header + rows, first row north, ``NODATA_value`` → void; units
+                          from ``units``, a ``.prj`` sidecar or the value ranges.
 ``.tif`` / ``.tiff``      single-band GeoTIFF via rasterio (``pip install 'neuralmap[geotiff]'``).
 ========================  =================================================================
 """
 
 from __future__ import annotations
 
+import dataclasses
+import errno
 import math
+import os
 import re
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from neuralmap.dem.geo import geographic_grid, geographic_reference, looks_geographic
-from neuralmap.dem.tile import DemTile, broadcast_pair
+from neuralmap.dem.geo import (
+    canonical_units,
+    decide_units,
+    geographic_grid,
+    geographic_reference,
+)
+from neuralmap.dem.tile import DemTile, ProjectedReference, broadcast_pair
 from neuralmap.exceptions import NeuralMapError
 
 #: Built-in tile names accepted by :func:`load_tile` (see :mod:`neuralmap.dem.samples`).
@@ -49,7 +59,15 @@ HGT_VOID = -32768
 HGT_SIZES = {3601: 1, 1201: 3}
 
 _HGT_NAME_RE = re.compile(r"^([NS])(\d{1,2})([EW])(\d{1,3})", re.IGNORECASE)
-_SPACING_HINT = "Pass the grid spacing in metres: load_tile(path, spacing=30) or --data.spacing 30."
+_SPACING_HINT = (
+    "Pass the grid spacing in metres: load_tile(path, spacing=30) from Python, "
+    "--data.spacing 30 for train.py, or tile_options: {spacing: 30} in a scenario YAML."
+)
+#: Heights (metres) outside this range are not Earth terrain: the deepest ocean trench is
+#: about -10 935 m (Challenger Deep), the highest summit 8 849 m (Everest).
+PLAUSIBLE_HEIGHT_M = (-12_000.0, 9_000.0)
+#: What :func:`load_tile` does with heights outside :data:`PLAUSIBLE_HEIGHT_M`.
+HEIGHT_CHECKS = ("refuse", "void", "off")
 
 
 def load_tile(
@@ -59,9 +77,23 @@ def load_tile(
     origin: tuple[float, float] | None = None,
     name: str | None = None,
     geographic: bool | None = None,
+    units: str | None = None,
+    nodata: float | list[float] | None = None,
+    height_check: str = "refuse",
     **options: Any,
 ) -> DemTile:
     """Loads a sample tile by name or a DEM file by path (reader chosen by extension).
+
+    Every tile is in a tile-local metric frame: node ``[0, 0]`` at ``origin`` (default
+    ``(0, 0)``). Geographic sources keep their lon/lat conversion in ``tile.geo``; metric
+    files with their own coordinates (UTM eastings/northings) keep them in
+    ``tile.projected`` as metadata, never in the float32 training coordinates.
+
+    Heights are screened after reading: values equal to ``nodata`` (compared at float32
+    precision, as grids are stored) become voids, and heights outside
+    :data:`PLAUSIBLE_HEIGHT_M` (−12 000 … +9 000 m, and ±inf) are refused
+    (``height_check="refuse"``, the default: the message counts them and names the fix),
+    voided and counted (``"void"``: ``meta["n_implausible"]``), or kept (``"off"``).
 
     Args:
         name_or_path: A sample name (:data:`SAMPLE_NAMES`, case-insensitive; ``"synthetic"``
@@ -70,13 +102,18 @@ def load_tile(
         spacing: ``(dx, dy)`` or one value, metres. Required for generic ``.npy``/``.npz``
             grids, optional for ``"synthetic"``; refused for sources that carry their own
             georeferencing (the two could disagree).
-        origin: Metric ``(x0, y0)`` of node ``[0, 0]`` (the south-west node). Default
-            ``(0, 0)``, except metric ``.asc``/GeoTIFF files, which keep their own
-            coordinates of that node.
+        origin: Tile-frame ``(x0, y0)`` metres of node ``[0, 0]`` (the south-west node),
+            default ``(0, 0)`` for every source. A metric file's own coordinates of that
+            node are kept in ``tile.projected`` (``to_projected``/``to_tile`` convert).
         name: Tile name; defaults to the sample name or the file stem.
-        geographic: For ``.asc`` and GeoTIFF without a CRS: True = coordinates are lon/lat
-            degrees, False = metres, None = decide (``.prj`` sidecar, else
-            :func:`neuralmap.dem.geo.looks_geographic`).
+        geographic: Older spelling of ``units``: True = ``"degrees"``, False = ``"metres"``.
+        units: For ``.asc`` and GeoTIFF without a CRS: ``"metres"`` or ``"degrees"``;
+            None = decide from the ``.prj`` sidecar, else from the corner and cell-size
+            ranges (:func:`neuralmap.dem.geo.decide_units`, which refuses ambiguous grids).
+            The decision and its reason are in ``meta["units"]``/``meta["units_reason"]``.
+        nodata: Extra no-data value(s) for any format (e.g. ``-32768`` for an int16
+            ``.npy`` with SRTM voids), on top of the file's own.
+        height_check: ``"refuse"``, ``"void"`` or ``"off"`` for implausible heights.
         **options: For ``"synthetic"`` only: ``shape``, ``seed``, ``relief``, ``hurst`` of
             :func:`neuralmap.dem.synthetic_tile`.
 
@@ -88,14 +125,40 @@ def load_tile(
         NeuralMapError: Missing file, unknown extension, missing or malformed content,
             wrong array rank, bad spacing, an all-void tile, options that do not apply.
     """
+    if not isinstance(name_or_path, (str, os.PathLike)):
+        raise NeuralMapError(
+            f"load_tile: name_or_path must be a sample name or a file path, got "
+            f"{type(name_or_path).__name__} {name_or_path!r}."
+        )
     if origin is not None:
         origin = as_pair(origin, "origin", str(name_or_path), positive=False)
+    where_call = f"load_tile('{name_or_path}')"
+    units = canonical_units(units, where_call)
+    if geographic is not None:
+        implied = "degrees" if geographic else "metres"
+        if units is not None and units != implied:
+            raise NeuralMapError(
+                f"{where_call}: geographic={geographic} and units={units!r} disagree; "
+                "give only units."
+            )
+        units = implied
+    if height_check not in HEIGHT_CHECKS:
+        raise NeuralMapError(
+            f"{where_call}: height_check must be one of {HEIGHT_CHECKS}, got {height_check!r}."
+        )
+    nodata_values = _nodata_values(nodata, where_call)
     text = str(name_or_path).strip()
-    if not Path(text).exists():
+    if not Path(text).exists() and not Path(text).is_symlink():
         from neuralmap.dem.samples import is_sample_name, load_sample
 
         if is_sample_name(text):
-            return load_sample(text, spacing=spacing, origin=origin, name=name, **options)
+            if units is not None:
+                raise NeuralMapError(
+                    f"sample '{text}': units apply to .asc and GeoTIFF files only; remove "
+                    "units (--data.units) for samples."
+                )
+            tile = load_sample(text, spacing=spacing, origin=origin, name=name, **options)
+            return screen_heights(tile, nodata=nodata_values, height_check=height_check)
     if options:
         raise NeuralMapError(
             f"load_tile('{text}'): options {sorted(options)} apply only to the 'synthetic' "
@@ -109,6 +172,7 @@ def load_tile(
             f"Supported extensions: {', '.join(SUPPORTED_EXTENSIONS)}; sample names: "
             f"{', '.join(SAMPLE_NAMES)}."
         )
+    _check_symlink(path)
     if not path.exists():
         raise NeuralMapError(
             f"DEM file not found: '{path}' (working directory {Path.cwd()}). Give an existing "
@@ -120,17 +184,24 @@ def load_tile(
     tile_name = name if name is not None else path.stem
     try:
         if suffix == ".npz":
-            return _read_npz(path, spacing=spacing, origin=origin, name=tile_name)
-        if suffix == ".npy":
-            return _read_npy(path, spacing=spacing, origin=origin, name=tile_name)
-        if suffix == ".hgt":
+            tile = _read_npz(path, spacing=spacing, origin=origin, name=tile_name)
+        elif suffix == ".npy":
+            tile = _read_npy(path, spacing=spacing, origin=origin, name=tile_name)
+        elif suffix == ".hgt":
             reject_spacing(spacing, f"SRTM file '{path}'")
-            return read_hgt(path, origin=origin, name=tile_name)
-        if suffix == ".asc":
+            tile = read_hgt(path, origin=origin, name=tile_name)
+        elif suffix == ".asc":
             reject_spacing(spacing, f"ESRI ASCII file '{path}'")
-            return read_asc(path, origin=origin, name=tile_name, geographic=geographic)
-        reject_spacing(spacing, f"GeoTIFF '{path}'")
-        return read_geotiff(path, origin=origin, name=tile_name, geographic=geographic)
+            tile = read_asc(path, origin=origin, name=tile_name, units=units)
+        else:
+            reject_spacing(spacing, f"GeoTIFF '{path}'")
+            tile = read_geotiff(path, origin=origin, name=tile_name, units=units)
+        if units is not None and tile.meta.get("units", units) != units:
+            raise NeuralMapError(
+                f"DEM file '{path}': a {suffix} file is in {tile.meta['units']} by its format, "
+                f"so units={units!r} does not apply; remove units (--data.units)."
+            )
+        return screen_heights(tile, nodata=nodata_values, height_check=height_check)
     except NeuralMapError:
         raise
     except (OSError, ValueError, KeyError, EOFError, MemoryError) as exc:
@@ -151,6 +222,129 @@ def as_pair(value: Any, what: str, where: str, *, positive: bool) -> tuple[float
         hint = f" {_SPACING_HINT}" if positive else ""
         raise NeuralMapError(f"{where}: {what} must be {need}, got {value!r}.{hint}")
     return pair
+
+
+def _check_symlink(path: Path) -> None:
+    """Refuses a dangling symbolic link or a link loop with that diagnosis (not "not found")."""
+    if not path.is_symlink() and path.exists():
+        return
+    try:
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise NeuralMapError(
+                f"DEM path '{path}' is a symbolic link loop (the link points, directly or "
+                "through other links, back to itself); point it at the real file."
+            ) from None
+        if path.is_symlink():
+            raise NeuralMapError(
+                f"DEM path '{path}' is a dangling symbolic link to '{os.readlink(path)}', "
+                "which does not exist; fix the link or give the file itself."
+            ) from None
+
+
+def _nodata_values(nodata: Any, where: str) -> tuple[float, ...]:
+    """The caller's no-data value(s) as a tuple of floats (empty when None)."""
+    if nodata is None:
+        return ()
+    try:
+        values = tuple(float(v) for v in np.atleast_1d(np.asarray(nodata, dtype=np.float64)))
+    except (TypeError, ValueError) as exc:
+        raise NeuralMapError(
+            f"{where}: nodata must be a number or a list of numbers, got {nodata!r}."
+        ) from exc
+    if any(math.isnan(v) for v in values):
+        raise NeuralMapError(f"{where}: nodata NaN is meaningless (NaN is always void).")
+    return values
+
+
+def nodata_mask(values: np.ndarray, nodata: float) -> np.ndarray:
+    """Cells equal to a no-data value, compared at the precision grids are stored in.
+
+    A cell matches when it equals ``nodata`` exactly or when both round to the same float32
+    (GDAL writes the float32 minimum as ``-3.4028234663852886e+38`` in the header and as
+    ``-3.4028235e+38`` in the cells: the same float32, different float64 values).
+
+    Args:
+        values: Heights, any shape (float64).
+        nodata: The no-data value.
+
+    Returns:
+        Bool mask of the same shape.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    mask = values == nodata
+    with np.errstate(over="ignore", invalid="ignore"):
+        nodata32 = np.float32(nodata)
+        if np.isfinite(nodata32):
+            mask |= values.astype(np.float32) == nodata32
+    return mask
+
+
+def screen_heights(
+    tile: DemTile, *, nodata: tuple[float, ...] = (), height_check: str = "refuse"
+) -> DemTile:
+    """Applies extra no-data values and the plausible-height check to a loaded tile.
+
+    Args:
+        tile: The tile as read (``meta["n_nonfinite"]`` counts ±inf cells the reader saw).
+        nodata: Extra no-data values (see :func:`nodata_mask`).
+        height_check: ``"refuse"``, ``"void"`` or ``"off"`` (see :func:`load_tile`).
+
+    Returns:
+        The tile, or a copy with the new voids and ``meta`` counts
+        (``n_nodata_option``, ``n_implausible``, ``height_check``).
+
+    Raises:
+        NeuralMapError: Implausible heights with ``"refuse"``, or no valid node left.
+    """
+    heights = tile.heights
+    where = f"DEM '{tile.source or tile.name}'"
+    meta = dict(tile.meta)
+    n_nodata = 0
+    for value in nodata:
+        mask = nodata_mask(heights, value) & np.isfinite(heights)
+        if mask.any():
+            heights = heights.copy() if heights is tile.heights else heights
+            heights[mask] = np.nan
+            n_nodata += int(mask.sum())
+    if nodata:
+        meta["nodata_option"] = list(nodata)
+        meta["n_nodata_option"] = n_nodata
+    lo, hi = PLAUSIBLE_HEIGHT_M
+    n_inf = int(meta.get("n_nonfinite", 0))
+    bad = np.isfinite(heights) & ((heights < lo) | (heights > hi))
+    n_bad = int(bad.sum()) + n_inf
+    meta["height_check"] = height_check
+    if n_bad and height_check != "off":
+        if height_check == "refuse":
+            sample = heights[bad][:3].tolist() + (["inf"] if n_inf else [])
+            total = int(np.isfinite(heights).sum()) + n_inf
+            raise NeuralMapError(
+                f"{where}: {n_bad} of {total} heights lie outside {lo:.0f} … {hi:.0f} m (e.g. "
+                f"{', '.join(f'{v:.6g}' if isinstance(v, float) else v for v in sample)}), "
+                "which is not Earth terrain: an undeclared no-data sentinel, or heights not in "
+                "metres. Declare the sentinel (load_tile(..., nodata=VALUE), --data.nodata "
+                "VALUE, tile_options: {nodata: VALUE}), or void such heights with "
+                "height_check='void' (--data.height_check void), or keep them with "
+                "height_check='off'."
+            )
+        heights = heights.copy() if heights is tile.heights else heights
+        heights[bad] = np.nan
+        meta["n_implausible"] = n_bad
+        meta["implausible_note"] = (
+            f"{n_bad} height(s) outside {lo:.0f} … {hi:.0f} m voided (height_check='void')"
+        )
+    if not (n_nodata or (n_bad and height_check == "void")):
+        tile.meta = meta
+        return tile
+    if not np.isfinite(heights).any():
+        raise NeuralMapError(
+            f"{where}: every node is void after screening ({n_nodata} no-data value(s) from "
+            f"the nodata option, {n_bad} implausible height(s) voided); there is nothing to "
+            "fit. Check the no-data value or pick another tile."
+        )
+    return dataclasses.replace(tile, heights=heights, meta=meta)
 
 
 def reject_spacing(spacing: Any, where: str) -> None:
@@ -188,8 +382,11 @@ def _make_tile(
     source: str,
     geo: Any = None,
     meta: dict[str, Any] | None = None,
+    projected: ProjectedReference | None = None,
 ) -> DemTile:
-    """Builds the tile (DemTile validates shape, spacing and voids)."""
+    """Builds the tile (DemTile validates shape, spacing and voids; ±inf cells counted)."""
+    meta = dict(meta or {})
+    meta["n_nonfinite"] = int(np.isinf(heights).sum())
     return DemTile(
         heights=heights,
         spacing=spacing,
@@ -197,7 +394,8 @@ def _make_tile(
         name=name,
         geo=geo,
         source=source,
-        meta=meta or {},
+        meta=meta,
+        projected=projected,
     )
 
 
@@ -298,14 +496,15 @@ def _generic_grid(
         )
     spacing_pair = as_pair(spacing, "spacing", where, positive=True)
     if nodata is not None:
-        heights = np.where(heights == nodata, np.nan, heights)
+        heights = np.where(nodata_mask(heights, nodata), np.nan, heights)
     return _make_tile(
         heights,
         spacing=spacing_pair,
         origin=origin,
         name=name,
         source=source,
-        meta={"format": fmt, "row0": "south (stored order)", "nodata": nodata},
+        meta={"format": fmt, "row0": "south (stored order)", "nodata": nodata,
+              "units": "metres", "units_reason": "a plain array grid: spacing given in metres"},
     )
 
 
@@ -368,6 +567,8 @@ def read_matplotlib_arrays(
         geo=geo,
         meta={
             "format": "matplotlib-npz",
+            "units": "degrees",
+            "units_reason": "a matplotlib-style .npz stores lon/lat bounds in degrees",
             "row0": "south (file rows flipped: first file row is north)",
             "lon_range": [lon_w, lon_e],
             "lat_range": [lat_s, lat_n],
@@ -459,6 +660,8 @@ def read_hgt(
         geo=geo,
         meta={
             "format": "srtm-hgt",
+            "units": "degrees",
+            "units_reason": "SRTM .hgt tiles are 1 degree x 1 degree lon/lat grids",
             "arcsec": HGT_SIZES[side],
             "sw_corner_deg": [lat_sw, lon_sw],
             "row0": "south (file rows flipped: first file row is north)",
@@ -475,16 +678,72 @@ _ASC_KEYS = {
 }
 
 
-def _prj_geographic(path: Path) -> bool | None:
-    """Reads a ``.prj`` sidecar: True for GEOGCS only, False for PROJCS, None if absent."""
+def _prj_units(path: Path) -> tuple[str | None, str | None]:
+    """Reads a ``.prj`` sidecar: (``"metres"`` for PROJCS / ``"degrees"`` for GEOGCS only /
+    None, the CRS name or None)."""
     for candidate in (path.with_suffix(".prj"), path.with_suffix(".PRJ")):
         if candidate.is_file():
-            text = candidate.read_text(errors="replace").upper()
-            if "PROJCS" in text:
-                return False
-            if "GEOGCS" in text or "GEOGCRS" in text:
-                return True
-    return None
+            text = candidate.read_text(errors="replace")
+            upper = text.upper()
+            name_match = re.search(r'(?:PROJCS|PROJCRS|GEOGCS|GEOGCRS)\s*\[\s*"([^"]*)"', text,
+                                   re.IGNORECASE)
+            name = name_match.group(1) if name_match else None
+            if "PROJCS" in upper or "PROJCRS" in upper:
+                return "metres", name
+            if "GEOGCS" in upper or "GEOGCRS" in upper:
+                return "degrees", name
+    return None, None
+
+
+def _decide_units(
+    given: str | None,
+    declared: tuple[str | None, str],
+    x_first: float,
+    y_first: float,
+    dx: float,
+    dy: float,
+    shape: tuple[int, int],
+    where: str,
+) -> tuple[str, str]:
+    """Caller's units, else the file's declaration (.prj / CRS), else the value ranges."""
+    if given is not None:
+        return given, "given by the caller (units / --data.units)"
+    if declared[0] is not None:
+        return declared[0], declared[1]
+    return decide_units(x_first, y_first, dx, dy, shape, where=where)
+
+
+def _header_int(header: dict[str, str], key: str, where: str) -> int:
+    """An ESRI ASCII count (``ncols``/``nrows``): a whole number, ``4`` or ``4.0``."""
+    text = header[key]
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value == int(value)):
+        raise NeuralMapError(
+            f"{where}: malformed header value '{key} {text}': it must be a whole number of "
+            f"cells (e.g. {key} 400)."
+        )
+    return int(value)
+
+
+def _read_text_ascii(path: Path, where: str) -> list[str]:
+    """The file's lines; a non-UTF-8 byte is reported with its line and byte position."""
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise NeuralMapError(f"{where} could not be read ({exc.strerror or exc}).") from exc
+    try:
+        return data.decode("utf-8").splitlines()
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise NeuralMapError(
+            f"{where}: byte 0x{data[exc.start]:02x} at line {line} (byte offset {exc.start}) "
+            "is not text: an ESRI ASCII grid holds only ASCII header keys and numbers. The file "
+            "is binary, damaged, or in another encoding; re-export it as ESRI ASCII (gdal_translate "
+            "-of AAIGrid)."
+        ) from None
 
 
 def read_asc(
@@ -492,6 +751,7 @@ def read_asc(
     *,
     origin: tuple[float, float] | None = None,
     name: str | None = None,
+    units: str | None = None,
     geographic: bool | None = None,
 ) -> DemTile:
     """Reads an ESRI ASCII grid (``.asc``).
@@ -499,34 +759,37 @@ def read_asc(
     Header keys (case-insensitive): ``ncols``, ``nrows``, ``xllcorner``|``xllcenter``,
     ``yllcorner``|``yllcenter``, ``cellsize`` (or ``dx`` and ``dy``), optional
     ``NODATA_value``. Data rows follow, the first row north. With ``*llcorner`` the values
-    are cell centres, so the south-west node lies half a cell inside the corner.
+    are cell centres, so the south-west node lies half a cell inside the corner. Cells equal
+    to ``NODATA_value`` at float32 precision are voids (:func:`nodata_mask`).
 
-    Coordinates are metres unless geographic: ``geographic`` decides when given; otherwise a
-    ``.prj`` sidecar with ``GEOGCS`` and no ``PROJCS`` means degrees, one with ``PROJCS``
-    means metres, and without a sidecar :func:`neuralmap.dem.geo.looks_geographic` applies
-    (cell ≤ 0.1 and extent within lon/lat bounds). Heights are taken as metres.
+    Units of the coordinates, in order of evidence: ``units`` from the caller; a ``.prj``
+    sidecar (``PROJCS`` = metres, ``GEOGCS`` only = degrees); otherwise the corner and
+    cell-size ranges together (:func:`neuralmap.dem.geo.decide_units`), which refuse a grid
+    that fits both readings. ``meta["units"]`` and ``meta["units_reason"]`` say which and
+    why. Heights are taken as metres.
 
     Args:
         path: The ``.asc`` file.
-        origin: Metric coordinates of the south-west node. Default: for a metric grid the
-            file's own coordinates of that node (a projected grid keeps its
-            eastings/northings; also in ``meta["first_node"]``), for a geographic grid
-            ``(0, 0)``.
+        origin: Tile-frame coordinates of the south-west node (default ``(0, 0)``). A metric
+            grid's own coordinates of that node are kept in ``tile.projected`` (and
+            ``meta["first_node"]``), not in the tile frame.
         name: Tile name (default: file stem).
-        geographic: True/False to override the unit rule above.
+        units: ``"metres"`` or ``"degrees"`` to settle the units.
+        geographic: Older spelling of ``units`` (True = degrees).
 
     Returns:
-        The tile (``geo`` set when geographic).
+        The tile (``geo`` set when geographic, ``projected`` when metric).
 
     Raises:
-        NeuralMapError: Malformed header, wrong number of values, bad cell size, all-void.
+        NeuralMapError: Malformed header, wrong number of values, bad cell size, ambiguous
+            units, all-void.
     """
     path = Path(path)
     where = f"ESRI ASCII file '{path}'"
-    try:
-        lines = path.read_text(errors="strict").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise NeuralMapError(f"{where} could not be read as text ({exc}).") from exc
+    units = canonical_units(units, where)
+    if geographic is not None and units is None:
+        units = "degrees" if geographic else "metres"
+    lines = _read_text_ascii(path, where)
     header: dict[str, str] = {}
     body_start = 0
     for index, line in enumerate(lines):
@@ -556,11 +819,17 @@ def read_asc(
             f"{', '.join(sorted(header)) or 'no header keys'}). An ESRI ASCII grid starts with "
             "ncols, nrows, xllcorner, yllcorner, cellsize and optional NODATA_value lines."
         )
-    try:
-        ncols, nrows = int(header["ncols"]), int(header["nrows"])
-        numbers = {k: float(v) for k, v in header.items() if k not in ("ncols", "nrows")}
-    except ValueError as exc:
-        raise NeuralMapError(f"{where}: malformed header value ({exc}).") from exc
+    ncols, nrows = _header_int(header, "ncols", where), _header_int(header, "nrows", where)
+    numbers: dict[str, float] = {}
+    for key, text in header.items():
+        if key in ("ncols", "nrows"):
+            continue
+        try:
+            numbers[key] = float(text)
+        except ValueError:
+            raise NeuralMapError(
+                f"{where}: malformed header value '{key} {text}': it must be a number."
+            ) from None
     if ncols < 2 or nrows < 2:
         raise NeuralMapError(f"{where}: ncols and nrows must be ≥ 2, got {ncols} x {nrows}.")
     if "cellsize" in numbers:
@@ -589,38 +858,60 @@ def read_asc(
         )
     grid = values.reshape(nrows, ncols)
     nodata = numbers.get("nodata_value")
+    n_nodata = 0
     if nodata is not None:
-        grid = np.where(grid == nodata, np.nan, grid)
+        mask = nodata_mask(grid, nodata)
+        n_nodata = int(mask.sum())
+        grid = np.where(mask, np.nan, grid)
     heights = np.flipud(grid)
-    if geographic is None:
-        geographic = _prj_geographic(path)
-        rule = "prj sidecar" if geographic is not None else "heuristic"
-        if geographic is None:
-            geographic = looks_geographic(x_first, y_first, dx, dy, (nrows, ncols))
-    else:
-        rule = "caller"
+    prj_units, crs = _prj_units(path)
+    kind = "a projected" if prj_units == "metres" else "a geographic"
+    declared = (prj_units, f"the .prj sidecar names {kind} CRS ({crs})")
+    decided, reason = _decide_units(
+        units, declared, x_first, y_first, dx, dy, (nrows, ncols), where
+    )
     meta = {
         "format": "esri-ascii",
         "nodata": nodata,
+        "n_nodata": n_nodata,
         "row0": "south (file rows flipped: first file row is north)",
-        "units": "degrees" if geographic else "metres",
-        "units_rule": rule,
+        "units": decided,
+        "units_reason": reason,
         "first_node": [x_first, y_first],
     }
-    if geographic:
+    return _grid_tile(heights, x_first, y_first, dx, dy, decided, origin=origin,
+                      name=name or path.stem, source=str(path), meta=meta, crs=crs, where=where)
+
+
+def _grid_tile(
+    heights: np.ndarray,
+    x_first: float,
+    y_first: float,
+    dx: float,
+    dy: float,
+    units: str,
+    *,
+    origin: tuple[float, float] | None,
+    name: str,
+    source: str,
+    meta: dict[str, Any],
+    crs: str | None,
+    where: str,
+) -> DemTile:
+    """A georeferenced grid in the tile-local frame (geographic or projected reference)."""
+    ny, nx = heights.shape
+    if units == "degrees":
         spacing, origin_m, geo = geographic_grid(
-            x_first, y_first, dx, dy, (nrows, ncols), origin=origin, where=where
+            x_first, y_first, dx, dy, (ny, nx), origin=origin, where=where
         )
-        return _make_tile(heights, spacing=spacing, origin=origin_m, name=name or path.stem,
-                          source=str(path), geo=geo, meta=meta)
-    return _make_tile(
-        heights,
-        spacing=(dx, dy),
-        origin=(x_first, y_first) if origin is None else origin,
-        name=name or path.stem,
-        source=str(path),
-        meta=meta,
+        return _make_tile(heights, spacing=spacing, origin=origin_m, name=name, source=source,
+                          geo=geo, meta=meta)
+    local = (0.0, 0.0) if origin is None else origin
+    projected = ProjectedReference(
+        x_offset=float(x_first) - local[0], y_offset=float(y_first) - local[1], crs=crs
     )
+    return _make_tile(heights, spacing=(dx, dy), origin=local, name=name, source=source,
+                      meta=meta, projected=projected)
 
 
 # --------------------------------------------------------------------------- GeoTIFF
@@ -631,22 +922,26 @@ def read_geotiff(
     *,
     origin: tuple[float, float] | None = None,
     name: str | None = None,
+    units: str | None = None,
     geographic: bool | None = None,
 ) -> DemTile:
     """Reads band 1 of a north-up GeoTIFF through rasterio (optional dependency).
 
     Pixels are areas (GDAL convention): node centres lie half a pixel inside the bounds.
-    The CRS decides degrees vs metres (``crs.is_geographic``); without a CRS, ``geographic``
-    or :func:`neuralmap.dem.geo.looks_geographic` decides. The band's no-data value and
-    mask become NaN. Origin defaults follow :func:`read_asc` (metric: the file's own
-    coordinates of the south-west node centre; geographic: ``(0, 0)``).
+    The CRS decides degrees vs metres (``crs.is_geographic``); without a CRS, ``units`` or
+    the value ranges (:func:`neuralmap.dem.geo.decide_units`) decide. The band's no-data
+    value and mask become NaN. The frame is tile-local as for :func:`read_asc` (absolute
+    coordinates of a metric file in ``tile.projected``).
 
     Raises:
         NeuralMapError: rasterio missing (says how to install it), rotated or sheared
-            transform, unreadable file, all-void tile.
+            transform, unreadable file, ambiguous units, all-void tile.
     """
     path = Path(path)
     where = f"GeoTIFF '{path}'"
+    units = canonical_units(units, where)
+    if geographic is not None and units is None:
+        units = "degrees" if geographic else "metres"
     try:
         import rasterio
     except ImportError as exc:
@@ -660,6 +955,7 @@ def read_geotiff(
             band = src.read(1, masked=True)
             transform = src.transform
             crs = src.crs
+            file_nodata = src.nodata
     except Exception as exc:  # rasterio raises its own RasterioIOError and friends
         raise NeuralMapError(f"{where} could not be read by rasterio ({exc}).") from exc
     if transform.b != 0 or transform.d != 0:
@@ -668,6 +964,8 @@ def read_geotiff(
             "warp it to a north-up grid first (gdalwarp)."
         )
     heights = np.ma.filled(band.astype(np.float64), np.nan)
+    if file_nodata is not None and not math.isnan(file_nodata):
+        heights[nodata_mask(heights, float(file_nodata))] = np.nan
     dx, dy_signed = float(transform.a), float(transform.e)
     nrows, ncols = heights.shape
     if dy_signed < 0:  # north-up: first row north
@@ -677,37 +975,35 @@ def read_geotiff(
         y_first = float(transform.f) + 0.5 * dy_signed
     dy = abs(dy_signed)
     x_first = float(transform.c) + 0.5 * dx
-    if geographic is None:
-        if crs is not None:
-            geographic, rule = bool(crs.is_geographic), "crs"
-        else:
-            geographic = looks_geographic(x_first, y_first, dx, dy, (nrows, ncols))
-            rule = "heuristic"
+    if crs is not None:
+        crs_units = "degrees" if crs.is_geographic else "metres"
+        declared = (crs_units, f"the GeoTIFF CRS {crs} is "
+                    f"{'geographic' if crs.is_geographic else 'projected'}")
     else:
-        rule = "caller"
+        declared = (None, "")
+    decided, reason = _decide_units(units, declared, x_first, y_first, dx, dy,
+                                    (nrows, ncols), where)
     meta = {"format": "geotiff", "crs": None if crs is None else str(crs),
-            "units": "degrees" if geographic else "metres", "units_rule": rule}
-    if geographic:
-        spacing, origin_m, geo = geographic_grid(
-            x_first, y_first, dx, dy, (nrows, ncols), origin=origin, where=where
-        )
-        return _make_tile(heights, spacing=spacing, origin=origin_m, name=name or path.stem,
-                          source=str(path), geo=geo, meta=meta)
-    meta["first_node"] = [x_first, y_first]
-    return _make_tile(heights, spacing=(dx, dy),
-                      origin=(x_first, y_first) if origin is None else origin,
-                      name=name or path.stem, source=str(path), meta=meta)
+            "nodata": file_nodata, "units": decided, "units_reason": reason,
+            "first_node": [x_first, y_first]}
+    return _grid_tile(heights, x_first, y_first, dx, dy, decided, origin=origin,
+                      name=name or path.stem, source=str(path), meta=meta,
+                      crs=None if crs is None else str(crs), where=where)
 
 
 __all__ = [
     "HGT_SIZES",
+    "HEIGHT_CHECKS",
     "HGT_VOID",
+    "PLAUSIBLE_HEIGHT_M",
     "geographic_reference",
     "MATPLOTLIB_NPZ_KEYS",
     "SAMPLE_NAMES",
     "SUPPORTED_EXTENSIONS",
     "as_pair",
     "load_tile",
+    "nodata_mask",
+    "screen_heights",
     "parse_hgt_name",
     "read_matplotlib_arrays",
     "read_asc",

@@ -81,6 +81,42 @@ class GeoReference:
         }
 
 
+@dataclass(frozen=True)
+class ProjectedReference:
+    """Where a metric (projected) tile sits in its source coordinate system.
+
+    Tiles work in a tile-local frame (node ``[0, 0]`` near ``(0, 0)``): float32 coordinates
+    near a UTM northing of 4e6 m round to 0.25–0.5 m, which is larger than the slope
+    signal a terrain-aided filter lives on. The file's absolute coordinates are kept here
+    as metadata only: ``easting = x_offset + x`` and ``northing = y_offset + y`` for
+    tile-frame ``(x, y)``, in float64.
+
+    Attributes:
+        x_offset: Source-system x (easting) of the tile-frame point ``(0, 0)``, metres.
+        y_offset: Source-system y (northing) of the tile-frame point ``(0, 0)``, metres.
+        crs: The source coordinate reference system as text (``.prj`` WKT name, GeoTIFF
+            CRS), or ``None`` when the file names none.
+    """
+
+    x_offset: float
+    y_offset: float
+    crs: str | None = None
+
+    def to_projected(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Tile-frame metres to the file's absolute coordinates (float64, any shapes)."""
+        return (np.asarray(x, dtype=np.float64) + self.x_offset,
+                np.asarray(y, dtype=np.float64) + self.y_offset)
+
+    def to_tile(self, easting: np.ndarray, northing: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The file's absolute coordinates to tile-frame metres; inverse of ``to_projected``."""
+        return (np.asarray(easting, dtype=np.float64) - self.x_offset,
+                np.asarray(northing, dtype=np.float64) - self.y_offset)
+
+    def describe(self) -> dict[str, Any]:
+        """JSON-serialisable summary (all fields)."""
+        return {"x_offset": self.x_offset, "y_offset": self.y_offset, "crs": self.crs}
+
+
 @dataclass
 class DemTile:
     """Heights on a regular grid in a local east-north metric frame.
@@ -95,6 +131,10 @@ class DemTile:
         name: Short name used in run folders and map exports.
         geo: The geographic-to-metric conversion, when the source was geographic.
         source: Where the tile came from (path or sample name).
+        meta: Reader details (format, no-data value, units decision and its reason, ...).
+        projected: The absolute (projected) position of the tile frame, when the source was
+            a metric grid with its own coordinates (kept as metadata; the tile frame stays
+            local).
     """
 
     heights: np.ndarray
@@ -104,6 +144,7 @@ class DemTile:
     geo: GeoReference | None = None
     source: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
+    projected: ProjectedReference | None = None
 
     def __post_init__(self) -> None:
         heights = np.asarray(self.heights, dtype=np.float64)
@@ -121,7 +162,8 @@ class DemTile:
         if not all(np.isfinite(s) and s > 0 for s in spacing):
             raise NeuralMapError(
                 f"{where}: grid spacing must be finite and > 0 metres, got {spacing}. "
-                "Set it in the reader options (e.g. --data.spacing 30)."
+                "Set it in the reader options: load_tile(path, spacing=30), --data.spacing 30 "
+                "for train.py, or tile_options: {spacing: 30} in a scenario YAML."
             )
         origin = tuple(float(o) for o in np.broadcast_to(np.asarray(self.origin, float), (2,)))
         if not all(np.isfinite(o) for o in origin):
@@ -159,6 +201,48 @@ class DemTile:
         dx, dy = self.spacing
         return (x0, x0 + (nx - 1) * dx, y0, y0 + (ny - 1) * dy)
 
+    @property
+    def georeference(self) -> GeoReference | ProjectedReference | None:
+        """Where the tile frame lies on Earth: ``geo`` (lon/lat sources) or ``projected``."""
+        return self.geo if self.geo is not None else self.projected
+
+    def void_under(self, xy: np.ndarray, *, halo: int = 0) -> np.ndarray:
+        """Whether interpolating the tile at points touches a void node.
+
+        A point inside cell ``(i, j)`` (nodes ``i..i+1``, ``j..j+1``) is over a void when
+        any of the cell's 4 corner nodes is void (what bilinear interpolation reads), or,
+        with ``halo = 1``, any node of the 4 x 4 neighbourhood (what bicubic reads). Points
+        outside the node extent (or not finite) are reported False: off-tile is a
+        separate condition (see ``extent``). Vectorised over any leading shape.
+
+        Args:
+            xy: ``(..., 2)`` tile-frame metres.
+            halo: Extra nodes around the cell (0 = bilinear support, 1 = bicubic).
+
+        Returns:
+            ``(...)`` bool, True where the interpolated height depends on a void node.
+        """
+        xy = np.asarray(xy, dtype=np.float64)
+        if xy.shape[-1:] != (2,):
+            raise NeuralMapError(f"void_under: xy must have shape (..., 2), got {xy.shape}.")
+        if halo < 0:
+            raise NeuralMapError(f"void_under: halo must be >= 0, got {halo}.")
+        ny, nx = self.shape
+        void = ~self.valid_mask
+        # cell (i, j) touches a void when any node in rows i-halo..i+1+halo, cols likewise
+        pad = np.pad(void, halo + 1, constant_values=False)
+        size = 2 + 2 * halo
+        windows = np.lib.stride_tricks.sliding_window_view(pad, (size, size))
+        cell_void = windows.any(axis=(-2, -1))[1 : ny, 1 : nx]  # (ny - 1, nx - 1)
+        u = (xy[..., 0] - self.origin[0]) / self.spacing[0]
+        v = (xy[..., 1] - self.origin[1]) / self.spacing[1]
+        inside = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (v >= 0) & (u <= nx - 1) & (
+            v <= ny - 1
+        )
+        j = np.clip(np.floor(np.where(inside, u, 0.0)), 0, nx - 2).astype(np.int64)
+        i = np.clip(np.floor(np.where(inside, v, 0.0)), 0, ny - 2).astype(np.int64)
+        return inside & cell_void[i, j]
+
     def node_xy(self) -> np.ndarray:
         """Metric coordinates of every node.
 
@@ -177,6 +261,10 @@ class DemTile:
         digest.update(np.ascontiguousarray(np.nan_to_num(self.heights, nan=-1e30)).tobytes())
         digest.update(np.asarray(self.spacing + self.origin, dtype=np.float64).tobytes())
         digest.update(str(self.shape).encode())
+        if self.projected is not None:  # same heights elsewhere on Earth: another tile
+            digest.update(
+                np.asarray([self.projected.x_offset, self.projected.y_offset]).tobytes()
+            )
         return digest.hexdigest()[:16]
 
     def describe(self) -> dict[str, Any]:
@@ -192,4 +280,7 @@ class DemTile:
             "n_void": self.n_void,
             "height_range": [float(np.nanmin(self.heights)), float(np.nanmax(self.heights))],
             "geo": None if self.geo is None else self.geo.describe(),
+            "projected": None if self.projected is None else self.projected.describe(),
+            "units": self.meta.get("units"),
+            "units_reason": self.meta.get("units_reason"),
         }

@@ -44,6 +44,7 @@ from neuralmap.filters.diagnostics import UpdateDiagnostics
 from neuralmap.filters.kalman import (
     SMALL_STATE_MAX,
     TransitionPlan,
+    full_from_upper,
     gaussian_log_likelihood,
     predict_upper,
     transition_plan,
@@ -649,6 +650,19 @@ class BatchedEKF:
         policy: FilterPolicy,
     ) -> UpdateDiagnostics:
         """Update driven by a policy (see :mod:`neuralmap.filters.policy`)."""
+        if r.shape[1] == 1 and self._small:
+            return self._update_policy_scalar(r, H, R, mask, policy)
+        return self._update_policy_dense(r, H, R, mask, policy)
+
+    def _update_policy_dense(
+        self,
+        r: torch.Tensor,
+        H: torch.Tensor,
+        R: torch.Tensor,
+        mask: torch.Tensor | None,
+        policy: FilterPolicy,
+    ) -> UpdateDiagnostics:
+        """Policy-driven update with ``(N, m, m)`` kernels (any m, n)."""
         n, batch, m = self._n, self._batch, r.shape[1]
         H = H.expand(batch, m, n) if H.ndim == 2 else H
         R = self._dense_R(R, m)
@@ -689,6 +703,93 @@ class BatchedEKF:
             innovation=r, S=out.S, nis=out.nis, gain=out.gain, healthy=self._healthy,
             applied=applied, x_prior=x_prior, P_prior=p_prior,
             log_likelihood=gaussian_log_likelihood(out.nis, out.log_det_S, m),
+            policy_info=dict(adaptation.info),
+        )
+
+    def _update_policy_scalar(
+        self,
+        r: torch.Tensor,
+        H: torch.Tensor,
+        R: torch.Tensor,
+        mask: torch.Tensor | None,
+        policy: FilterPolicy,
+    ) -> UpdateDiagnostics:
+        """Policy-driven update for a scalar measurement (m = 1, n ≤ 8), entry by entry.
+
+        The same protocol and the same equations as the dense path: the context's
+        ``H P⁻ Hᵀ`` is ``Σ_j h_j (P⁻ hᵀ)_j`` on length-N vectors, and every pass is
+        :func:`~neuralmap.filters.kalman.update_scalar_upper` (the expanded Joseph form)
+        on the adapted ``P⁻`` (``p_scale·P⁻`` or the replacement), ``R`` and the kept
+        measurement (a rejected one: ``r = 0``, ``h = 0``, ``R = 1``, not applied). Only
+        rounding differs from the dense ``(N, m, m)`` kernels.
+        """
+        n, batch = self._n, self._batch
+        if H.ndim == 3:
+            ht = H[:, 0, :].t().contiguous()
+            h = [ht[j] for j in range(n)]
+            H3 = H
+        else:
+            h = [H[0, j] for j in range(n)]
+            H3 = H.expand(batch, 1, n)
+        pt = self._Pt
+        hph = None
+        for i in range(n):  # h P hᵀ = Σ_i h_i (P hᵀ)_i
+            u_i = pt[i, 0] * h[0]
+            for j in range(1, n):
+                u_i = torch.addcmul(u_i, pt[i, j], h[j])
+            hph = u_i * h[i] if hph is None else torch.addcmul(hph, u_i, h[i])
+        assert hph is not None
+        if hph.ndim == 0:
+            hph = hph.expand(batch)
+        x_prior, p_prior = self.x, self.P
+        active = self._healthy if mask is None else self._healthy & mask
+        r1 = r[:, 0]
+        context = UpdateContext(
+            x_prior=x_prior, P_prior=p_prior, residual=r, H=H3, R=self._dense_R(R, 1),
+            HPHt=hph.reshape(batch, 1, 1), mask=active,
+            process_noise=None if self._last_Q is None else (
+                self._last_Q if self._last_Q.ndim == 3 else self._last_Q.expand(batch, n, n)
+            ),
+            step=self._n_updates,
+        )
+        adaptation = policy.adapt(context)
+        posterior: Posterior | None = None
+        for _ in range(max(1, int(policy.iterations))):
+            pt_use = pt if adaptation.P_prior is None else (
+                adaptation.P_prior.permute(1, 2, 0).contiguous()
+            )
+            if adaptation.p_scale is not None:
+                pt_use = pt_use * adaptation.p_scale
+            r_use = R if adaptation.R is None else adaptation.R.reshape(batch)
+            res_use, h_use = r1, h
+            any_kept = torch.ones(batch, dtype=torch.bool, device=self._device)
+            if adaptation.keep is not None:
+                any_kept = adaptation.keep.to(torch.bool)[:, 0]
+                res_use = torch.where(any_kept, r1, 0.0)
+                h_use = [torch.where(any_kept, hj, 0.0) for hj in h]
+                r_use = torch.where(any_kept, r_use, 1.0)
+            xt, p_up, S, kt = update_scalar_upper(self._xt, pt_use, res_use, h_use, r_use)
+            r_used = r_use.expand(batch) if r_use.ndim == 0 else r_use
+            posterior = Posterior(
+                x=xt.t(), P=full_from_upper(p_up, n).permute(2, 0, 1),
+                P_prior=pt_use.permute(2, 0, 1), R=r_used.reshape(batch, 1, 1),
+                S=S.reshape(batch, 1, 1), gain=kt.t().unsqueeze(-1),
+                residual=res_use.unsqueeze(-1),
+            )
+            nxt = policy.refine(context, adaptation, posterior)
+            if nxt is None:
+                break
+            adaptation = nxt
+        assert posterior is not None
+        candidates = any_kept if mask is None else any_kept & mask
+        applied = self._commit(xt, p_up, candidates, extra_ok=(S > 0) & (S < math.inf))
+        policy.commit(context, adaptation, posterior, applied)
+        self._n_updates += 1
+        nis = res_use * res_use / S
+        return UpdateDiagnostics(
+            innovation=r, S=S.reshape(batch, 1, 1), nis=nis, gain=kt.t().unsqueeze(-1),
+            healthy=self._healthy, applied=applied, x_prior=x_prior, P_prior=p_prior,
+            log_likelihood=gaussian_log_likelihood(nis, S.log(), 1),
             policy_info=dict(adaptation.info),
         )
 

@@ -252,6 +252,25 @@ def update_dense(
     return DenseUpdate(x_new, p_new, S, gain, nis, log_det, s_ok)
 
 
+def add_information(P: torch.Tensor, info: torch.Tensor) -> torch.Tensor:
+    """Covariance after adding information ``I``: ``(P⁻¹ + I)⁻¹ = (E + P I)⁻¹ P``.
+
+    The information form of the Kalman update (``I = Hᵀ R⁻¹ H``), computed with a linear
+    solve and no explicit inverse, so a singular ``P`` (a known component) is fine;
+    symmetrised. Used by the PCRB recursion.
+
+    Args:
+        P: ``(..., n, n)`` prior covariance.
+        info: ``(..., n, n)`` information to add (symmetric positive semi-definite).
+
+    Returns:
+        ``(..., n, n)`` posterior covariance.
+    """
+    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
+    post = torch.linalg.solve(eye + P @ info, P)
+    return 0.5 * (post + post.transpose(-1, -2))
+
+
 def gaussian_log_likelihood(nis: torch.Tensor, log_det_S: torch.Tensor, m: int) -> torch.Tensor:
     """Innovation log-density ``−½ (m ln 2π + ln det S + rᵀ S⁻¹ r)``, ``(N,)``."""
     return -0.5 * (m * _LOG_2PI + log_det_S + nis)

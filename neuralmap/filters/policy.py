@@ -52,6 +52,10 @@ class UpdateContext:
         mask: ``(N,)`` bool, True where the sample will be updated (healthy, unmasked).
         process_noise: ``(N, n, n)`` Q of the last predict (None before any predict).
         step: Number of updates the filter has made before this one (0 for the first).
+        keep: ``(N, m)`` bool, components already rejected by an earlier policy of a
+            composition (:class:`~neuralmap.filters.policies.Compose`); None = all kept.
+            The filter itself never sets it; a policy that sums over components should
+            skip the rejected ones.
     """
 
     x_prior: torch.Tensor
@@ -63,6 +67,7 @@ class UpdateContext:
     mask: torch.Tensor
     process_noise: torch.Tensor | None = None
     step: int = 0
+    keep: torch.Tensor | None = None
 
     @property
     def S(self) -> torch.Tensor:

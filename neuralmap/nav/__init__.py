@@ -36,6 +36,9 @@ _EXPORTS: dict[str, str] = {
     "nees": "metrics",
     "pcrb": "pcrb",
     "pcrb_position": "pcrb",
+    "AugmentedTanModel": "augmented",
+    "augment_information": "augmented",
+    "paper_tan_model": "augmented",
 }
 
 # pcrb.py is optional until it exists: star-imports must not fail without it

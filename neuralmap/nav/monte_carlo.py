@@ -20,9 +20,10 @@ import torch
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.base import Linearizer
+from neuralmap.nav.model import N_STATES, TanModel
 from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
 from neuralmap.nav.simulator import Truth, simulate
-from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+from neuralmap.nav.tan import tan_filter_step
 from neuralmap.terrain.base import inside_extent
 
 
@@ -119,6 +120,8 @@ def run_filter(
     *,
     progress: bool | Any = False,
     method: str = "",
+    policy: Any = None,
+    model: Any = None,
 ) -> FilterRun:
     """Runs the 5-state TAN EKF over all N runs with one linearisation method.
 
@@ -134,6 +137,14 @@ def run_filter(
         progress: True shows a tqdm bar over the steps; a tqdm bar object is advanced by
             one per step instead (used by :func:`run_monte_carlo`).
         method: Method name stored in the result.
+        policy: Optional robust/adaptive update policy (:mod:`neuralmap.filters.policies`),
+            reset first; every :class:`~neuralmap.filters.policies.QualityR` inside it gets
+            the altimeter's quality record (``truth.quality``) before each update. Epochs
+            with a loss of lock (NaN clearance) are not updated.
+        model: The filter's model; None = ``TanModel.from_scenario(scenario)``. An
+            augmented model (:class:`neuralmap.nav.augmented.AugmentedTanModel`, with
+            ``n_states > 5`` and a ``jacobian``) runs the augmented filter; the result
+            keeps the 5 navigation states (``err``, ``P``).
 
     Returns:
         :class:`FilterRun`.
@@ -147,11 +158,15 @@ def run_filter(
     check_map_matches(linearizer, truth, method=method)
     dtype, device = truth.pos.dtype, truth.pos.device
     n, k_steps = truth.n_runs, truth.n_steps
-    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype, device=device))
-    ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device), p0)
-    F = transition_matrix(scenario.dt, dtype=dtype, device=device)
-    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype, device=device))
-    R = scenario.R_m2 + scenario.fit_variance_m2
+    if model is None:
+        model = TanModel.from_scenario(scenario)
+    n_states = int(getattr(model, "n_states", N_STATES))
+    jacobian = model.jacobian if n_states > N_STATES else None
+    ekf = BatchedEKF(torch.zeros(n, n_states, dtype=dtype, device=device),
+                     model.filter_prior(dtype=dtype, device=device))
+    F = model.transition(dtype=dtype, device=device)
+    Q = model.filter_process_noise(dtype=dtype, device=device)
+    R = model.base_R
 
     err = torch.empty(n, k_steps + 1, N_STATES, dtype=dtype, device=device)
     P_hist = torch.empty(n, k_steps + 1, N_STATES, N_STATES, dtype=dtype, device=device)
@@ -159,8 +174,8 @@ def run_filter(
     residual = torch.zeros(n, k_steps + 1, dtype=dtype, device=device)
     updated = torch.zeros(n, k_steps + 1, dtype=torch.bool, device=device)
     est_on_map = torch.ones(n, k_steps + 1, dtype=torch.bool, device=device)
-    err[:, 0] = truth.ins_error[:, 0] - ekf.x
-    P_hist[:, 0] = ekf.P
+    err[:, 0] = truth.ins_error[:, 0] - ekf.x[:, :N_STATES]
+    P_hist[:, 0] = ekf.P[:, :N_STATES, :N_STATES]
     est_on_map[:, 0] = inside_extent(truth.ins_pos[:, 0, :2], truth.extent)
 
     bar, own_bar = None, False
@@ -170,17 +185,30 @@ def run_filter(
         bar, own_bar = tqdm(total=k_steps, desc=method or "filter", unit="step"), True
     elif progress is not False and progress is not None:
         bar = progress
+    quality_policies = _quality_policies(policy)
+    if policy is not None:
+        policy.reset()
+    if quality_policies and getattr(truth, "quality", None) is None:
+        raise NeuralMapError(
+            f"method {method!r}: the policy needs the altimeter quality record, but the truth "
+            "has none; simulate it with neuralmap.nav.simulator.simulate."
+        )
+    lock_lost = not bool(torch.isfinite(truth.radar[:, 1:]).all())
     start = time.perf_counter()
     try:
         for k in range(1, k_steps + 1):
+            radar = truth.radar[:, k]
+            for quality_policy in quality_policies:
+                quality_policy.set_quality(truth.quality[:, k])
             diag = tan_filter_step(
-                ekf, truth.ins_pos[:, k], truth.radar[:, k], linearizer, F=F, Q=Q, R=R,
-                extent=truth.extent,
+                ekf, truth.ins_pos[:, k], radar, linearizer, F=F, Q=Q, R=R,
+                extent=truth.extent, mask=torch.isfinite(radar) if lock_lost else None,
+                policy=policy, jacobian=jacobian,
             )
             if ekf.x.requires_grad or ekf.P.requires_grad:  # a graph-keeping linearizer
                 ekf.x, ekf.P = ekf.x.detach(), ekf.P.detach()
-            err[:, k] = truth.ins_error[:, k] - ekf.x
-            P_hist[:, k] = ekf.P
+            err[:, k] = truth.ins_error[:, k] - ekf.x[:, :N_STATES]
+            P_hist[:, k] = ekf.P[:, :N_STATES, :N_STATES]
             upd = diag.updated.detach()
             nis[:, k] = torch.where(upd, diag.nis.detach(), nis[:, k])
             residual[:, k] = torch.where(upd, diag.residual.detach(), residual[:, k])
@@ -200,6 +228,16 @@ def run_filter(
         updated=updated, est_on_map=est_on_map, off_map=off_map,
         healthy=ekf.healthy.clone(), elapsed_s=elapsed,
     )
+
+
+def _quality_policies(policy: Any) -> list[Any]:
+    """Every policy inside ``policy`` (itself or a composition) that reads quality records."""
+    if policy is None:
+        return []
+    members = getattr(policy, "policies", None)
+    if members:  # a composition: its members (it may forward set_quality itself)
+        return [found for inner in members for found in _quality_policies(inner)]
+    return [policy] if callable(getattr(policy, "set_quality", None)) else []
 
 
 def run_monte_carlo(

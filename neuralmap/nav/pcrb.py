@@ -30,8 +30,9 @@ from typing import Any
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.kalman import add_information
 from neuralmap.filters.validation import check_covariance, check_finite, shape_error
-from neuralmap.nav.tan import transition_matrix
+from neuralmap.nav.model import TanModel
 
 __all__ = ["pcrb", "pcrb_position", "pcrb_recursion", "terrain_information"]
 
@@ -114,11 +115,6 @@ def pcrb_recursion(
     P0 = check_covariance(P0, name="P0", where=where, definite=False)
     Fs = _per_step(_as_f64(F, "F", where, device), "F", where, n, steps, covariance=False)
     Qs = _per_step(_as_f64(Q, "Q", where, device), "Q", where, n, steps, covariance=True)
-    eye = torch.eye(n, dtype=torch.float64, device=device)
-
-    def absorb(prior: torch.Tensor, info: torch.Tensor) -> torch.Tensor:
-        post = torch.linalg.solve(eye + prior @ info, prior)  # (P⁻⁻¹ + I)⁻¹
-        return 0.5 * (post + post.T)
 
     bound = P0
     if initial_info is not None:
@@ -126,11 +122,11 @@ def pcrb_recursion(
         if tuple(info0.shape) != (n, n):
             raise shape_error(where, "initial_info", f"({n}, {n})", info0.shape)
         check_finite(info0, name="initial_info", where=where)
-        bound = absorb(P0, 0.5 * (info0 + info0.T))
+        bound = add_information(P0, 0.5 * (info0 + info0.T))
     out = [bound]
     for k in range(steps):
         prior = Fs[k] @ bound @ Fs[k].T + Qs[k]
-        bound = absorb(0.5 * (prior + prior.T), increments[k])
+        bound = add_information(0.5 * (prior + prior.T), increments[k])
         out.append(bound)
     return torch.stack(out)
 
@@ -232,27 +228,10 @@ def terrain_information(
     slope = torch.where(valid.unsqueeze(-1), slope, 0.0)
     w = valid.to(torch.float64)
     count = w.sum(0)  # (K+1,)
-    rows = torch.zeros(N, steps, 5, dtype=torch.float64, device=pos.device)
-    rows[..., 0] = -slope[..., 0]
-    rows[..., 1] = -slope[..., 1]
-    rows[..., 2] = 1.0
+    rows = TanModel.jacobian(slope.reshape(-1, 2)).reshape(N, steps, 5)
     info = torch.einsum("nk,nki,nkj->kij", w, rows, rows)
     info = info / (count.clamp_min(1.0)[:, None, None] * R_m2)
     return info, count
-
-
-def _diag(values: Any, name: str) -> torch.Tensor:
-    t = torch.as_tensor(values, dtype=torch.float64)
-    if t.ndim != 1 or t.shape[0] != 5:
-        raise NeuralMapError(
-            f"pcrb: scenario field '{name}' must hold 5 numbers (x, y, h, v_x, v_y), got "
-            f"{list(t.shape)}."
-        )
-    if bool((t < 0).any()) or not bool(torch.isfinite(t).all()):
-        raise NeuralMapError(
-            f"pcrb: scenario field '{name}' must hold finite variances >= 0, got {t.tolist()}."
-        )
-    return torch.diag(t)
 
 
 def pcrb(
@@ -315,30 +294,13 @@ def pcrb(
     dt = getattr(scenario, "dt", None)
     if not isinstance(dt, (int, float)) or not dt > 0:
         raise NeuralMapError(f"{where}: scenario.dt must be a number > 0, got {dt!r}.")
-    if model == "truth" and callable(getattr(scenario, "init_error_sigma", None)):
-        # A component with zero initial spread (a fixed initial error, as in the paper
-        # scenario) would make the prior exact and the bound 0 at t = 0; the filter does not
-        # know that error, so such components take the filter's prior variance P0 instead.
-        spread = [s * s for s in scenario.init_error_sigma()]
-        p0_filter = getattr(scenario, "P0_diag", None) or [0.0] * len(spread)
-        P0 = _diag(
-            [v if v > 0 else float(f) for v, f in zip(spread, p0_filter, strict=False)],
-            "init_error_sigma()",
-        )
+    tan = TanModel.from_scenario(scenario)
+    if model == "truth":
+        P0, Q = tan.bound_prior(), tan.truth_process_noise()
     else:
-        P0 = _diag(getattr(scenario, "P0_diag", None), "P0_diag")
-    if model == "truth" and callable(getattr(scenario, "truth_process_noise", None)):
-        Q = _diag(scenario.truth_process_noise(), "truth_process_noise()")
-    else:
-        Q = _diag(getattr(scenario, "Q_diag", None), "Q_diag")
+        P0, Q = tan.filter_prior(), tan.filter_process_noise()
     if R_m2 is None:
-        sigma = getattr(scenario, "altimeter_sigma_m", None)
-        if model == "truth" and sigma is not None:
-            R_m2 = float(sigma) ** 2
-        else:
-            R_m2 = float(getattr(scenario, "R_m2", float("nan"))) + float(
-                getattr(scenario, "fit_variance_m2", 0.0) or 0.0
-            )
+        R_m2 = tan.truth_R if model == "truth" else tan.base_R
     on_map = getattr(truth, "on_map", None)
     if on_map is not None:
         on_map = torch.as_tensor(on_map, device=pos.device).to(torch.bool)
@@ -353,7 +315,7 @@ def pcrb(
     device = info.device
     return pcrb_recursion(
         P0.to(device),
-        transition_matrix(float(dt), dtype=torch.float64, device=device),
+        tan.transition(dtype=torch.float64, device=device),
         Q.to(device),
         info[1:],
         initial_info=info[0] if update_at_step0 else None,

@@ -47,7 +47,9 @@ _FLOAT_FIELDS = (
     "altitude_agl_m", "climb_rate_mps", "init_pos_sigma_m", "init_alt_sigma_m",
     "init_vel_sigma_mps", "vel_random_walk", "pos_noise_sigma_m", "alt_noise_sigma_m",
     "altimeter_sigma_m", "dem_error_sigma_m", "dem_error_corr_m", "outlier_prob",
-    "outlier_sigma_m", "R_m2", "fit_variance_m2",
+    "outlier_sigma_m", "R_m2", "fit_variance_m2", "spike_prob", "spike_min_m", "spike_max_m",
+    "patch_prob", "patch_min_s", "patch_max_s", "patch_bias_min_m", "patch_bias_max_m",
+    "lock_loss_prob", "beam_half_angle_deg",
 )
 _NONNEGATIVE_FIELDS = (
     "start_spread_m", "speed_mps", "init_pos_sigma_m", "init_alt_sigma_m",
@@ -102,6 +104,20 @@ class Scenario:
             ``exp(-r²/L²)``).
         outlier_prob: Probability that an altimeter sample is an outlier.
         outlier_sigma_m: 1σ of the extra error added to an outlier sample, m.
+        spike_prob: Radar-altimeter fault: probability per epoch of an isolated spike of
+            magnitude uniform in ``[spike_min_m, spike_max_m]`` and random sign.
+        spike_min_m: Smallest spike, m.
+        spike_max_m: Largest spike, m.
+        patch_prob: Probability per epoch that a patch of consecutive biased returns (tree
+            canopy, buildings) starts; it lasts uniform ``[patch_min_s, patch_max_s]`` and
+            adds a bias uniform in ``[patch_bias_min_m, patch_bias_max_m]`` to the clearance.
+        patch_min_s: Shortest patch, s.
+        patch_max_s: Longest patch, s.
+        patch_bias_min_m: Most negative patch bias, m (returns from the canopy top: shorter).
+        patch_bias_max_m: Least negative patch bias, m.
+        lock_loss_prob: Probability per epoch of a loss of lock (no measurement).
+        beam_half_angle_deg: Altimeter beam half-angle: the footprint radius is
+            ``height above ground · tan(angle)``, used for the roughness quality indicator.
         truth_model: ``"dem"`` (truth = bicubic DEM + DEM-making error) or ``"subgrid"``
             (also fractal detail below the grid spacing, on a finer grid; see
             :mod:`neuralmap.nav.truth_terrain`).
@@ -139,6 +155,16 @@ class Scenario:
     dem_error_corr_m: float = 300.0
     outlier_prob: float = 0.0
     outlier_sigma_m: float = 100.0
+    spike_prob: float = 0.0
+    spike_min_m: float = 50.0
+    spike_max_m: float = 300.0
+    patch_prob: float = 0.0
+    patch_min_s: float = 5.0
+    patch_max_s: float = 20.0
+    patch_bias_min_m: float = -40.0
+    patch_bias_max_m: float = -10.0
+    lock_loss_prob: float = 0.0
+    beam_half_angle_deg: float = 20.0
     truth_model: str = "dem"
     subgrid_factor: int = 4
     P0_diag: list[float] = field(default_factory=lambda: [1e4, 1e4, 100.0, 1.0, 1.0])
@@ -265,8 +291,18 @@ class Scenario:
                 raise bad(key, getattr(self, key), ">= 0 (a standard deviation or variance)")
         if self.duration_s < self.dt:
             raise bad("duration_s", self.duration_s, f">= dt ({self.dt} s)")
-        if not 0.0 <= self.outlier_prob <= 1.0:
-            raise bad("outlier_prob", self.outlier_prob, "a probability in [0, 1]")
+        for key in ("outlier_prob", "spike_prob", "patch_prob", "lock_loss_prob"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise bad(key, getattr(self, key), "a probability in [0, 1]")
+        if not 0.0 <= self.spike_min_m <= self.spike_max_m:
+            raise bad("spike_min_m", self.spike_min_m, f"in [0, spike_max_m = {self.spike_max_m}]")
+        if not 0.0 < self.patch_min_s <= self.patch_max_s:
+            raise bad("patch_min_s", self.patch_min_s, f"in (0, patch_max_s = {self.patch_max_s}]")
+        if not self.patch_bias_min_m <= self.patch_bias_max_m:
+            raise bad("patch_bias_min_m", self.patch_bias_min_m,
+                      f"<= patch_bias_max_m = {self.patch_bias_max_m}")
+        if not 0.0 <= self.beam_half_angle_deg < 80.0:
+            raise bad("beam_half_angle_deg", self.beam_half_angle_deg, "in [0, 80) degrees")
         if self.dem_error_sigma_m > 0.0 and self.dem_error_corr_m <= 0.0:
             raise bad("dem_error_corr_m", self.dem_error_corr_m,
                       "> 0 when dem_error_sigma_m > 0")

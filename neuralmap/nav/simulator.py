@@ -31,8 +31,11 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.altimeter import altimeter_faults, footprint_roughness
+from neuralmap.nav.model import TanModel
 from neuralmap.nav.scenario import Scenario
 from neuralmap.nav.truth_terrain import TrueTerrain, dem_error_field, true_terrain
+from neuralmap.terrain.grid import GridTerrain
 
 __all__ = ["Truth", "dem_error_field", "nominal_path", "simulate"]
 
@@ -60,6 +63,12 @@ class Truth:
         seed: The seed used.
         dem_error: ``(ny, nx)`` DEM-making error field added to the tile (m), or None.
         terrain: The truth terrain flown over (:func:`~neuralmap.nav.truth_terrain.true_terrain`).
+        fault: ``(N, K+1)`` int8 altimeter fault code per epoch
+            (:data:`~neuralmap.nav.altimeter.FAULT_CODES`: 0 clean, 1 spike, 2 patch, 3
+            loss of lock; ``radar`` is NaN at a loss of lock).
+        quality: ``(N, K+1, 3)`` the altimeter's quality record
+            (:data:`~neuralmap.nav.altimeter.QUALITY_COLUMNS`: footprint roughness of the
+            map at the INS position, height above ground read by the altimeter, lock flag).
     """
 
     t: torch.Tensor
@@ -79,6 +88,8 @@ class Truth:
     seed: int
     dem_error: np.ndarray | None = field(default=None, repr=False)
     terrain: TrueTerrain | None = field(default=None, repr=False)
+    fault: torch.Tensor | None = field(default=None, repr=False)
+    quality: torch.Tensor | None = field(default=None, repr=False)
 
     @property
     def n_runs(self) -> int:
@@ -201,18 +212,13 @@ def simulate(
     vel = torch.from_numpy(vel_nom).unsqueeze(0).expand(n, k_steps + 1, 2).clone()
 
     # INS errors: δX_{k+1} = Φ δX_k + w_k in closed form (cumulative sums over time)
-    mean = torch.tensor(scenario.init_error_mean, dtype=f64)
-    sigma0 = torch.tensor(scenario.init_error_sigma(), dtype=f64)
+    model = TanModel.from_scenario(scenario)
+    mean = torch.tensor(model.truth_mean, dtype=f64)
+    sigma0 = torch.tensor(model.truth_P0, dtype=f64).sqrt()
     err0 = mean + sigma0 * torch.randn(n, 5, generator=gen, dtype=f64)
-    q_std = torch.tensor(scenario.truth_process_noise(), dtype=f64).sqrt()
+    q_std = torch.tensor(model.truth_Q, dtype=f64).sqrt()
     w = q_std * torch.randn(n, k_steps, 5, generator=gen, dtype=f64)
-    zeros = torch.zeros(n, 1, 5, dtype=f64)
-    w_sum = torch.cat([zeros, torch.cumsum(w, dim=1)], dim=1)  # Σ_{j<k} w_j, (N, K+1, 5)
-    dv = err0[:, None, 3:] + w_sum[..., 3:]
-    dv_sum = torch.cat([zeros[..., 3:], torch.cumsum(dv[:, :-1], dim=1)], dim=1)
-    dp = err0[:, None, :2] + dt * dv_sum + w_sum[..., :2]
-    dh = err0[:, None, 2:3] + w_sum[..., 2:3]
-    ins_error = torch.cat([dp, dh, dv], dim=-1)
+    ins_error = model.propagate_truth(err0, w)
 
     # true terrain (DEM + DEM-making error [+ sub-grid detail]) and the radar altimeter
     if truth_terrain is None:
@@ -226,6 +232,14 @@ def simulate(
     outlier = torch.rand(n, k_steps + 1, generator=gen, dtype=f64) < scenario.outlier_prob
     extra = scenario.outlier_sigma_m * torch.randn(n, k_steps + 1, generator=gen, dtype=f64)
     radar = h - terrain_true + noise + torch.where(outlier, extra, torch.zeros_like(extra))
+    fault_error, fault = altimeter_faults(scenario, (n, k_steps + 1), generator=gen)
+    radar = radar + fault_error
+    lock = torch.isfinite(radar)
+    ins_pos_f64 = pos + ins_error[..., :3]
+    roughness = footprint_roughness(
+        GridTerrain(tile, method="bilinear", dtype=f64), ins_pos_f64[..., :2],
+        torch.where(lock, radar, h - terrain_true), scenario.beam_half_angle_deg)
+    quality = torch.stack([roughness, torch.where(lock, radar, 0.0), lock.to(f64)], dim=-1)
 
     def cast(x: torch.Tensor) -> torch.Tensor:
         return x.to(device=device, dtype=dtype)
@@ -237,5 +251,6 @@ def simulate(
         on_map=on_map.to(device), ins_error=cast(ins_error),
         extent=tuple(float(e) for e in tile.extent),  # type: ignore[arg-type]
         tile_name=tile.name, tile_fingerprint=tile.fingerprint(), scenario=scenario,
-        seed=seed, dem_error=dem_error, terrain=truth_terrain,
+        seed=seed, dem_error=dem_error, terrain=truth_terrain, fault=fault.to(device),
+        quality=cast(quality),
     )

@@ -16,6 +16,7 @@ estimate is ``INS − δX̂``. One step (:func:`tan_filter_step`):
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -134,6 +135,8 @@ def tan_filter_step(
     R: float | torch.Tensor,
     extent: tuple[float, float, float, float] | None = None,
     mask: torch.Tensor | None = None,
+    policy: Any = None,
+    jacobian: Callable[[torch.Tensor], torch.Tensor] | None = None,
 ) -> StepDiagnostics:
     """One TAN step: predict, linearise at the estimate, altimeter update (SEEDS 004).
 
@@ -154,6 +157,13 @@ def tan_filter_step(
             linearisation variance is added per sample.
         extent: Map ``(xmin, xmax, ymin, ymax)``; None = the linearizer's (or no check).
         mask: ``(N,)`` bool, optional; False skips the update of that sample.
+        policy: Optional robust/adaptive filter policy
+            (:mod:`neuralmap.filters.policies`), passed to the predict and the update.
+        jacobian: For a state augmented beyond the 5 navigation states (e.g. the AR
+            map-error states of :mod:`neuralmap.nav.augmented`): builds the ``(N, n)``
+            rows of H from the ``(N, 2)`` slopes. The extra states enter the measurement
+            linearly, so their prediction ``H[:, 5:] · x̂⁻[5:]`` is taken off the residual.
+            None = the 5-state ``H = [−h_x, −h_y, 1, 0, 0]``.
 
     Returns:
         :class:`StepDiagnostics`.
@@ -164,7 +174,10 @@ def tan_filter_step(
             f"tan_filter_step: ins_pos must be ({n}, 3) and radar ({n},) for {n} filters, got "
             f"{tuple(ins_pos.shape)} and {tuple(radar.shape)}."
         )
-    ekf.predict(F, Q)
+    if policy is None:
+        ekf.predict(F, Q)
+    else:
+        ekf.predict(F, Q, policy=policy)
     x = ekf.x
     p_hat = ins_pos[:, :2] - x[:, :2]
     lin = linearizer(p_hat, ekf.P[:, :2, :2])
@@ -187,8 +200,14 @@ def tan_filter_step(
         residual = torch.where(use, residual, 0.0)
         slope = torch.where(use.unsqueeze(1), slope, 0.0)
         r_total = torch.where(use, r_total, 1.0)
-    diag = ekf.update(residual, _jacobian_batch_last(slope).t(), r_total,
-                      mask=None if all_used else use)
+    if jacobian is None:
+        rows = _jacobian_batch_last(slope).t()
+    else:
+        rows = jacobian(slope)
+        predicted = (rows[:, N_STATES:] * x[:, N_STATES:]).sum(dim=1)
+        residual = residual - (predicted if all_used else torch.where(use, predicted, 0.0))
+    kwargs = {} if policy is None else {"policy": policy}
+    diag = ekf.update(residual, rows, r_total, mask=None if all_used else use, **kwargs)
     S = diag.S.reshape(n)
     applied = getattr(diag, "applied", None)
     return StepDiagnostics(

@@ -149,3 +149,7 @@ def main(args: list[str] | None = None) -> int:
         torch.set_num_threads(previous_threads)
     print(f"results written to {out_dir}")
     return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

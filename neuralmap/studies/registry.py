@@ -41,6 +41,22 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
         "tan.yaml",
     ),
+    "tan_outliers": StudySpec(
+        "neuralmap.studies.tan_outliers", "TanOutliersConfig",
+        "TAN under radar-altimeter faults: robust and adaptive update policies",
+        "tan_outliers.yaml",
+    ),
+    "wind": StudySpec(
+        "neuralmap.studies.wind", "WindStudyConfig",
+        "Wind-field estimation: TVAR-model filters (KF, Sage-Husa, RAF, VB) against the LTI "
+        "model, clean / outliers / shear, and track correction",
+        "wind.yaml",
+    ),
+    "dem_errors": StudySpec(
+        "neuralmap.studies.dem_errors", "DemErrorsStudyConfig",
+        "DEM-related error models: identification, linearisation error m2, 5/6/7-state filters",
+        "dem_errors.yaml",
+    ),
     "gnss_ins": StudySpec(
         "neuralmap.studies.gnss_ins", "GnssInsStudyConfig",
         "Monte Carlo GNSS/MEMS-IMU loosely coupled navigation on an urban drive (paper 003)",

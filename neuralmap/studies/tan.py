@@ -216,39 +216,75 @@ def _write_figures(outputs: StudyOutputs, *, config: TanStudyConfig, results: di
     return {_FIGURES[name]: f"{name}.png" for name in figures}
 
 
-def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
-    """Runs the TAN Monte Carlo study and fills ``outputs``.
+@dataclass
+class TanSetup:
+    """What a TAN study flies: scenario, tile, truth terrain, map and methods.
+
+    Attributes:
+        scenario: The validated scenario.
+        tile: Its DEM tile.
+        seed: The seed used.
+        truth_terrain: The truth terrain (one world per seed).
+        terrain_map: The neural map (None when no method needs it).
+        map_path: Its file.
+        map_error: Its error against the truth between nodes (empty without a map).
+        fit_variance: The extra R of the neural methods, m².
+        methods: Method name -> linearizer.
+    """
+
+    scenario: Any
+    tile: Any
+    seed: int
+    truth_terrain: Any
+    terrain_map: Any
+    map_path: Path | None
+    map_error: dict[str, Any]
+    fit_variance: float
+    methods: dict[str, Any]
+
+    def map_info(self) -> dict[str, Any]:
+        """The map's description for results.json."""
+        terrain_map = self.terrain_map
+        return {
+            "path": str(self.map_path) if self.map_path else None,
+            "tile_name": getattr(terrain_map, "tile_name", ""),
+            "tile_fingerprint": getattr(terrain_map, "tile_fingerprint", ""),
+            "model": type(terrain_map).__name__ if terrain_map is not None else None,
+            "num_parameters": int(sum(p.numel() for p in terrain_map.parameters()))
+            if terrain_map is not None else None,
+            "fit_metrics": dict(getattr(terrain_map, "metrics", None) or {}),
+            "error_vs_truth": self.map_error,
+            "neural_extra_variance_m2": self.fit_variance,
+        }
+
+
+def prepare(config: Any, *, scenario: Any = None) -> TanSetup:
+    """Loads the scenario, map and truth terrain and builds the methods of a TAN study.
+
+    ``config`` needs ``scenario``, ``map``, ``runs_dir``, ``methods``, ``seed``,
+    ``neural_fit_variance``, ``map_error_points`` and the device; its ``map`` and ``seed``
+    are set to the values actually used (so the saved config.yaml reruns exactly this).
 
     Raises:
-        NeuralMapError: Bad input (no map, tile mismatch, bad scenario, device...).
+        NeuralMapError: Bad scenario, no map, a map of another tile.
     """
     from neuralmap.nav.map_error import measure_map_error
-    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-    from neuralmap.nav.monte_carlo import run_monte_carlo
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.report import build_results, check_claims, format_table, render_report
     from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.nav.truth_terrain import true_terrain
     from neuralmap.terrain.export import load_map
 
-    started = time.perf_counter()
-    timing: dict[str, float] = {}
-    device, dtype = config.torch_device, config.torch_dtype
-    scenario = load_scenario(config.scenario)
+    scenario = load_scenario(config.scenario) if scenario is None else scenario
     tile = scenario_tile(scenario)
     map_path: Path | None = None
     terrain_map = None
-    if config.needs_map:
+    if any(m in TERRAIN_MODEL_METHODS for m in config.methods):
         map_path = resolve_map_path(config.map, config.runs_dir,
                                     tile_fingerprint=tile.fingerprint())
         terrain_map = load_map(map_path)
         check_map_tile(terrain_map, tile, map_path=map_path, scenario_name=scenario.name)
     seed = scenario.seed if config.seed is None else int(config.seed)
-    # the saved config.yaml reruns exactly this: the map file and seed actually used
     config.map = str(map_path) if map_path is not None else config.map
     config.seed = seed
-
-    from neuralmap.nav.truth_terrain import true_terrain
-
     truth_terrain = true_terrain(scenario, tile, seed=seed)
     map_error: dict[str, Any] = {}
     if terrain_map is not None:
@@ -259,8 +295,29 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         fit_variance = max(float(mse) - scenario.fit_variance_m2, 0.0)
     else:
         fit_variance = float(config.neural_fit_variance)
-    methods = build_methods(config.methods, tile=tile, terrain_map=terrain_map, device=device,
-                            fit_variance=fit_variance)
+    methods = build_methods(config.methods, tile=tile, terrain_map=terrain_map,
+                            device=config.torch_device, fit_variance=fit_variance)
+    return TanSetup(scenario, tile, seed, truth_terrain, terrain_map, map_path, map_error,
+                    fit_variance, methods)
+
+
+def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
+    """Runs the TAN Monte Carlo study and fills ``outputs``.
+
+    Raises:
+        NeuralMapError: Bad input (no map, tile mismatch, bad scenario, device...).
+    """
+    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+    from neuralmap.nav.monte_carlo import run_monte_carlo
+    from neuralmap.nav.pcrb import pcrb, pcrb_position
+    from neuralmap.nav.report import build_results, check_claims, format_table, render_report
+
+    started = time.perf_counter()
+    timing: dict[str, float] = {}
+    device, dtype = config.torch_device, config.torch_dtype
+    setup = prepare(config)
+    scenario, tile, seed = setup.scenario, setup.tile, setup.seed
+    truth_terrain, methods, map_path = setup.truth_terrain, setup.methods, setup.map_path
     print(
         f"evaluate: map {map_path or '(none needed)'} | scenario {scenario.name} (tile "
         f"{tile.name}, {scenario.n_steps} steps of {scenario.dt:g} s, truth: "
@@ -276,10 +333,17 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     )
     for name, filter_run in runs.items():
         timing[f"filter_{name}"] = float(filter_run.elapsed_s)
+    kept = truth.on_map.all(dim=1)  # the metrics drop runs whose truth left the map
+    if not bool(kept.any()):
+        raise NeuralMapError(
+            f"no run could be scored: all {config.n_runs} truth trajectories left the tile "
+            f"{tile.name!r} (extent {tuple(round(e) for e in tile.extent)} m) or started off "
+            "it. Move the scenario's start_xy/waypoints inside the tile, shorten duration_s, "
+            "or lower start_spread_m."
+        )
 
     tick = time.perf_counter()
-    kept = truth.on_map.all(dim=1)  # the metrics drop runs whose truth left the map
-    bound = pcrb(truth, scenario, truth_terrain.model, runs=kept if bool(kept.any()) else None)
+    bound = pcrb(truth, scenario, truth_terrain.model, runs=kept)
     pcrb_pos = pcrb_position(bound).detach().to("cpu", torch.float64).numpy()
     timing["pcrb"] = time.perf_counter() - tick
 
@@ -302,17 +366,7 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         divergence_rule=divergence_rule(config.pcrb_factor, config.divergence_sigma),
         config=config_dump,
         scenario=scenario.to_dict(),
-        map_info={
-            "path": str(map_path) if map_path else None,
-            "tile_name": getattr(terrain_map, "tile_name", ""),
-            "tile_fingerprint": getattr(terrain_map, "tile_fingerprint", ""),
-            "model": type(terrain_map).__name__ if terrain_map is not None else None,
-            "num_parameters": int(sum(p.numel() for p in terrain_map.parameters()))
-            if terrain_map is not None else None,
-            "fit_metrics": dict(getattr(terrain_map, "metrics", None) or {}),
-            "error_vs_truth": map_error,
-            "neural_extra_variance_m2": fit_variance,
-        },
+        map_info=setup.map_info(),
         off_map=off_map,
         timing_s=timing,
         truth_model=truth_terrain.summary(),
@@ -335,12 +389,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
                              tile=tile, pcrb_pos=pcrb_pos)
     outputs.results.update(results)
     outputs.set_report(render_report(results, claims=claims, figures=figures))
-    if not any((m.get("n_included") or 0) > 0 for m in results["methods"].values()):
-        raise NeuralMapError(
-            "no run could be scored: every truth trajectory left the tile (or started off "
-            "it). Move the scenario's start/waypoints inside the tile, shorten the flight, "
-            "or lower start_spread_m."
-        )
 
 
 def _as_claim(check: Any) -> Any:

@@ -301,13 +301,14 @@ class BlockwiseTerrainNet(TerrainModel):
                 parameters' dtype and returned in ``xy``'s dtype).
 
         Returns:
-            ``(...)`` heights in metres.
+            ``(...)`` heights in metres. Non-finite points (a diverged filter track) give NaN
+            heights with zero gradient, as for :class:`neuralmap.terrain.GridTerrain`.
         """
         if xy.shape[-1] != 2:
             raise NeuralMapError(f"xy must have shape (..., 2), got {tuple(xy.shape)}.")
         lead = xy.shape[:-1]
         dtype = self.out_bias.dtype
-        flat = xy.reshape(-1, 2).to(dtype)
+        flat, finite = self._finite_points(xy.reshape(-1, 2).to(dtype))
         point, block, local, groups, weight = self._pairs(flat)
         normalised, _ = self._block_outputs(local, groups)
         normalised = normalised + self.out_bias.index_select(0, block)
@@ -317,7 +318,21 @@ class BlockwiseTerrainNet(TerrainModel):
         height = torch.zeros(flat.shape[0], dtype=dtype, device=flat.device).index_add(
             0, point, weight * metres
         )
+        if finite is not None:
+            height = torch.where(finite, height, torch.full_like(height, float("nan")))
         return height.reshape(lead).to(xy.dtype)
+
+    def _finite_points(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Replaces non-finite points by a block centre; returns the finite mask (or None).
+
+        The block assignment indexes blocks by ``floor`` of the coordinates, which a NaN
+        would turn into an invalid index; the caller puts NaN back in the output.
+        """
+        finite = torch.isfinite(flat).all(-1)
+        if bool(finite.all()):
+            return flat, None
+        centre = self.block_center[0].to(flat.dtype).expand_as(flat)
+        return torch.where(finite.unsqueeze(-1), flat, centre), finite
 
     def analytic_slope(self, xy: torch.Tensor) -> torch.Tensor:
         """Terrain slope from the closed-form input gradient, SEEDS 004 eq. (8).
@@ -343,7 +358,7 @@ class BlockwiseTerrainNet(TerrainModel):
             )
         lead = xy.shape[:-1]
         dtype = self.out_bias.dtype
-        flat = xy.reshape(-1, 2).to(dtype).detach()
+        flat, finite = self._finite_points(xy.reshape(-1, 2).to(dtype).detach())
         with torch.no_grad():
             point, block, _ = self.layout.assign(flat)
             groups = TileGroups(block, self.layout.count)
@@ -374,6 +389,8 @@ class BlockwiseTerrainNet(TerrainModel):
         )
         if weight_grad is not None:
             slope = slope + weight_grad
+        if finite is not None:
+            slope = torch.where(finite.unsqueeze(-1), slope, torch.full_like(slope, float("nan")))
         return slope.reshape(*lead, 2).to(xy.dtype)
 
 

@@ -57,6 +57,11 @@ def load_map_payload(path: str | os.PathLike[str]) -> dict[str, Any]:
     Raises:
         NeuralMapError: If the file is missing or is not a neuralmap export.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise NeuralMapError(
+            f"load_map: path must be the path of a neural_map.pt file, got "
+            f"{type(path).__name__} {path!r}. `python train.py` prints the path on its last line."
+        )
     path = Path(path)
     if not path.is_file():
         raise NeuralMapError(
@@ -99,12 +104,23 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
         ``.tile_info`` say which tile it was fitted to, ``.metrics`` holds the stored metrics.
 
     Raises:
-        NeuralMapError: If the file is missing or not a neuralmap export.
+        NeuralMapError: If the file is missing, not a neuralmap export, or its stored
+            config or weights do not build the model (a damaged or hand-edited file).
     """
     payload = load_map_payload(path)
-    config = dict(payload["config"])
-    model = _CLASSES[payload["class"]](**config)
-    model.load_state_dict(payload["state_dict"])
+    try:
+        config = dict(payload["config"])
+        model = _CLASSES[payload["class"]](**config)
+        model.load_state_dict(payload["state_dict"])
+    except NeuralMapError as exc:
+        raise NeuralMapError(f"{path}: the stored map config is invalid ({exc}).") from None
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as exc:
+        first = str(exc).splitlines()[0] if str(exc) else ""
+        raise NeuralMapError(
+            f"{path}: the header says neuralmap map, but its config or weights do not build "
+            f"a {payload.get('class')} ({type(exc).__name__}: {first}). The file is damaged "
+            "or was edited; export it again with `python train.py`."
+        ) from None
     model.metrics = payload.get("metrics", {})  # type: ignore[assignment]
     model.eval()
     return model

@@ -7,29 +7,54 @@
 Lightning trainer flag work as usual; ``--ckpt_path`` resumes. Outputs go to
 ``runs/<experiment>/version_N/`` (experiment = tile name unless ``--experiment``): TensorBoard
 events, ``config.yaml``, checkpoints, PNG figures, ``metrics.json`` and ``neural_map.pt``,
-whose path is the last line printed on stdout.
+whose path is the last line printed on stdout. Every run gets its own ``version_N``, also
+with ``--trainer.logger false`` (then reserved here).
+
+Exit codes: 0 with the map path as the last stdout line; 2 for bad input (a one-line
+``error:`` message on stderr, checked before training where possible: ``max_epochs 0``,
+an ``--experiment`` leaving ``--runs_dir``, a ``--runs_dir`` that is a file, an unusable
+or exhausted ``--ckpt_path``, an accelerator that is not there); 1 when a run ends without
+exporting a map (including Ctrl-C, which prints the command that resumes from
+``last.ckpt``). A failed run leaves no empty ``version_N`` behind.
 """
 
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
 import torch
+from lightning.fabric.utilities.exceptions import MisconfigurationException
 from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.training.callbacks import DashboardLayout, FitReport
+from neuralmap.io import check_writable_dir, next_version_dir
+from neuralmap.training.callbacks import DashboardLayout, FitReport, ResumeHint
 from neuralmap.training.datamodule import DemDataModule
 from neuralmap.training.module import TerrainFitModule
+from neuralmap.training.resume import inspect_checkpoint
 
 #: Exit status for bad user input (NeuralMapError), as argparse uses for bad arguments.
 EXIT_BAD_INPUT = 2
+#: Exit status of a run that ended without exporting a map.
+EXIT_NO_MAP = 1
+#: Environment variable through which DDP worker processes learn rank 0's run folder.
+RUN_DIR_ENV = "NEURALMAP_RUN_DIR"
+
+
+def check_experiment_name(name: str) -> None:
+    """Refuses experiment names that would leave ``runs_dir`` (``..``, separators)."""
+    if name in ("", ".", "..") or "/" in name or "\\" in name or os.sep in name:
+        raise NeuralMapError(
+            f"--experiment {name!r} must be a plain folder name inside --runs_dir (no '/', "
+            "'\\', '.' or '..'); choose the parent folder with --runs_dir instead."
+        )
 
 
 def default_config_path() -> Path | None:
@@ -76,12 +101,21 @@ class NeuralMapCLI(LightningCLI):
             if threads < 1:
                 raise NeuralMapError(f"--threads must be >= 1, got {threads}.")
             torch.set_num_threads(int(threads))
-        ckpt = self.config.get("ckpt_path")
-        if ckpt is not None and not Path(ckpt).is_file():
+        experiment = self.config.get("experiment")
+        if experiment is not None:
+            check_experiment_name(str(experiment))
+        check_writable_dir(Path(self.config.get("runs_dir") or "runs"), option="--runs_dir")
+        max_epochs = self.config.get("trainer.max_epochs")
+        max_steps = self.config.get("trainer.max_steps")
+        if max_epochs == 0 or max_steps == 0:
+            which = "max_epochs" if max_epochs == 0 else "max_steps"
             raise NeuralMapError(
-                f"--ckpt_path {ckpt}: no such checkpoint file. Checkpoints are written to "
-                "runs/<experiment>/version_N/checkpoints/ (last.ckpt, best-*.ckpt)."
+                f"--trainer.{which} 0 trains nothing, so no map would be exported; pass at "
+                f"least 1 (or --trainer.fast_dev_run true for a one-batch smoke test)."
             )
+        ckpt = self.config.get("ckpt_path")
+        if ckpt is not None:
+            inspect_checkpoint(ckpt, max_epochs=max_epochs)
 
     def experiment_name(self) -> str:
         """``--experiment`` or the tile's name."""
@@ -89,16 +123,50 @@ class NeuralMapCLI(LightningCLI):
         return str(name) if name else self.datamodule.experiment_name
 
     def instantiate_trainer(self, **kwargs: Any) -> Any:
+        """Trainer with a run folder of its own: TensorBoard's ``version_N``, or, without a
+        logger, a ``version_N`` reserved here (never the experiment folder itself)."""
         trainer_config = self._get(self.config_init, "trainer", default={})
         runs_dir = Path(self.config_init.get("runs_dir") or "runs")
         experiment = self.experiment_name()
-        if trainer_config.get("logger") in (None, True):
+        logger = trainer_config.get("logger")
+        self.reserved_dir: Path | None = None
+        if logger in (None, True):
             kwargs["logger"] = TensorBoardLogger(
                 save_dir=str(runs_dir), name=experiment, default_hp_metric=False
             )
         if trainer_config.get("default_root_dir") is None:
             kwargs["default_root_dir"] = str(runs_dir / experiment)
-        return super().instantiate_trainer(**kwargs)
+            if logger is False and not trainer_config.get("fast_dev_run"):
+                worker = os.environ.get("LOCAL_RANK", "0") != "0"
+                if worker and os.environ.get(RUN_DIR_ENV):
+                    run_dir = Path(os.environ[RUN_DIR_ENV])
+                else:
+                    run_dir = next_version_dir(runs_dir / experiment)
+                    self.reserved_dir = run_dir
+                    os.environ[RUN_DIR_ENV] = str(run_dir)
+                kwargs["default_root_dir"] = str(run_dir)
+        try:
+            return super().instantiate_trainer(**kwargs)
+        except MisconfigurationException as exc:
+            self.remove_reserved_dir()
+            raise NeuralMapError(
+                f"trainer settings cannot run here: {exc} Check --trainer.accelerator, "
+                "--trainer.devices and --trainer.strategy (e.g. --trainer.accelerator cpu; "
+                "'gpu' needs a CUDA or MPS device)."
+            ) from None
+
+    def remove_reserved_dir(self) -> None:
+        """Removes the version folder reserved for this run if it holds no checkpoint or map."""
+        remove_orphan_run_dir(getattr(self, "reserved_dir", None))
+
+
+def remove_orphan_run_dir(run_dir: Path | None) -> None:
+    """Deletes a run folder created by a failed run, unless it holds a checkpoint or a map."""
+    if run_dir is None or not run_dir.is_dir():
+        return
+    if any(run_dir.glob("checkpoints/*.ckpt")) or (run_dir / "neural_map.pt").exists():
+        return
+    shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def _trainer_callbacks() -> tuple[list[Any], FitReport]:
@@ -110,6 +178,7 @@ def _trainer_callbacks() -> tuple[list[Any], FitReport]:
         ),
         DashboardLayout(),
         report,
+        ResumeHint(),
     ]
     return callbacks, report
 
@@ -135,18 +204,38 @@ def main(args: list[str] | None = None) -> Path | None:
         "default_config_files": [str(default_config)] if default_config else [],
     }
     callbacks, report = _trainer_callbacks()
+    cli: NeuralMapCLI | None = None
+    new_dirs: set[Path] = set()
     try:
         with warnings.catch_warnings():
             # main(args) from Python (tests, benchmarks) is the intended use of `args`.
             warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
             cli = _build_cli(args, parser_kwargs, callbacks)
         ckpt_path = cli.config.get("ckpt_path")
-        cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path)
+        experiment_dir = Path(cli.config_init.get("runs_dir") or "runs") / cli.experiment_name()
+        before = set(experiment_dir.glob("version_*"))
+        try:
+            cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path)
+        finally:
+            new_dirs = set(experiment_dir.glob("version_*")) - before
     except NeuralMapError as error:
+        for run_dir in new_dirs:  # a failed run leaves no empty version folder behind
+            remove_orphan_run_dir(run_dir)
+        if cli is not None:
+            cli.remove_reserved_dir()
         sys.stdout.flush()
         print(f"error: {error}", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_BAD_INPUT) from None
-    if report.map_path is not None and cli.trainer.is_global_zero:
+    if cli.trainer.is_global_zero:
+        if report.map_path is None:
+            sys.stdout.flush()
+            print(
+                f"error: the run ended after {cli.trainer.current_epoch} epoch(s) without "
+                "exporting a map (no training step completed); nothing was written to use. "
+                "Check --trainer.max_epochs / max_steps / max_time and the log above.",
+                file=sys.stderr, flush=True,
+            )
+            raise SystemExit(EXIT_NO_MAP)
         sys.stderr.flush()
         print(os.fspath(report.map_path), flush=True)
     return report.map_path

@@ -17,7 +17,7 @@ from typing import Any
 import lightning.pytorch as pl
 import numpy as np
 import torch
-from lightning.pytorch.utilities.rank_zero import rank_zero_info
+from lightning.pytorch.utilities.rank_zero import rank_zero_info, rank_zero_warn
 from torch.utils.data import DataLoader, Dataset
 
 from neuralmap.dem import load_tile
@@ -155,6 +155,15 @@ class DemDataModule(pl.LightningDataModule):
         val_fraction: Fraction of valid nodes held out for validation, in ``(0, 0.5]``.
         seed: Seed of the validation split and of the per-epoch shuffles.
         eval_batch_size: Points per chunk for validation, testing and the final evaluation.
+        refit_epochs: The last R epochs train on every valid node (held-out ones included).
+            Must be below ``trainer.max_epochs`` to leave a held-out phase; a refit as long
+            as the run (or longer, or a run without ``max_epochs``) is disabled with a
+            printed warning, so held-out figures are always held out.
+        units: ``"metres"`` / ``"degrees"`` for ``.asc``/GeoTIFF files whose units the
+            reader cannot tell (see :func:`neuralmap.dem.load_tile`).
+        nodata: Extra no-data value(s) of the file (e.g. ``-32768`` for int16 SRTM voids).
+        height_check: ``"refuse"`` (default), ``"void"`` or ``"off"`` for heights outside
+            −12 000 … +9 000 m.
 
     Raises:
         NeuralMapError: Bad path/file (from ``load_tile``), bad batch size or fraction, or
@@ -172,10 +181,15 @@ class DemDataModule(pl.LightningDataModule):
         seed: int = 0,
         eval_batch_size: int = 65536,
         refit_epochs: int = 0,
+        units: str | None = None,
+        nodata: float | list[float] | None = None,
+        height_check: str = "refuse",
     ) -> None:
         super().__init__()
         tile_given = isinstance(path, DemTile)
-        self.save_hyperparameters(ignore=["path"] if tile_given else None)
+        # logger=False: the module and the data module both have a `seed`; Lightning's
+        # hparams merge would refuse different values. The fit report logs both, prefixed.
+        self.save_hyperparameters(ignore=["path"] if tile_given else None, logger=False)
         if int(batch_size) < 1:
             raise NeuralMapError(f"data.batch_size must be >= 1, got {batch_size}.")
         if int(eval_batch_size) < 1:
@@ -194,6 +208,8 @@ class DemDataModule(pl.LightningDataModule):
         if int(refit_epochs) < 0:
             raise NeuralMapError(f"data.refit_epochs must be >= 0, got {refit_epochs}.")
         self.refit_epochs = int(refit_epochs)
+        self.refit_epochs_requested = int(refit_epochs)
+        self.refit_note: str | None = None
         spacing_arg: float | tuple[float, ...] | None = None
         if spacing is not None:
             scalar = np.ndim(spacing) == 0
@@ -206,6 +222,9 @@ class DemDataModule(pl.LightningDataModule):
                 spacing=spacing_arg,  # type: ignore[arg-type]
                 origin=tuple(origin) if origin is not None else None,  # type: ignore[arg-type]
                 name=name,
+                units=units,
+                nodata=nodata,
+                height_check=height_check,
             )
         self._split()
         self._val_slopes: torch.Tensor | None = None
@@ -215,6 +234,14 @@ class DemDataModule(pl.LightningDataModule):
             f"{self.n_void} void node(s) excluded; training on {self.n_train} nodes, "
             f"validating on {self.n_val} held-out nodes"
         )
+        meta = self.tile.meta
+        if meta.get("units_reason"):
+            rank_zero_info(
+                f"tile '{self.tile.name}': coordinates in {meta.get('units')}, because "
+                f"{meta['units_reason']}"
+            )
+        if meta.get("implausible_note"):
+            rank_zero_info(f"tile '{self.tile.name}': {meta['implausible_note']}")
 
     @classmethod
     def from_tile(cls, tile: DemTile, **kwargs: Any) -> DemDataModule:
@@ -311,6 +338,42 @@ class DemDataModule(pl.LightningDataModule):
         n_chunks = max(1, math.ceil(tensors[0].shape[0] / self.eval_batch_size))
         n_chunks = math.ceil(n_chunks / world) * world  # same number of chunks on every rank
         return Chunks(*tensors, n_chunks=n_chunks)
+
+    def setup(self, stage: str) -> None:
+        """Plans the refit phase against the trainer's run length (before training)."""
+        if stage == "fit":
+            self.plan_refit()
+
+    def plan_refit(self) -> None:
+        """Disables a refit that would leave no held-out epoch, saying so.
+
+        With ``refit_epochs >= max_epochs`` the refit would start at epoch 0: the
+        "validation" nodes would be trained on from the first step and no held-out figure
+        would exist. Such a refit (and one in a run bounded only by ``max_steps``/time)
+        is switched off with a printed warning; ``refit_note`` records it for the metrics.
+        """
+        self.refit_epochs = self.refit_epochs_requested
+        self.refit_note = None
+        if self.refit_epochs <= 0:
+            return
+        trainer = getattr(self, "trainer", None)
+        max_epochs = getattr(trainer, "max_epochs", None) if trainer is not None else None
+        if max_epochs is None or max_epochs < 0:
+            self.refit_note = (
+                f"data.refit_epochs {self.refit_epochs} needs a run length in epochs "
+                "(trainer.max_epochs); refit disabled, validation stays held out"
+            )
+        elif self.refit_epochs >= max_epochs:
+            self.refit_note = (
+                f"data.refit_epochs {self.refit_epochs} >= trainer.max_epochs {max_epochs} "
+                "would train on the validation nodes from epoch 0 (no held-out figures); "
+                "refit disabled for this run, validation stays held out. Set "
+                f"--data.refit_epochs below {max_epochs} to keep a refit"
+            )
+        else:
+            return
+        self.refit_epochs = 0
+        rank_zero_warn(self.refit_note)
 
     @property
     def refit_start_epoch(self) -> int | None:

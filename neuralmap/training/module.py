@@ -294,6 +294,7 @@ class TerrainFitModule(pl.LightningModule):
             "train_time_s": self.train_time_s,
             "tile_fingerprint": self.net.tile_fingerprint if self.net is not None else "",
             "tile_name": self.net.tile_name if self.net is not None else "",
+            "heldout_metrics": dict(self.heldout_metrics),
         }
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
@@ -324,6 +325,7 @@ class TerrainFitModule(pl.LightningModule):
             )
         self.points_seen = int(state.get("points_seen", 0))
         self.train_time_s = float(state.get("train_time_s", 0.0))
+        self.heldout_metrics = dict(state.get("heldout_metrics", {}))
 
 
 def _canonical(value: Any) -> Any:

@@ -9,12 +9,13 @@ import pytest
 
 from neuralmap.dem import load_tile
 from neuralmap.dem.geo import (
+    decide_units,
     geographic_grid,
     geographic_reference,
-    looks_geographic,
     metres_per_degree,
 )
 from neuralmap.dem.samples import jacksboro_arrays
+from neuralmap.exceptions import NeuralMapError
 
 A = 6378137.0  # WGS-84, written out independently of neuralmap.dem.geo
 F = 1.0 / 298.257223563
@@ -91,11 +92,14 @@ def test_geographic_reference_centre_at_zero() -> None:
     np.testing.assert_allclose([x, y], [0.01 * m_lon, 0.02 * m_lat], rtol=1e-8)
 
 
-def test_looks_geographic_rule() -> None:
-    assert looks_geographic(-85.0, 36.0, 0.001, 0.001, (100, 100))
-    assert not looks_geographic(500000.0, 4e6, 30.0, 30.0, (100, 100))  # UTM
-    assert not looks_geographic(0.0, 0.0, 1.0, 1.0, (10, 10))  # local metric, 1 m cells
-    assert not looks_geographic(-85.0, 89.99, 0.001, 0.001, (100, 100))  # runs past the pole
+def test_decide_units_rule() -> None:
+    assert decide_units(-85.0, 36.0, 0.001, 0.001, (100, 100))[0] == "degrees"
+    assert decide_units(500000.0, 4e6, 30.0, 30.0, (100, 100))[0] == "metres"  # UTM
+    assert decide_units(0.0, 0.0, 2.0, 2.0, (10, 10))[0] == "metres"  # cells over 1 degree
+    with pytest.raises(NeuralMapError, match="cannot tell"):  # 1 m or 1 degree cells
+        decide_units(0.0, 0.0, 1.0, 1.0, (10, 10))
+    with pytest.raises(NeuralMapError, match="neither"):  # past the pole, or 1 mm cells
+        decide_units(-85.0, 89.99, 0.001, 0.001, (100, 100))
 
 
 def test_jacksboro_sample_against_raw_file() -> None:

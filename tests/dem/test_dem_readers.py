@@ -82,10 +82,15 @@ def test_asc_metric_with_nodata(tmp_path: Path) -> None:
     np.testing.assert_array_equal(tile.heights, expected)
     assert tile.n_void == 1
     assert tile.spacing == (25.0, 25.0)
-    # Metric grids keep the file's frame: cell centres are corner + half a cell.
-    assert tile.origin == (1012.5, 2012.5) == tuple(tile.meta["first_node"])
-    assert tile.geo is None
-    assert load_tile(path, origin=(0.0, 0.0)).origin == (0.0, 0.0)
+    # Tile-local frame; the file's own coordinates (cell centres are corner + half a cell)
+    # are kept in the projected reference.
+    assert tile.origin == (0.0, 0.0)
+    assert (tile.projected.x_offset, tile.projected.y_offset) == (1012.5, 2012.5)
+    assert tuple(tile.meta["first_node"]) == (1012.5, 2012.5)
+    assert tile.geo is None and tile.georeference is tile.projected
+    moved = load_tile(path, origin=(5.0, -5.0))
+    assert moved.origin == (5.0, -5.0)
+    assert moved.projected.to_projected(5.0, -5.0) == (1012.5, 2012.5)
     assert tile.name == "small"
 
 
@@ -104,16 +109,18 @@ def test_asc_geographic_rule_and_override(tmp_path: Path) -> None:
         "ncols 3\nnrows 2\nxllcorner -85.0\nyllcorner 36.0\ncellsize 0.001\n1 2 3\n4 5 6\n"
     )
     tile = load_tile(path)
-    assert tile.meta["units"] == "degrees" and tile.meta["units_rule"] == "heuristic"
+    assert tile.meta["units"] == "degrees" and "sub-centimetre" in tile.meta["units_reason"]
     m_lon, m_lat = metres_per_degree(36.001)  # centre latitude of the two node rows
     np.testing.assert_allclose(tile.spacing, (0.001 * m_lon, 0.001 * m_lat), rtol=1e-12)
     lon, lat = tile.geo.to_geographic(0.0, 0.0)
     assert (lon, lat) == pytest.approx((-84.9995, 36.0005), abs=1e-12)
     forced = load_tile(path, geographic=False)
     assert forced.geo is None and forced.spacing == (0.001, 0.001)
+    assert load_tile(path, units="metres").spacing == (0.001, 0.001)
     # A .prj sidecar naming a projected CRS also makes it metric.
     path.with_suffix(".prj").write_text('PROJCS["WGS 84 / UTM zone 16N",GEOGCS["WGS 84"]]')
-    assert load_tile(path).meta["units_rule"] == "prj sidecar"
+    assert ".prj sidecar" in load_tile(path).meta["units_reason"]
+    assert load_tile(path).projected.crs == "WGS 84 / UTM zone 16N"
     assert load_tile(path).geo is None
 
 
@@ -175,7 +182,8 @@ def test_geotiff_roundtrip(tmp_path: Path) -> None:
     tile = load_tile(path)
     np.testing.assert_array_equal(tile.heights, [[0, 1, np.nan], [3, 4, 5]])
     assert tile.spacing == (30.0, 30.0) and tile.geo is None
-    assert tile.origin == (500015.0, 3999955.0)  # south-west pixel centre, file frame
+    assert tile.origin == (0.0, 0.0)  # tile-local; the SW pixel centre in the file frame:
+    assert (tile.projected.x_offset, tile.projected.y_offset) == (500015.0, 3999955.0)
     geo_path = tmp_path / "g.tif"
     with rasterio.open(
         geo_path, "w", driver="GTiff", height=2, width=3, count=1, dtype="float32",

@@ -48,7 +48,8 @@ def _check_isolated(broken: BatchedEKF, clean: BatchedEKF, bad: int) -> None:
     assert bool(broken.healthy[others].all()) and not bool(broken.healthy[bad])
     assert torch.equal(broken.x[others], clean.x[others])
     assert torch.equal(broken.P[others], clean.P[others])
-    assert bool(torch.isfinite(broken.x).all()) or not bool(broken.healthy[bad])
+    # the frozen sample keeps its last healthy (finite) values
+    assert bool(torch.isfinite(broken.x).all()) and bool(torch.isfinite(broken.P).all())
 
 
 def test_nan_residual_flags_and_freezes_one_sample() -> None:
@@ -150,21 +151,34 @@ def test_frozen_sample_ignored_by_later_steps_and_check_pd_off() -> None:
     assert torch.equal(ekf.x[0], x0) and torch.equal(ekf.P[0], P0)
 
 
-def test_predict_checks_an_assigned_covariance_despite_the_certificate() -> None:
+def test_predict_checks_an_assigned_covariance_despite_the_certificate(monkeypatch) -> None:
     """A shared PD Q lets predict skip the Cholesky test (rounding-error certificate), but
     only while every stored P is known positive definite; an assigned P is re-tested."""
+    import neuralmap.filters.ekf as ekf_module
+
+    calls = {"pd_tests": 0}
+    real = ekf_module._pd_from_entries
+
+    def counting(*args, **kwargs):
+        calls["pd_tests"] += 1
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(ekf_module, "_pd_from_entries", counting)
     prob = _problem(5, 1)
     ekf = BatchedEKF(prob["x0"], prob["P0"])
     Q = 0.1 * torch.eye(N_STATE, dtype=F64)
-    ekf.predict(prob["F"], Q)  # certified (float64, Q = 0.1 I)
+    ekf.predict(prob["F"], Q)  # certified (float64, Q = 0.1 I): no Cholesky test ran
+    assert calls["pd_tests"] == 0
     assert bool(ekf.healthy.all())
     P = ekf.P.clone()
     P[6] = torch.diag(torch.tensor([1.0, -50.0, 1.0, 1.0, 1.0], dtype=F64))
     ekf.P = P
-    ekf.predict(prob["F"], Q)
+    ekf.predict(prob["F"], Q)  # an assigned P: the full test runs
+    assert calls["pd_tests"] == 1
     expected = torch.ones(BATCH, dtype=torch.bool)
     expected[6] = False
     assert torch.equal(ekf.healthy, expected)
     assert torch.equal(ekf.P[6], P[6])
     ekf.predict(prob["F"], Q)  # certified again: the frozen sample stays as it was
+    assert calls["pd_tests"] == 1
     assert torch.equal(ekf.P[6], P[6]) and torch.equal(ekf.healthy, expected)

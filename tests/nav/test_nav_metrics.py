@@ -80,7 +80,10 @@ def test_known_answers() -> None:
     assert m["nees_time_avg"] == pytest.approx(2.625)
     lo6, hi6 = chi2.ppf(0.025, 30) / 6, chi2.ppf(0.975, 30) / 6
     assert m["nees_time_band"] == pytest.approx([lo6, hi6])
-    assert m["nees_time_in_band"] is bool(lo6 <= 2.625 <= hi6)
+    # runs band: per-run averages 1.25 and 4 -> s = 1.9445, 5 ± 1.96 s / √2
+    half = 1.959963984540054 * float(np.std([1.25, 4.0], ddof=1)) / math.sqrt(2)
+    assert m["nees_time_band_runs"] == pytest.approx([5 - half, 5 + half])
+    assert m["nees_time_in_band"] is bool(5 - half <= 2.625 <= 5 + half)
     # curves over the K+1 samples
     assert m["rmse_pos_converged_curve"][1] == pytest.approx(math.sqrt(62.5))
     assert m["rmse_pos_converged_curve"][0] == pytest.approx(math.sqrt(6250.0))
@@ -168,7 +171,13 @@ def test_estimate_leaving_the_map_counts_as_diverged_not_excluded() -> None:
 def test_nees_over_all_runs_is_reported_beside_converged() -> None:
     run, pcrb = build_run()
     m = navigation_metrics(run, pcrb)
-    eps = nees(run.err[[0, 1, 2, 3, 5]], run.P[[0, 1, 2, 3, 5]]).mean(0)
-    lo, hi = chi2.ppf(0.025, 25) / 5, chi2.ppf(0.975, 25) / 5
-    expected = float(((eps >= lo) & (eps <= hi)).double().mean())
-    assert m["nees_in_band_all"] == pytest.approx(expected)
+    # by hand: NEES per run (samples 1..3) — run 0: 1.25, run 1: 4, run 2: 1e4/1e4 = 1,
+    # run 3: 400, run 5: 0 -> mean 81.25 at samples 1..3 (sample 0 larger still), far above
+    # the χ²(25)/5 band [2.6, 8.1]: no sample is in the band
+    assert chi2.ppf(0.975, 25) / 5 < 81.25
+    assert m["nees_in_band_all"] == 0.0
+    run.err[3] = 0.0  # without the 9σ outlier: mean (1.25 + 4 + 1 + 0 + 0) / 5 = 1.25 < 2.6
+    assert navigation_metrics(run, pcrb)["nees_in_band_all"] == 0.0
+    run.err[3, :, :2] = torch.tensor([3.0, 4.0], dtype=F64)  # NEES 25: mean 6.25 in band
+    assert chi2.ppf(0.025, 25) / 5 < 6.25 < chi2.ppf(0.975, 25) / 5
+    assert navigation_metrics(run, pcrb)["nees_in_band_all"] == pytest.approx(3 / 4)

@@ -1,7 +1,8 @@
-"""Lightning callbacks of the terrain fit: target-RMSE stop, dashboard layout, fit report."""
+"""Lightning callbacks of the terrain fit: target-RMSE stop, dashboard, fit report, resume hint."""
 
 from neuralmap.training.callbacks.dashboard import SCALAR_LAYOUT, DashboardLayout
 from neuralmap.training.callbacks.fit_report import FitReport
+from neuralmap.training.callbacks.resume_hint import ResumeHint
 from neuralmap.training.callbacks.target_rmse import TargetRmseStopping
 
-__all__ = ["SCALAR_LAYOUT", "DashboardLayout", "FitReport", "TargetRmseStopping"]
+__all__ = ["SCALAR_LAYOUT", "DashboardLayout", "FitReport", "ResumeHint", "TargetRmseStopping"]

@@ -138,17 +138,32 @@ class FitReport(pl.Callback):
             }
         )
         heldout = getattr(pl_module, "heldout_metrics", None)
+        metrics["heldout_validation"] = bool(heldout)
         if heldout:
             # Held-out nodes, last validation before any refit on every node.
             metrics["val_rmse_m"] = float(heldout["rmse_m"])
             metrics["val_max_abs_m"] = float(heldout["max_abs_m"])
             metrics["val_slope_rmse"] = float(heldout["slope_rmse"])
             metrics["val_epoch"] = int(heldout["epoch"])
-        else:
-            for key in ("val/rmse_m", "val/max_abs_m", "val/slope_rmse"):
-                if key in trainer.callback_metrics:
-                    metrics[key.replace("/", "_")] = float(trainer.callback_metrics[key])
+        # No fallback to the last logged val/* values: in a refit epoch they are in-sample.
         metrics["refit_epochs"] = int(getattr(datamodule, "refit_epochs", 0))
+        metrics["refit_epochs_requested"] = int(
+            getattr(datamodule, "refit_epochs_requested", metrics["refit_epochs"])
+        )
+        start = getattr(datamodule, "refit_start_epoch", None)
+        metrics["refit_start_epoch"] = start if metrics["refit_epochs"] > 0 else None
+        note = getattr(datamodule, "refit_note", None)
+        if note:
+            metrics["refit_note"] = note
+        target = pl_module.hparams.get("target_rmse")
+        if target is not None:
+            stop = next((cb for cb in trainer.callbacks
+                         if type(cb).__name__ == "TargetRmseStopping"), None)
+            metrics["target_rmse"] = float(target)
+            metrics["target_reached_epoch"] = getattr(stop, "stopped_epoch", None)
+        metrics["tile_units"] = tile.meta.get("units")
+        metrics["tile_units_reason"] = tile.meta.get("units_reason")
+        metrics["n_implausible_voided"] = int(tile.meta.get("n_implausible", 0))
         self.metrics = metrics
 
         figures = {
@@ -173,6 +188,9 @@ class FitReport(pl.Callback):
         extra = {
             "hparams": {k: v for k, v in pl_module.hparams.items() if not k.startswith("_")},
             "data": {k: v for k, v in datamodule.hparams.items() if not k.startswith("_")},
+            # units decision, no-data counts and, for metric files, the absolute position
+            # of the tile frame (tile.projected): the map's coordinates are tile-local
+            "tile": tile.describe(),
             "run_dir": str(run_dir),
         }
         self.map_path = export_map(net, run_dir, metrics, extra=extra)
@@ -185,6 +203,14 @@ class FitReport(pl.Callback):
             f"{metrics['points_per_s']:.3g} points/s; outputs in {run_dir} "
             f"({METRICS_FILENAME}, PNGs)"
         )
+        if heldout:
+            rank_zero_info(
+                f"held-out validation ({datamodule.n_val} nodes never trained on, epoch "
+                f"{metrics['val_epoch']}): RMSE {metrics['val_rmse_m']:.3f} m"
+            )
+        else:
+            rank_zero_info("no held-out validation figure: every validation ran in the refit "
+                           "phase (val_* keys are absent from metrics.json)")
 
     def _log_tensorboard(
         self,

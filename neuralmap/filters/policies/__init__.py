@@ -1,0 +1,52 @@
+"""Robust and adaptive update policies for :class:`~neuralmap.filters.ekf.BatchedEKF`.
+
+Pass one as ``ekf.update(residual, H, R, policy=...)`` (and ``ekf.predict(F, Q,
+policy=...)`` for the ones adapting Q). Families (one module each):
+
+* robust weights: :class:`IGG3` (SEEDS 002), :class:`Huber`, :class:`ChiSquareGate`;
+* adaptive factors on ``P⁻``: :class:`YangAdaptive` (SEEDS 002),
+  :class:`InnovationInflation` (SEEDS 003);
+* their composition :class:`RobustAdaptive` (SEEDS 002's RAF) and :class:`Compose`;
+* noise estimation: :class:`SageHusa` (SEEDS 002), :class:`QualityR` (SEEDS 003),
+  :class:`VariationalAdaptive` (Huang et al., IEEE TAC 2018).
+
+The pure weight/factor functions (batched tensors in, tensors out) are exported too.
+"""
+
+from neuralmap.filters.policies.compose import Compose
+from neuralmap.filters.policies.gate import ChiSquareGate, chi_square_threshold
+from neuralmap.filters.policies.huber import Huber, huber_weights
+from neuralmap.filters.policies.igg3 import IGG3, igg3_weights
+from neuralmap.filters.policies.inflation import InnovationInflation, innovation_inflation_factor
+from neuralmap.filters.policies.quality import (
+    QualityIndicator,
+    QualityR,
+    quality_factor,
+    quality_membership,
+)
+from neuralmap.filters.policies.robust_adaptive import RobustAdaptive
+from neuralmap.filters.policies.sage_husa import SageHusa, sage_husa_weight
+from neuralmap.filters.policies.variational import VariationalAdaptive
+from neuralmap.filters.policies.yang import YangAdaptive, yang_factor
+
+__all__ = [
+    "IGG3",
+    "ChiSquareGate",
+    "Compose",
+    "Huber",
+    "InnovationInflation",
+    "QualityIndicator",
+    "QualityR",
+    "RobustAdaptive",
+    "SageHusa",
+    "VariationalAdaptive",
+    "YangAdaptive",
+    "chi_square_threshold",
+    "huber_weights",
+    "igg3_weights",
+    "innovation_inflation_factor",
+    "quality_factor",
+    "quality_membership",
+    "sage_husa_weight",
+    "yang_factor",
+]

@@ -1,0 +1,64 @@
+"""Innovation-based inflation of the predicted covariance (SEEDS 003, system-noise tuning).
+
+Predicted-residual statistic and factor (SEEDS 003, reconstructed)::
+
+    λ = V̄ᵀV̄ / tr(H (Φ P Φᵀ + Q) Hᵀ + R)
+    α = 1 (λ ≤ c0),  λ / c0 (λ > c0)          c0 = 1–1.5
+    P⁻ = α Φ P Φᵀ + Q
+
+The filter's ``P⁻ = Φ P Φᵀ + Q`` is given, so ``α Φ P Φᵀ + Q = α P⁻ − (α − 1) Q`` with the
+Q of the last predict (``context.process_noise``); without a known Q the policy inflates
+the whole ``P⁻`` (``α P⁻``). α ≥ 1 keeps ``P⁻`` positive definite.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from neuralmap.filters.policies._common import check_positive, residual_statistic
+from neuralmap.filters.policy import Adaptation, FilterPolicy, UpdateContext
+
+__all__ = ["InnovationInflation", "innovation_inflation_factor"]
+
+
+def innovation_inflation_factor(lam: torch.Tensor, c0: float) -> torch.Tensor:
+    """Paper 003's adaptive factor: ``α = λ / c0`` when ``λ > c0``, else 1.
+
+    Args:
+        lam: ``(...)`` statistics ``λ = rᵀr / tr(S)``.
+        c0: Threshold, > 0 (1–1.5 in the paper).
+
+    Returns:
+        ``(...)`` factors ``α ≥ 1``.
+    """
+    c0 = check_positive(c0, name="c0", where="innovation_inflation_factor")
+    return torch.where(lam > c0, lam / c0, torch.ones_like(lam))
+
+
+class InnovationInflation(FilterPolicy):
+    """Inflates ``P⁻`` to ``α Φ P Φᵀ + Q`` when ``λ = rᵀr / tr(H P⁻ Hᵀ + R)`` exceeds c0.
+
+    Args:
+        c0: Threshold on λ (1–1.5 in SEEDS 003).
+
+    Reports ``alpha`` ``(N,)`` and ``lambda`` ``(N,)``.
+    """
+
+    name = "inflation"
+
+    def __init__(self, c0: float = 1.2) -> None:
+        self.c0 = check_positive(c0, name="c0", where="InnovationInflation")
+
+    def adapt(self, context: UpdateContext) -> Adaptation:
+        """α from λ; ``P⁻ = α P⁻ − (α − 1) Q`` (``α P⁻`` when Q is unknown)."""
+        lam = residual_statistic(context)
+        alpha = torch.where(context.mask, innovation_inflation_factor(lam, self.c0), 1.0)
+        info = {"alpha": alpha, "lambda": lam}
+        Q = context.process_noise
+        if Q is None:
+            return Adaptation(p_scale=alpha, info=info)
+        a = alpha.reshape(-1, 1, 1)
+        # α P⁻ − (α − 1) Q: exactly symmetric for symmetric P⁻ and Q (entry (i, j) and
+        # (j, i) see the same operands), and P⁻ itself where α = 1
+        P = torch.addcmul(a * context.P_prior, a - 1.0, Q, value=-1.0)
+        return Adaptation(P_prior=P, info=info)

@@ -1,0 +1,129 @@
+"""The study layer's entry point: console script, bad input, interrupts, concurrent runs."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import pytest
+import torch
+
+from neuralmap.io import next_version_dir
+from neuralmap.studies import cli
+from neuralmap.studies.registry import STUDIES
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+TINY = REPO_ROOT / "configs" / "tan_tiny.yaml"
+
+
+@pytest.fixture(scope="module")
+def tiny_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """An (untrained) neural map of the tiny scenario's tile: enough for the plumbing."""
+    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+    from neuralmap.terrain.export import save_map
+
+    torch.manual_seed(0)
+    tile = scenario_tile(load_scenario("tiny"))
+    path = tmp_path_factory.mktemp("maps") / "neural_map.pt"
+    save_map(BlockwiseTerrainNet.from_tile(tile, hidden=8, n_frequencies=4), path)
+    return path
+
+
+def test_console_script_runs_from_outside_the_checkout(tmp_path: Path, tiny_map: Path) -> None:
+    """Configs and scenarios come from package data: any working directory works."""
+    script = shutil.which("neuralmap-evaluate")
+    command = [script] if script else [sys.executable, "-m", "neuralmap.studies.cli"]
+    config = tmp_path / "tiny.yaml"
+    shutil.copy(TINY, config)
+    result = subprocess.run(
+        [*command, "--config", str(config), "--map", str(tiny_map), "--n_runs", "4",
+         "--methods", "[neural,bilinear]", "--tensorboard", "false"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    out_dir = tmp_path / "runs" / "evaluate_tiny" / "version_0"
+    assert result.stdout.strip().splitlines()[-1] == "results written to runs/evaluate_tiny/version_0"
+    assert (out_dir / "report.md").is_file() and (out_dir / "results.json").is_file()
+
+
+def test_help_lists_the_studies(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli.main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "--n_runs" in out and "--divergence_sigma" in out
+    assert set(STUDIES) >= {"tan"}
+
+
+def test_unknown_study_and_bad_config_files(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    config = tmp_path / "x.yaml"
+    config.write_text("study: kriging\n")
+    assert cli.main(["--config", str(config)]) == 2
+    assert "unknown study 'kriging'" in capsys.readouterr().err
+    config.write_text("")
+    assert cli.main(["--config", str(config)]) == 2
+    assert "empty" in capsys.readouterr().err
+    assert cli.main(["--config", str(tmp_path / "missing.yaml")]) == 2
+    assert "file not found" in capsys.readouterr().err
+
+
+def test_yaml_exponents_without_sign_are_numbers(tmp_path: Path) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text(TINY.read_text() + "neural_fit_variance: 1e2\npcrb_factor: 5e0\n")
+    parsed = cli.parse_config(["--config", str(config)])
+    assert parsed.neural_fit_variance == 100.0 and parsed.pcrb_factor == 5.0
+
+
+def test_runs_dir_that_is_a_file_fails_before_any_work(tmp_path: Path, tiny_map: Path,
+                                                       capsys, monkeypatch) -> None:  # noqa: ANN001
+    blocker = tmp_path / "runs"
+    blocker.write_text("not a folder")
+    ran = []
+    monkeypatch.setattr("neuralmap.studies.tan.run", lambda *a: ran.append(a))
+    code = cli.main(["--config", str(TINY), "--map", str(tiny_map), "--runs_dir", str(blocker)])
+    assert code == 2 and not ran
+    assert "is a file, not a folder" in capsys.readouterr().err
+
+
+def test_interrupt_leaves_nothing_behind(tmp_path: Path, tiny_map: Path, capsys,
+                                         monkeypatch) -> None:  # noqa: ANN001
+    def interrupted(config, outputs) -> None:  # noqa: ANN001
+        (outputs.dir / "half.png").write_bytes(b"partial")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr("neuralmap.studies.tan.run", interrupted)
+    runs = tmp_path / "runs"
+    code = cli.main(["--config", str(TINY), "--map", str(tiny_map), "--runs_dir", str(runs)])
+    assert code == 130 and "interrupted" in capsys.readouterr().err
+    leftovers = [p for p in runs.rglob("*")] if runs.exists() else []
+    assert not [p for p in leftovers if p.is_file() or p.name.startswith(".tmp-version")]
+
+
+def test_concurrent_runs_get_distinct_version_folders(tmp_path: Path) -> None:
+    barrier = threading.Barrier(8)
+    taken: list[Path] = []
+
+    def reserve() -> None:
+        barrier.wait()
+        taken.append(next_version_dir(tmp_path / "exp"))
+
+    threads = [threading.Thread(target=reserve) for _ in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert sorted(p.name for p in taken) == [f"version_{i}" for i in range(8)]
+
+
+def test_flight_off_the_tile_exits_2_with_the_reason(tmp_path: Path, tiny_map: Path,
+                                                    capsys) -> None:  # noqa: ANN001
+    scenario = tmp_path / "off.yaml"
+    text = (REPO_ROOT / "configs" / "scenarios" / "tiny.yaml").read_text()
+    scenario.write_text(text.replace("start_xy: [500.0, 500.0]", "start_xy: [-9000.0, -9000.0]"))
+    code = cli.main(["--config", str(TINY), "--map", str(tiny_map), "--scenario", str(scenario),
+                     "--runs_dir", str(tmp_path / "runs"), "--methods", "[bilinear]"])
+    err = capsys.readouterr().err
+    assert code == 2 and "no run could be scored" in err and "start_xy" in err
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("*.json"))

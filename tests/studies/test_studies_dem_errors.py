@@ -1,0 +1,81 @@
+"""The DEM-error study: end to end on the tiny config, the prior-estimate reconstruction,
+and bad options."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.studies import cli
+from neuralmap.studies.dem_errors import DemErrorsStudyConfig, prior_estimates
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+TINY = REPO_ROOT / "configs" / "dem_errors_tiny.yaml"
+
+
+@pytest.mark.slow
+def test_end_to_end_tiny(tmp_path: Path) -> None:
+    config = cli.parse_config(["--config", str(TINY), "--runs_dir", str(tmp_path),
+                               "--tensorboard", "false"])
+    out = cli.run_study(config)
+    results = json.loads((out / "results.json").read_text())
+    report = (out / "report.md").read_text()
+    assert results["study"] == "dem_errors"
+    assert results["survey"]["one_survey"]["chosen"]["name"] == "AR(1)"
+    assert set(results["m2"]["cells"]) == {"lsq_min@0.5", "lsq_adaptive@0.5", "nine_point@0.5"}
+    assert all(c["std"] > 0 for c in results["m2"]["cells"].values())
+    filters = results["augmented"]["worlds"]["AR DEM error"]["filters"]
+    assert len(filters) == 6 and all(f["rmse_pos_m"] > 0 for f in filters.values())
+    for section in ("(Table 1)", "(Table 2)", "Augmented filters", "| AR(1) |",
+                    "6-state (paper tuning)", "Papers' claims"):
+        assert section in report
+    assert (out / "m2_sequences.png").stat().st_size > 0
+    assert len(results["claims"]) >= 2
+
+
+def test_prior_estimates_equal_the_filter_linearisation_points() -> None:
+    from neuralmap.linearize.factory import make_linearizer
+    from neuralmap.nav.model import TanModel
+    from neuralmap.nav.monte_carlo import run_filter
+    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.nav.simulator import simulate
+
+    scenario = dataclasses.replace(load_scenario("tiny"), duration_s=10.0)
+    tile = scenario_tile(scenario)
+    truth = simulate(scenario, tile, n_runs=4, seed=1)
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []
+    base = make_linearizer("lsq_adaptive", tile=tile)
+
+    class Recorder(torch.nn.Module):
+        def forward(self, xy, pos_cov=None):  # noqa: ANN001, ANN202
+            seen.append((xy.clone(), pos_cov.clone()))
+            return base(xy, pos_cov)
+
+    run = run_filter(truth, Recorder(), scenario)
+    p_hat, p_cov = prior_estimates(truth, run, TanModel.from_scenario(scenario))
+    torch.testing.assert_close(p_hat, torch.stack([s[0] for s in seen], dim=1),
+                               rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(p_cov, torch.stack([s[1] for s in seen], dim=1),
+                               rtol=1e-10, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("change", "match"),
+    [
+        ({"methods": ["lsq_huge"]}, "unknown method"),
+        ({"filter_method": "neural"}, "grid method"),
+        ({"periods": [1.0, -1.0]}, "--periods"),
+        ({"survey_phi": [1.2]}, "not stationary"),
+        ({"dem_error_sigma_m": 0.0}, "dem_error_sigma_m"),
+        ({"n_runs": 0}, "--n_runs"),
+    ],
+)
+def test_bad_options(change: dict, match: str) -> None:
+    config = dataclasses.replace(DemErrorsStudyConfig(), **change)
+    with pytest.raises(NeuralMapError, match=match):
+        config.validate()

@@ -1,0 +1,74 @@
+"""End to end: ``python evaluate.py --config configs/wind_tiny.yaml`` and the study's checks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.studies.cli import main
+from neuralmap.studies.wind import WindStudyConfig
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+TINY = REPO_ROOT / "configs" / "wind_tiny.yaml"
+
+
+@pytest.mark.slow
+def test_wind_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["--config", str(TINY), "--runs_dir", str(tmp_path), "--experiment", "w"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    folder = tmp_path / "w" / "version_0"
+    for name in ("report.md", "results.json", "config.yaml", "wind_estimates.png",
+                 "wind_outliers.png", "wind_outliers_zoom.png", "wind_shear.png",
+                 "wind_error_clean.png", "track_error.png", "track_error_dr.png"):
+        assert (folder / name).is_file(), name
+    assert list(folder.glob("events.out.tfevents*"))
+    results = json.loads((folder / "results.json").read_text())
+    assert results["study"] == "wind"
+    ran = results["filters"]
+    assert "KF" in ran and "LTI" in ran
+    assert set(ran) | set(results["skipped_filters"]) == {"KF", "Sage-Husa", "RAF", "VB", "LTI"}
+    for cond in ("clean", "outliers", "shear"):
+        for name in ran:
+            entry = results["conditions"][cond][name]
+            assert entry["rmse_all"] > 0 and 0.0 <= entry["divergence_rate"] <= 1.0
+    assert "patch_max_jump" in results["conditions"]["outliers"]["KF"]
+    track = results["track"]["fixes_every_10"]
+    # the correction with the true wind leaves only sensor and fix errors
+    assert track["corrected (true wind)"]["max_rms"] < track["no correction"]["max_rms"] / 10
+    assert len(results["claims"]) == 5
+    report = (folder / "report.md").read_text()
+    assert "Track correction" in report and "claims" in report
+
+
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        ({"scale": 0.0}, "'scale'"),
+        ({"process_var": -0.01}, "'process_var'"),
+        ({"meas_var": 0.0}, "'meas_var'"),
+        ({"correction_step": 2.0}, "'correction_step'"),
+        ({"conditions": ["calm"]}, "unknown"),
+        ({"filters": [{"name": "KF", "modle": "tvar"}]}, "unknown keys"),
+        ({"filters": [{"name": "X", "model": "arma"}]}, "'model'"),
+        ({"patch_std": -1.0}, "'patch_std'"),
+        ({"filters": [{"name": "SH", "policy": "SageHusa", "policy_args": {"b": 1.0}}]},
+         r"open interval \(0, 1\)"),
+        ({"filters": [{"name": "SH", "policy": "SageHusa", "policy_args": {"b": 0.0}}]},
+         "forgetting factor"),
+    ],
+)
+def test_bad_study_options(override: dict, match: str) -> None:
+    config = WindStudyConfig(**override)
+    with pytest.raises(NeuralMapError, match=match):
+        config.validate()
+
+
+def test_bad_option_from_the_command_line_exits_2(tmp_path: Path,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["--config", str(TINY), "--runs_dir", str(tmp_path), "--scale", "-5"])
+    assert code == 2
+    assert "'scale'" in capsys.readouterr().err

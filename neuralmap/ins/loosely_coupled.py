@@ -127,6 +127,16 @@ class LooselyCoupledResult:
     counts: dict[str, int] = field(default_factory=dict)
 
 
+def _quality_policies(policy: FilterPolicy | None) -> list[FilterPolicy]:
+    """Every policy inside ``policy`` (itself or a composition) that reads quality records."""
+    if policy is None:
+        return []
+    members = getattr(policy, "policies", None)
+    if members:
+        return [found for inner in members for found in _quality_policies(inner)]
+    return [policy] if callable(getattr(policy, "set_quality", None)) else []
+
+
 def initial_covariance(config: LooselyCoupledConfig, *, dtype: torch.dtype) -> torch.Tensor:
     """``P0`` ``(15, 15)``: configured navigation σ, bias σ² = turn-on² + instability²."""
     g = imu_grade(config.grade)
@@ -159,7 +169,12 @@ def run_loosely_coupled(
             ``(m, m)`` or per-run ``(N, m, m)``), e.g. a quality-based R; default: the
             reported σ times ``r_scale``.
         policy: Optional update policy of the batched Kalman core (adaptive factor on
-            ``P⁻``, robust R...), passed to every GNSS update.
+            ``P⁻``, robust R...), passed to every GNSS update. A policy with
+            ``set_quality`` (a quality-based R, or a composition holding one) receives the
+            epoch's indicators before each update as a mapping of ``(N,)`` tensors:
+            ``pdop``, ``fix_ratio``, ``satellites`` and ``sigma_m`` (the reported horizontal
+            position σ, RMS of north and east), after NaN treatment
+            (:func:`~neuralmap.ins.gnss.sanitize_quality`).
 
     Returns:
         :class:`LooselyCoupledResult`.
@@ -215,6 +230,9 @@ def run_loosely_coupled(
     nis = torch.full((n, k_epochs), math.nan, **kw)
     applied = torch.zeros(n, k_epochs, dtype=torch.bool, device=device)
     counts["skipped_epochs"] = 0
+    quality_takers = _quality_policies(policy)
+    if policy is not None:
+        policy.reset()
     counts["nan_measurements"] = 0
     dt = traj.dt
 
@@ -249,6 +267,13 @@ def run_loosely_coupled(
         R = torch.diag(sig[:m].square())
         if measurement_noise is not None:
             R = measurement_noise(j, R)
+        if quality_takers:
+            sig_h = quality.sigma_pos[j, :2].square().mean().sqrt()
+            indicators = {name: value.expand(n) for name, value in (
+                ("pdop", quality.pdop[j]), ("fix_ratio", quality.fix_ratio[j]),
+                ("satellites", quality.n_sats[j]), ("sigma_m", sig_h))}
+            for taker in quality_takers:
+                taker.set_quality(indicators)
         diag = ekf.update(resid[:, :m], H[:, :m], R, mask=finite, policy=policy)
         nis[:, j] = torch.where(diag.applied, diag.nis, math.nan)
         applied[:, j] = diag.applied

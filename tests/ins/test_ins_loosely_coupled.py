@@ -122,3 +122,33 @@ def test_nan_quality_and_measurements_are_counted() -> None:
     assert res.counts["nan_fix_ratio"] == 1 and res.counts["nan_measurements"] == 1
     assert not res.applied[:, 4].any() and not res.applied[1, 8] and res.applied[0, 8]
     assert res.healthy.all() and torch.isfinite(res.position_error).all()
+
+
+def test_quality_policy_receives_the_epoch_indicators() -> None:
+    """A quality-based R policy sees this epoch's PDOP, fix ratio, satellites and σ."""
+    from neuralmap.filters.policies import Compose, InnovationInflation, QualityR
+
+    seen: list[dict] = []
+
+    class Recording(QualityR):
+        def set_quality(self, values):  # noqa: ANN001, ANN202
+            seen.append({k: v.clone() for k, v in values.items()})
+            super().set_quality(values)
+
+    policy = Compose(Recording.gnss(), InnovationInflation(1.2))
+    gen = torch.Generator().manual_seed(0)
+    traj = short_drive(duration=10.0, dt=0.05)
+    imu = ImuErrorProcess("tactical_mems", n_runs=3, dt=traj.dt, generator=gen)
+    effects = UrbanEffects(degraded=((4.0, 7.0),))
+    rec = simulate_gnss(traj, n_runs=3, lever_arm=ARM, generator=gen, effects=effects)
+    res = run_loosely_coupled(traj, imu, rec, LooselyCoupledConfig(), generator=gen,
+                              policy=policy)
+    q = rec.quality
+    assert len(seen) == q.n_epochs
+    for j, values in enumerate(seen):
+        assert values["pdop"].shape == (3,) and values["pdop"][0] == q.pdop[j]
+        assert values["satellites"][0] == q.n_sats[j]
+        assert values["fix_ratio"][0] == q.fix_ratio[j]
+        assert values["sigma_m"][0] == pytest.approx(
+            float(q.sigma_pos[j, :2].square().mean().sqrt()))
+    assert res.healthy.all()

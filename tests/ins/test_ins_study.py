@@ -31,7 +31,8 @@ def evaluate() -> ModuleType:
 def test_study_end_to_end(evaluate: ModuleType, tmp_path: Path,
                           capsys: pytest.CaptureFixture[str]) -> None:
     code = evaluate.main(["--config", str(TINY), "--runs_dir", str(tmp_path), "--n_runs", "4",
-                          "--duration_s", "20", "--imu_rate_hz", "10", "--experiment", "e2e"])
+                          "--duration_s", "20", "--imu_rate_hz", "10", "--experiment", "e2e",
+                          "--variants", "[plain,quality_inflation,raf]"])
     out = capsys.readouterr()
     assert code == 0, out.err
     folder = tmp_path / "e2e" / "version_0"
@@ -41,7 +42,7 @@ def test_study_end_to_end(evaluate: ModuleType, tmp_path: Path,
     assert list(folder.glob("events.out.tfevents*"))
     results = json.loads((folder / "results.json").read_text())
     assert results["study"] == "gnss_ins"
-    assert list(results["variants"]) == ["plain", "r_scaled"]
+    assert list(results["variants"]) == ["plain", "quality_inflation", "raf"]
     for entry in results["variants"].values():
         assert entry["n_runs"] == 4 and entry["divergence_rate"] == 0.0
         assert 0 < entry["rmse_horizontal_m"] < 0.5  # RTK-aided solution: centimetres
@@ -49,6 +50,9 @@ def test_study_end_to_end(evaluate: ModuleType, tmp_path: Path,
     assert len(results["curves"]["t"]) == 21
     report = (folder / "report.md").read_text()
     assert "Position error" in report and "SEEDS 003" in report
+    claims = results["claims"]
+    assert len(claims) == 3 and all(c["paper"] == "SEEDS 003" for c in claims)
+    assert all(c["verdict"] in ("holds", "partly", "does not hold") for c in claims)
 
 
 def test_bad_options_exit_2(evaluate: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:

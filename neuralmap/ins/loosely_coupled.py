@@ -111,7 +111,8 @@ class LooselyCoupledResult:
         nis: ``(N, K)`` NIS of the update (NaN where none applied).
         applied: ``(N, K)`` update applied.
         healthy: ``(N,)`` filter health at the end.
-        counts: Counted treatments (skipped epochs, sanitised quality indicators).
+        counts: Counted treatments (skipped epochs, sanitised quality indicators, runs
+            frozen after their solution became non-finite: ``failed_runs``).
     """
 
     time: torch.Tensor
@@ -135,6 +136,25 @@ def _quality_policies(policy: FilterPolicy | None) -> list[FilterPolicy]:
     if members:
         return [found for inner in members for found in _quality_policies(inner)]
     return [policy] if callable(getattr(policy, "set_quality", None)) else []
+
+
+def _guard(
+    y: torch.Tensor, y_good: torch.Tensor, failed: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Freezes runs whose solution left the valid domain (non-finite, |lat| ≥ 89°).
+
+    A run that diverged that far (e.g. after a huge correction) is marked in ``failed``
+    (in place; reported as unhealthy and counted) and keeps its last valid solution, so
+    that it cannot stop the batch with NaN in the shared tensors.
+
+    Returns:
+        ``(y, new last-good y)``.
+    """
+    bad = ~torch.isfinite(y).all(1) | (y[:, 0].abs() >= math.radians(89.0))
+    if bool(bad.any()):
+        failed |= bad
+        y = torch.where(bad[:, None], y_good, y)
+    return y, y
 
 
 def initial_covariance(config: LooselyCoupledConfig, *, dtype: torch.dtype) -> torch.Tensor:
@@ -252,7 +272,7 @@ def run_loosely_coupled(
         nees_n[:, j] = w.square().sum((-2, -1))
 
     def update(j: int, gyro: torch.Tensor) -> None:
-        nonlocal y, bg_hat, ba_hat
+        nonlocal y, y_good, bg_hat, ba_hat
         valid = bool(quality.valid[j])
         if not valid:
             counts["skipped_epochs"] += 1
@@ -279,10 +299,13 @@ def run_loosely_coupled(
         applied[:, j] = diag.applied
         x = ekf.x
         y = correct(y, x[:, :9])
+        y, y_good = _guard(y, y_good, failed)
         bg_hat = bg_hat - x[:, 9:12]
         ba_hat = ba_hat - x[:, 12:15]
         ekf.x = zeros
 
+    failed = torch.zeros(n, dtype=torch.bool, device=device)
+    y_good = y
     raw_g, raw_a = imu.measure(traj.gyro[0], traj.accel[0])
     if 0 in epoch_of:
         update(epoch_of[0], raw_g - bg_hat)
@@ -297,6 +320,7 @@ def run_loosely_coupled(
             since += 1
             j = epoch_of.get(k)
             if since == config.propagate_every or j is not None:
+                y, y_good = _guard(y, y_good, failed)
                 F = error_dynamics(y, f1, gyro_corr_time=tau_g, accel_corr_time=tau_a)
                 phi, qd = discretize(F, continuous_noise(y, qc), since * dt)
                 ekf.predict(phi, qd)
@@ -304,8 +328,9 @@ def run_loosely_coupled(
             if j is not None:
                 update(j, w1)
                 record(j, k)
+    counts["failed_runs"] = int(failed.sum())
     return LooselyCoupledResult(
         time=quality.time, position_error=out["pos"], velocity_error=out["vel"],
         attitude_error=out["att"], std=std, nees_position=nees_p, nees_navigation=nees_n,
-        nis=nis, applied=applied, healthy=ekf.healthy.clone(), counts=counts,
+        nis=nis, applied=applied, healthy=ekf.healthy & ~failed, counts=counts,
     )

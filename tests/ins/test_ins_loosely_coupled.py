@@ -152,3 +152,19 @@ def test_quality_policy_receives_the_epoch_indicators() -> None:
         assert values["sigma_m"][0] == pytest.approx(
             float(q.sigma_pos[j, :2].square().mean().sqrt()))
     assert res.healthy.all()
+
+
+def test_run_driven_off_the_globe_is_frozen_and_counted() -> None:
+    """An absurd GNSS fix (a latitude 60° off, huge R-blind correction) must not stop the
+    batch: the run is frozen, reported unhealthy and counted; the others are untouched."""
+
+    def absurd(rec):
+        pos = rec.position.clone()
+        pos[1, 5:, 0] += 1.05  # rad
+        return dataclasses.replace(rec, position=pos)
+
+    res = _run(LooselyCoupledConfig(), gnss_hook=absurd, n_runs=3, duration=10.0)
+    assert res.counts["failed_runs"] == 1
+    assert res.healthy.tolist() == [True, False, True]
+    assert torch.isfinite(res.position_error).all()
+    assert res.position_error[[0, 2]].abs().max() < 0.5

@@ -67,6 +67,11 @@ STUDIES: dict[str, StudySpec] = {
         "DEM-related error models: identification, linearisation error m2, 5/6/7-state filters",
         "dem_errors.yaml",
     ),
+    "gnss_ins": StudySpec(
+        "neuralmap.studies.gnss_ins", "GnssInsStudyConfig",
+        "Monte Carlo GNSS/MEMS-IMU loosely coupled navigation on an urban drive (paper 003)",
+        "gnss_ins.yaml",
+    ),
 }
 
 

@@ -97,7 +97,9 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
 
     Args:
-        path: A file written by :func:`save_map`.
+        path: A file written by :func:`save_map`, or the ``map_index.json`` (or its
+            folder) of a sharded region map: then a
+            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily.
 
     Returns:
         The terrain model; ``.tile_name``, ``.tile_fingerprint``, ``.extent`` and
@@ -107,6 +109,11 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
         NeuralMapError: If the file is missing, not a neuralmap export, or its stored
             config or weights do not build the model (a damaged or hand-edited file).
     """
+    from neuralmap.terrain.sharded import ShardedTerrainMap, is_sharded_index
+
+    if isinstance(path, (str, os.PathLike)) and is_sharded_index(path):
+        index = Path(path)
+        return ShardedTerrainMap(index / "map_index.json" if index.is_dir() else index)  # type: ignore[return-value]
     payload = load_map_payload(path)
     try:
         config = dict(payload["config"])

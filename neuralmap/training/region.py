@@ -325,7 +325,8 @@ def _worker(fabric: Any, plan: dict[str, Any]) -> dict[str, Any]:
     """One process: trains its shards, writes them; rank 0 writes the index."""
     torch.set_num_threads(int(plan["threads"]))
     rank, world = int(fabric.global_rank), int(fabric.world_size)
-    data, layout = plan["data"], plan["layout"]
+    data = plan["data"]
+    layout = BlockLayout(**plan["layout"])  # passed as a dict: Fabric rebuilds dataclasses
     out = Path(plan["out_dir"])
     ranges = shard_block_ranges(layout.num_blocks, plan["shard_blocks"])
     todo = plan["shard_ids"] if plan["shard_ids"] is not None else list(range(len(ranges)))
@@ -409,7 +410,9 @@ def fit_region(
     world = int(devices) * int(num_nodes)
     if strategy is None:
         strategy = "auto" if world == 1 else ("ddp" if num_nodes > 1 else "ddp_spawn")
-    plan = {"data": data, "layout": layout, "out_dir": str(out), "shard_blocks": shard_blocks,
+    layout_dict = {"extent": layout.extent, "num_blocks": layout.num_blocks,
+                   "blend_width": layout.blend_width}
+    plan = {"data": data, "layout": layout_dict, "out_dir": str(out), "shard_blocks": shard_blocks,
             "shard_ids": shard_ids, "steps": int(steps), "points_per_block": int(points_per_block),
             "lr": float(lr), "seed": int(seed), "net_options": dict(net_options or {}),
             "threads": int(threads)}

@@ -138,3 +138,28 @@ def test_two_processes_equal_one(region_path: Path, tmp_path: Path) -> None:
     with torch.no_grad():
         h1, h2 = load_map(one["index"])(xy), load_map(two["index"])(xy)
     np.testing.assert_allclose(h2.numpy(), h1.numpy(), atol=1e-4, rtol=0)
+
+
+def test_cli_trains_a_two_tile_mosaic(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from neuralmap.training.region_cli import main
+
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:25, 0:50]
+    whole = 400 + 3.0 * xx + 2.0 * yy + rng.normal(0, 0.1, (25, 50))
+    for name, part, x0 in (("a", whole[:, :25], 0.0), ("b", whole[:, 25:], 25 * 30.0)):
+        rows = "\n".join(" ".join(f"{v:.2f}" for v in r) for r in np.flipud(part))
+        (tmp_path / f"{name}.asc").write_text(
+            f"ncols 25\nnrows 25\nxllcenter {500000 + x0}\nyllcenter 4000000\ncellsize 30\n"
+            + rows + "\n")
+        (tmp_path / f"{name}.prj").write_text('PROJCS["WGS 84 / UTM zone 16N"]')
+    code = main([str(tmp_path / "*.asc"), "--out", str(tmp_path / "out"), "--steps", "80",
+                 "--block_nodes", "12", "--overlap_nodes", "2", "--lr", "1e-2"])
+    assert code == 0, capsys.readouterr().err
+    model = load_map(tmp_path / "out")
+    stored = np.load(tmp_path / "out" / "region.npy")
+    np.testing.assert_allclose(stored, np.round(whole, 2), atol=1e-4)
+    xy = torch.tensor([[30.0 * 30, 10 * 30.0], [10 * 30.0, 20 * 30.0]])
+    with torch.no_grad():
+        h = model(xy)
+    expected = torch.tensor([whole[10, 30], whole[20, 10]], dtype=torch.float32)
+    assert float((h - expected).abs().max()) < 5.0  # a 3 m/node plane, fitted in 80 steps

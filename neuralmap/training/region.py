@@ -407,6 +407,11 @@ def fit_region(
     layout = plan_layout(data, block_nodes=block_nodes, overlap_nodes=overlap_nodes,
                          num_blocks=num_blocks)
     ranges = shard_block_ranges(layout.num_blocks, shard_blocks)
+    if shard_ids is not None and any(not 0 <= int(i) < len(ranges) for i in shard_ids):
+        raise NeuralMapError(
+            f"fit_region: shard_ids {shard_ids} name shards outside 0..{len(ranges) - 1} "
+            f"(the region has {len(ranges)} shards of {shard_blocks} blocks)."
+        )
     world = int(devices) * int(num_nodes)
     if strategy is None:
         strategy = "auto" if world == 1 else ("ddp" if num_nodes > 1 else "ddp_spawn")

@@ -10,12 +10,17 @@ written to ``DIR/region.npy``). The map goes to ``DIR/map_index.json`` + ``DIR/s
 Examples:
     python train_region.py "srtm/N36W08[45].hgt" --out runs/two_tiles --devices 2
     python train_region.py synthetic-region --out runs/paper_region --devices 2 --steps 300
+
+With ``--strategy ddp`` (Lightning's script launcher, or ``torchrun`` over several nodes)
+every rank re-runs this command; only rank 0 writes the mosaic / synthetic region. Over
+several machines, write the ``.npy`` once on a shared disk first and pass it.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -56,7 +61,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         out.mkdir(parents=True, exist_ok=True)
         sources = args.sources
-        if sources == ["synthetic-region"]:
+        launched = os.environ.get("LOCAL_RANK", "0") != "0" or os.environ.get("RANK", "0") != "0"
+        if launched and sources != [] and not (len(sources) == 1 and sources[0].endswith(".npy")):
+            # a rank started by Lightning's script launcher (strategy ddp): rank 0 has
+            # written the region already; do not write it again
+            path = out / "region.npy"
+        elif sources == ["synthetic-region"]:
             shape = tuple(args.region_shape) if args.region_shape else PAPER_REGION_SHAPE
             synthetic_region(out / "region.npy", shape=shape, seed=args.seed)  # type: ignore[arg-type]
             path = out / "region.npy"

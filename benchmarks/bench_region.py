@@ -8,8 +8,8 @@ Every measurement runs in a fresh child process (so peak RSS is its own):
   8 × 8 blocks of 24 node intervals each) trained for ``--steps`` steps on 1 and 2
   processes. Reported: points/s (block samples per second of the slowest rank), the
   2-process/1-process ratio, the peak RSS of the largest rank, and the projected time of
-  a whole map (every block, ``--full_steps`` steps of 64 points) for the paper's region
-  and an SRTM 1″ tile (3601 × 3601 at 30 m).
+  a whole map (every block, ``--full_steps`` steps of 256 points: the trainer's defaults)
+  for the paper's region and an SRTM 1″ tile (3601 × 3601 at 30 m).
 * **Monte Carlo** (:func:`neuralmap.nav.chunked.run_monte_carlo_chunked`): the jacksboro
   scenario (200 steps), bilinear method, at ``--mc_runs`` runs; runs/s and the peak RSS
   of the chunked run itself (the peak is reset after the setup through
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--areas", nargs="*", default=list(AREAS), choices=list(AREAS))
     parser.add_argument("--shards", type=int, default=4, help="shards trained per measurement")
     parser.add_argument("--steps", type=int, default=30, help="steps per shard measured")
-    parser.add_argument("--full_steps", type=int, default=300, help="steps of a real fit")
+    parser.add_argument("--full_steps", type=int, default=500, help="steps of a real fit")
     parser.add_argument("--mc_runs", type=int, nargs="*", default=[10_000, 100_000])
     parser.add_argument("--skip_mc", action="store_true")
     parser.add_argument("--skip_train", action="store_true")
@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
                 numbers["train"][f"{label}/{devices}"] = res
                 single = res if devices == 1 else single
                 ratio = res["points_per_s"] / single["points_per_s"]
-                full_points = _blocks(shape) * 64 * args.full_steps
+                full_points = _blocks(shape) * 256 * args.full_steps
                 hours = full_points / res["points_per_s"] / 3600
                 print(f"| {label} ({shape[0]}×{shape[1]}) | {devices} | "
                       f"{res['points_per_s']:,.0f} | {ratio:.2f} | {res['peak_rss_mb']:.0f} | "
@@ -175,11 +175,11 @@ def main(argv: list[str] | None = None) -> int:
         ref = numbers["train"].get(f"{list(areas)[-1]}/1")
         if ref:
             for name, shape in (("SEEDS 004 map", AREAS["4.6M"]), ("SRTM 1″ tile", SRTM_1ARCSEC)):
-                pts = _blocks(shape) * 64 * args.full_steps
+                pts = _blocks(shape) * 256 * args.full_steps
                 for devices in (1, 2):
                     rate = numbers["train"][f"{list(areas)[-1]}/{devices}"]["points_per_s"]
                     print(f"projected: {name} {shape[0]}×{shape[1]}: {_blocks(shape):,} blocks × "
-                          f"64 points × {args.full_steps} steps = {pts / 1e6:.0f} M points: "
+                          f"256 points × {args.full_steps} steps = {pts / 1e6:.0f} M points: "
                           f"{pts / rate / 3600:.2f} h on {devices} process(es) at "
                           f"{rate:,.0f} points/s", flush=True)
     if not args.skip_mc:
@@ -195,8 +195,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{res['setup_peak_mb']:.0f} |", flush=True)
         last = numbers["mc"][str(mc_runs[-1])]
         print(f"extrapolated (not measured): 1,000,000 runs at {last['runs_per_s']:,.0f} runs/s "
-              f"= {1e6 / last['runs_per_s'] / 60:.0f} min; memory kept per run: 5 values + 3 "
-              "flags (~43 B), i.e. ~41 MiB at 1 M runs on top of one chunk's working set",
+              f"= {1e6 / last['runs_per_s'] / 60:.0f} min; kept per run and method: 2 float64 + 3 "
+              "bool (19 B), i.e. ~18 MiB at 1 M runs on top of one seed block's working set",
               flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(numbers, indent=1))

@@ -331,6 +331,18 @@ def _mosaic_tile(plan: MosaicPlan, heights: np.ndarray, name: str, n_shared: int
                    source=sources, meta=meta, projected=projected)
 
 
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux ``MemAvailable``), or None."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        return None
+    return None
+
+
 def load_mosaic(
     sources: str | Path | Sequence[str | Path],
     *,
@@ -354,6 +366,15 @@ def load_mosaic(
         NeuralMapError: See :func:`plan_mosaic`; overlapping tiles that disagree.
     """
     plan = plan_mosaic(sources, **load_options)
+    need = 2 * 8 * plan.shape[0] * plan.shape[1]  # float64 heights and the tile's copy
+    available = _available_memory()
+    if available is not None and need > available:
+        raise NeuralMapError(
+            f"load_mosaic: the mosaic of {len(plan.paths)} tiles is {plan.shape[0]} x "
+            f"{plan.shape[1]} nodes, about {need / 2**30:.1f} GiB in memory, but only "
+            f"{available / 2**30:.1f} GiB are available. Write it to disk instead with "
+            "write_mosaic(sources, 'area.npy') and train from the memory-mapped file."
+        )
     heights = np.full(plan.shape, np.nan)
     n_shared = _stitch_into(plan, heights, tolerance_m)
     label = name or f"mosaic_{plan.paths[0].stem}_{len(plan.paths)}"

@@ -9,7 +9,7 @@ written to ``DIR/region.npy``). The map goes to ``DIR/map_index.json`` + ``DIR/s
 
 Examples:
     python train_region.py "srtm/N36W08[45].hgt" --out runs/two_tiles --devices 2
-    python train_region.py synthetic-region --out runs/paper_region --devices 2 --steps 300
+    python train_region.py synthetic-region --out runs/paper_region --devices 2
 
 With ``--strategy ddp`` (Lightning's script launcher, or ``torchrun`` over several nodes)
 every rank re-runs this command; only rank 0 writes the mosaic / synthetic region. Over
@@ -37,9 +37,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--block_nodes", type=int, default=24)
     p.add_argument("--overlap_nodes", type=float, default=4.0)
     p.add_argument("--shard_blocks", type=int, nargs=2, default=[8, 8], metavar=("SBX", "SBY"))
-    p.add_argument("--steps", type=int, default=300, help="Adam steps per shard")
-    p.add_argument("--points_per_block", type=int, default=64)
-    p.add_argument("--lr", type=float, default=3e-3)
+    p.add_argument("--steps", type=int, default=500, help="Adam steps per shard")
+    p.add_argument("--points_per_block", type=int, default=256)
+    p.add_argument("--lr", type=float, default=1e-2)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--devices", type=int, default=1, help="processes per node")
     p.add_argument("--num_nodes", type=int, default=1)

@@ -140,3 +140,13 @@ def test_mosaic_larger_than_disk_refused(tmp_path: Path, monkeypatch: pytest.Mon
 def test_projection_distortion_zero_on_centre_parallel() -> None:
     d = projection_distortion((10.0, 10.0), (45.0, 45.0))
     assert d["max_scale_error_ew"] == 0.0 and d["max_position_error_m"] == 0.0
+
+
+def test_mosaic_larger_than_memory_refused(tmp_path: Path,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    _two_tiles(tmp_path)
+    import neuralmap.dem.mosaic as mosaic_module
+
+    monkeypatch.setattr(mosaic_module, "_available_memory", lambda: 1000)
+    with pytest.raises(NeuralMapError, match="write_mosaic"):
+        load_mosaic(tmp_path / "*.hgt")

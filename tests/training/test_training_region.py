@@ -37,8 +37,7 @@ def region_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def _grid_xy(data: RegionData) -> torch.Tensor:
     ny, nx = data.shape
     ii, jj = np.meshgrid(np.arange(ny), np.arange(nx), indexing="ij")
-    return torch.tensor(np.stack([jj * 100.0, ii * 100.0], -1).reshape(-1, 2),
-                        dtype=torch.float32)
+    return torch.tensor(np.stack([jj * 100.0, ii * 100.0], -1).reshape(-1, 2), dtype=torch.float32)
 
 
 def test_splitmix64_reference_values() -> None:
@@ -54,10 +53,12 @@ def test_memmap_and_in_memory_batches_identical(region_path: Path) -> None:
     layout = plan_layout(mapped, block_nodes=24)
     ids = np.arange(layout.count)
     windows = mapped.node_window(layout.block_bounds())
-    a = RegionBatches(mapped.heights, (0, 0), mapped, windows, ids, points_per_block=50,
-                      steps=3, seed=4)
-    b = RegionBatches(loaded.heights, (0, 0), loaded, windows, ids, points_per_block=50,
-                      steps=3, seed=4)
+    a = RegionBatches(
+        mapped.heights, (0, 0), mapped, windows, ids, points_per_block=50, steps=3, seed=4
+    )
+    b = RegionBatches(
+        loaded.heights, (0, 0), loaded, windows, ids, points_per_block=50, steps=3, seed=4
+    )
     for step in range(3):
         for x, y in zip(a[step], b[step], strict=True):
             assert torch.equal(x, y)
@@ -68,16 +69,20 @@ def test_memmap_and_in_memory_batches_identical(region_path: Path) -> None:
     rows, cols = (xy[:, 1] / 100).round().long(), (xy[:, 0] / 100).round().long()
     assert torch.equal(h, torch.as_tensor(np.asarray(loaded.heights)[rows, cols]))
     assert bool(torch.isfinite(h).all())  # void nodes are dropped
-    net_a, _ = train_shard(mapped, layout, (0, 3, 0, 2), steps=5, seed=2)
-    net_b, _ = train_shard(loaded, layout, (0, 3, 0, 2), steps=5, seed=2)
+    net_a, _ = train_shard(mapped, layout, (0, 3, 0, 2), steps=5, seed=2, points_per_block=32)
+    net_b, _ = train_shard(loaded, layout, (0, 3, 0, 2), steps=5, seed=2, points_per_block=32)
     for key, value in net_a.state_dict().items():
         assert torch.equal(value, net_b.state_dict()[key]), key
 
 
 def test_shard_layout_does_not_change_the_fit(region_path: Path, tmp_path: Path) -> None:
     data = RegionData.open(region_path)
-    one = fit_region(data, tmp_path / "one", shard_blocks=(3, 2), steps=40, lr=1e-2)
-    six = fit_region(data, tmp_path / "six", shard_blocks=(1, 1), steps=40, lr=1e-2)
+    one = fit_region(
+        data, tmp_path / "one", shard_blocks=(3, 2), steps=40, lr=1e-2, points_per_block=64
+    )
+    six = fit_region(
+        data, tmp_path / "six", shard_blocks=(1, 1), steps=40, lr=1e-2, points_per_block=64
+    )
     assert one["shards"] == 1 and six["shards"] == 6
     xy = _grid_xy(data)
     with torch.no_grad():
@@ -87,7 +92,9 @@ def test_shard_layout_does_not_change_the_fit(region_path: Path, tmp_path: Path)
 
 def test_sharded_map_is_seamless_and_lazy(region_path: Path, tmp_path: Path) -> None:
     data = RegionData.open(region_path)
-    summary = fit_region(data, tmp_path / "m", shard_blocks=(1, 1), steps=100, lr=2e-2)
+    summary = fit_region(
+        data, tmp_path / "m", shard_blocks=(1, 1), steps=100, lr=2e-2, points_per_block=64
+    )
     model = load_map(tmp_path / "m")
     assert isinstance(model, ShardedTerrainMap) and model.loaded_shards == []
     with torch.no_grad():
@@ -131,8 +138,18 @@ def test_bad_region_input(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_two_processes_equal_one(region_path: Path, tmp_path: Path) -> None:
     data = RegionData.open(region_path)
-    one = fit_region(data, tmp_path / "p1", shard_blocks=(1, 1), steps=40, lr=1e-2)
-    two = fit_region(data, tmp_path / "p2", shard_blocks=(1, 1), steps=40, lr=1e-2, devices=2)
+    one = fit_region(
+        data, tmp_path / "p1", shard_blocks=(1, 1), steps=40, lr=1e-2, points_per_block=64
+    )
+    two = fit_region(
+        data,
+        tmp_path / "p2",
+        shard_blocks=(1, 1),
+        steps=40,
+        lr=1e-2,
+        devices=2,
+        points_per_block=64,
+    )
     assert two["world_size"] == 2 and [r["shards"] for r in two["per_rank"]] == [3, 3]
     xy = _grid_xy(data)
     with torch.no_grad():
@@ -150,10 +167,25 @@ def test_cli_trains_a_two_tile_mosaic(tmp_path: Path, capsys: pytest.CaptureFixt
         rows = "\n".join(" ".join(f"{v:.2f}" for v in r) for r in np.flipud(part))
         (tmp_path / f"{name}.asc").write_text(
             f"ncols 25\nnrows 25\nxllcenter {500000 + x0}\nyllcenter 4000000\ncellsize 30\n"
-            + rows + "\n")
+            + rows
+            + "\n"
+        )
         (tmp_path / f"{name}.prj").write_text('PROJCS["WGS 84 / UTM zone 16N"]')
-    code = main([str(tmp_path / "*.asc"), "--out", str(tmp_path / "out"), "--steps", "80",
-                 "--block_nodes", "12", "--overlap_nodes", "2", "--lr", "1e-2"])
+    code = main(
+        [
+            str(tmp_path / "*.asc"),
+            "--out",
+            str(tmp_path / "out"),
+            "--steps",
+            "80",
+            "--block_nodes",
+            "12",
+            "--overlap_nodes",
+            "2",
+            "--lr",
+            "1e-2",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     model = load_map(tmp_path / "out")
     stored = np.load(tmp_path / "out" / "region.npy")

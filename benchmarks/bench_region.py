@@ -80,6 +80,7 @@ def _child_train(job: dict) -> dict:
                          strategy=None)
     ranks = summary["per_rank"]
     return {"points_per_s": summary["points_per_s"], "points": summary["points"],
+            "points_per_cpu_s": summary["points_per_cpu_s"],
             "peak_rss_mb": max([r["peak_rss_mb"] for r in ranks] + [_vm("VmHWM")]),
             "rank_rss_mb": [r["peak_rss_mb"] for r in ranks],
             "blocks": summary["layout"]["num_blocks"], "wall_s": summary["wall_s"]}
@@ -153,8 +154,9 @@ def main(argv: list[str] | None = None) -> int:
     numbers: dict = {"train": {}, "mc": {}}
     tmp = Path(tempfile.mkdtemp(prefix="bench_region_"))
     if not args.skip_train:
-        print("| area (nodes) | processes | points/s | 2p/1p | peak RSS (MiB) | blocks "
-              "| projected full fit |\n|---|---:|---:|---:|---:|---:|---:|", flush=True)
+        print("| area (nodes) | processes | points/s | 2p/1p | points per CPU-s | peak RSS (MiB) "
+              "| blocks | projected full fit |\n|---|---:|---:|---:|---:|---:|---:|---:|",
+              flush=True)
         for label, shape in areas.items():
             path = tmp / f"{label}.npy"
             gen = _spawn({"kind": "generate", "path": str(path), "shape": list(shape)})
@@ -169,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
                 full_points = _blocks(shape) * 256 * args.full_steps
                 hours = full_points / res["points_per_s"] / 3600
                 print(f"| {label} ({shape[0]}×{shape[1]}) | {devices} | "
-                      f"{res['points_per_s']:,.0f} | {ratio:.2f} | {res['peak_rss_mb']:.0f} | "
+                      f"{res['points_per_s']:,.0f} | {ratio:.2f} | {res['points_per_cpu_s']:,.0f} | "
+                      f"{res['peak_rss_mb']:.0f} | "
                       f"{_blocks(shape):,} | {hours:.2f} h |", flush=True)
             path.unlink()
         ref = numbers["train"].get(f"{list(areas)[-1]}/1")

@@ -14,7 +14,9 @@ Every seed block is simulated and filtered as one batch of its own (a batched ke
 round differently for another batch size), so a chunk is a unit of work, run block after
 block. Memory: one block's truth and filter histories (``O(block · K · 25)`` floats) live
 only while the block runs; what is kept is per run a handful of numbers (final errors and
-bounds, flags) and per step running sums, added per seed block in block order.
+bounds, flags) and per step running sums, added per seed block in block order; glibc is
+told to return large freed blocks to the system (:func:`bound_allocator`), so resident
+memory stays flat over a long run.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ __all__ = [
     "ChunkedResult",
     "MethodSummary",
     "block_seed",
+    "bound_allocator",
     "concat_truths",
     "run_monte_carlo_chunked",
     "simulate_blocks",
@@ -44,6 +47,30 @@ __all__ = [
 #: Runs per seed block (the unit of seeding; chunks are whole multiples of it).
 SEED_BLOCK_RUNS = 1024
 _MASK64 = (1 << 64) - 1
+
+
+#: Allocations at or above this size go to their own memory maps (returned to the system
+#: when freed); see :func:`bound_allocator`.
+MMAP_THRESHOLD_BYTES = 1 << 20
+
+
+def bound_allocator() -> bool:
+    """Makes glibc return freed large blocks to the system (best effort; False if not glibc).
+
+    glibc raises its mmap threshold dynamically after large blocks are freed, so the
+    per-block tensors of later seed blocks are carved from the heap, which fragments: the
+    resident memory of a long chunked run then creeps up (measured: +100 MiB after 20 k
+    jacksboro runs). A fixed threshold (``mallopt(M_MMAP_THRESHOLD, 1 MiB)``, as the
+    ``MALLOC_MMAP_THRESHOLD_`` environment variable) keeps it flat.
+    """
+    import ctypes
+    import ctypes.util
+
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(-3, MMAP_THRESHOLD_BYTES))  # -3 = M_MMAP_THRESHOLD
+    except (OSError, AttributeError):
+        return False
 
 
 def block_seed(seed: int, block: int) -> int:
@@ -197,6 +224,7 @@ def _run_chunk(job: dict[str, Any]) -> dict[str, Any]:
     from neuralmap.nav.monte_carlo import run_filter
 
     torch.set_num_threads(int(job.get("threads", 1)))
+    bound_allocator()
     reduced: dict[str, list[dict[str, torch.Tensor]]] = {name: [] for name in job["methods"]}
     errors: dict[str, list[torch.Tensor]] = {name: [] for name in job["methods"]}
     filt = dict.fromkeys(job["methods"], 0.0)

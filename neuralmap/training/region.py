@@ -332,6 +332,7 @@ def _worker(fabric: Any, plan: dict[str, Any]) -> dict[str, Any]:
     todo = plan["shard_ids"] if plan["shard_ids"] is not None else list(range(len(ranges)))
     mine = todo[rank::world]
     points, seconds, losses = 0.0, 0.0, []
+    cpu_start = time.process_time()
     from neuralmap.terrain.export import save_map
 
     for shard_id in mine:
@@ -343,13 +344,14 @@ def _worker(fabric: Any, plan: dict[str, Any]) -> dict[str, Any]:
         points += stats["points"]
         seconds += stats["seconds"]
         losses.append(stats["final_loss"])
-    mine_stats = torch.tensor([points, seconds, peak_rss_mb(), float(len(mine))],
+    cpu = time.process_time() - cpu_start
+    mine_stats = torch.tensor([points, seconds, peak_rss_mb(), float(len(mine)), cpu],
                               dtype=torch.float64)
     gathered = fabric.all_gather(mine_stats) if world > 1 else mine_stats.unsqueeze(0)
     fabric.barrier()
-    per_rank = gathered.reshape(world, 4).tolist()
+    per_rank = gathered.reshape(world, 5).tolist()
     return {"per_rank": [{"points": r[0], "seconds": r[1], "peak_rss_mb": r[2],
-                          "shards": int(r[3])} for r in per_rank],
+                          "shards": int(r[3]), "cpu_seconds": r[4]} for r in per_rank],
             "mean_loss": float(np.mean(losses)) if losses else float("nan")}
 
 
@@ -393,7 +395,9 @@ def fit_region(
 
     Returns:
         Summary: ``index`` path (or None), ``layout``, ``shards``, ``per_rank`` points,
-        seconds and peak RSS, ``points_per_s`` (total points / slowest rank's seconds).
+        seconds, CPU seconds and peak RSS, ``points_per_s`` (total points / slowest rank's
+        seconds), ``points_per_cpu_s`` (total points / summed CPU seconds: the rate each
+        process would keep on a free core).
     """
     from lightning.fabric import Fabric
 
@@ -438,6 +442,8 @@ def fit_region(
         "per_rank": result["per_rank"],
         "points": total_points,
         "points_per_s": total_points / slowest,
+        "points_per_cpu_s": total_points / max(
+            sum(r["cpu_seconds"] for r in result["per_rank"]), 1e-9),
         "wall_s": wall,
         "mean_final_loss": result["mean_loss"],
     }

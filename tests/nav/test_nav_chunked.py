@@ -33,14 +33,14 @@ def _same(a, b) -> None:  # noqa: ANN001
 
 def test_chunked_equals_one_chunk(setup) -> None:  # noqa: ANN001
     scenario, tile, methods = setup
-    kwargs = {"n_runs": 7, "seed": 5, "tile": tile, "keep_errors": True, "block_runs": 2}
+    kwargs = {"n_runs": 5, "seed": 5, "tile": tile, "keep_errors": True, "block_runs": 2}
     one = run_monte_carlo_chunked(scenario, methods, chunk_runs=8, **kwargs)
     many = run_monte_carlo_chunked(scenario, methods, chunk_runs=2, **kwargs)
     odd = run_monte_carlo_chunked(scenario, methods, chunk_runs=3, **kwargs)  # 2 blocks/chunk
-    assert (one.n_chunks, many.n_chunks, odd.n_chunks) == (1, 4, 2)
+    assert (one.n_chunks, many.n_chunks, odd.n_chunks) == (1, 3, 2)
     _same(one, many)
     _same(one, odd)
-    assert one.err["bilinear"].shape == (7, scenario.n_steps + 1, 5)
+    assert one.err["bilinear"].shape == (5, scenario.n_steps + 1, 5)
 
 
 def test_first_block_is_the_plain_simulation(setup) -> None:  # noqa: ANN001

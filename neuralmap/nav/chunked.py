@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -39,7 +39,6 @@ __all__ = [
     "MethodSummary",
     "block_seed",
     "bound_allocator",
-    "concat_truths",
     "run_monte_carlo_chunked",
     "simulate_blocks",
 ]
@@ -91,21 +90,6 @@ def _block_sizes(n_runs: int, block_runs: int) -> list[int]:
     """Sizes of the seed blocks of ``n_runs`` runs."""
     full, rest = divmod(n_runs, block_runs)
     return [block_runs] * full + ([rest] if rest else [])
-
-
-def concat_truths(truths: list[Truth]) -> Truth:
-    """Concatenates the runs of several truths of one scenario and world (same K)."""
-    if len(truths) == 1:
-        return truths[0]
-    first = truths[0]
-    values: dict[str, Any] = {}
-    for f in fields(Truth):
-        value = getattr(first, f.name)
-        if isinstance(value, torch.Tensor) and f.name != "t":
-            values[f.name] = torch.cat([getattr(t, f.name) for t in truths], dim=0)
-        else:
-            values[f.name] = value
-    return Truth(**values)
 
 
 def simulate_blocks(

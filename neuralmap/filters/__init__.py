@@ -1,8 +1,11 @@
-"""Batched filters: the functional Kalman core, the N-sample EKF, policies, diagnostics."""
+"""Batched filters: the functional Kalman core, the N-sample EKF, policies, diagnostics,
+the point-mass filter and the EKF bank (Gaussian sum)."""
 
 from neuralmap.filters.diagnostics import UpdateDiagnostics
 from neuralmap.filters.ekf import BatchedEKF, positive_definite_batchlast
+from neuralmap.filters.ekf_bank import GaussianSumEKF, lattice_prior
 from neuralmap.filters.kalman import KalmanUpdate, kalman_predict, kalman_update
+from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter, PointMassUpdate
 from neuralmap.filters.policies import (
     IGG3,
     ChiSquareGate,
@@ -25,9 +28,13 @@ __all__ = [
     "ChiSquareGate",
     "Compose",
     "FilterPolicy",
+    "GaussianSumEKF",
     "Huber",
     "InnovationInflation",
     "KalmanUpdate",
+    "PointMassConfig",
+    "PointMassFilter",
+    "PointMassUpdate",
     "Posterior",
     "QualityIndicator",
     "QualityR",
@@ -39,5 +46,6 @@ __all__ = [
     "YangAdaptive",
     "kalman_predict",
     "kalman_update",
+    "lattice_prior",
     "positive_definite_batchlast",
 ]

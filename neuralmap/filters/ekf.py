@@ -296,6 +296,7 @@ class BatchedEKF:
         candidates: torch.Tensor | None,
         extra_ok: torch.Tensor | None = None,
         certified: bool = False,
+        stacked: torch.Tensor | None = None,
     ) -> torch.Tensor:
         """Stores the new state where it is healthy; flags and freezes the rest.
 
@@ -307,6 +308,8 @@ class BatchedEKF:
             extra_ok: ``(N,)`` further validity (e.g. ``S`` positive definite).
             certified: Positive definiteness (and finiteness) of every candidate ``P`` is
                 already proven (see :meth:`_certified_pd`); skip the Cholesky test.
+            stacked: The full ``(n, n, N)`` candidate covariances when the caller has
+                already stacked ``p_up`` (saves one copy).
 
         Returns:
             ``(N,)`` bool: samples whose state was replaced.
@@ -316,7 +319,7 @@ class BatchedEKF:
         if extra_ok is not None:
             ok = ok & extra_ok
         full = [p_up[t] for t in self._full_from_tri]
-        pt_new: torch.Tensor | None = None
+        pt_new: torch.Tensor | None = stacked
         if certified:
             pass
         elif self._check_pd and self._small:
@@ -732,15 +735,15 @@ class BatchedEKF:
             h = [H[0, j] for j in range(n)]
             H3 = H.expand(batch, 1, n)
         pt = self._Pt
-        hph = None
-        for i in range(n):  # h P hᵀ = Σ_i h_i (P hᵀ)_i
-            u_i = pt[i, 0] * h[0]
+        u = []
+        for i in range(n):  # u = P⁻ hᵀ, h P⁻ hᵀ = Σ_i h_i u_i
+            acc = pt[i, 0] * h[0]
             for j in range(1, n):
-                u_i = torch.addcmul(u_i, pt[i, j], h[j])
-            hph = u_i * h[i] if hph is None else torch.addcmul(hph, u_i, h[i])
-        assert hph is not None
-        if hph.ndim == 0:
-            hph = hph.expand(batch)
+                acc = torch.addcmul(acc, pt[i, j], h[j])
+            u.append(acc if acc.ndim else acc.expand(batch))
+        hph = u[0] * h[0]
+        for i in range(1, n):
+            hph = torch.addcmul(hph, u[i], h[i])
         x_prior, p_prior = self.x, self.P
         active = self._healthy if mask is None else self._healthy & mask
         r1 = r[:, 0]
@@ -755,23 +758,41 @@ class BatchedEKF:
         adaptation = policy.adapt(context)
         posterior: Posterior | None = None
         for _ in range(max(1, int(policy.iterations))):
-            pt_use = pt if adaptation.P_prior is None else (
-                adaptation.P_prior.permute(1, 2, 0).contiguous()
-            )
-            if adaptation.p_scale is not None:
-                pt_use = pt_use * adaptation.p_scale
-            r_use = R if adaptation.R is None else adaptation.R.reshape(batch)
-            res_use, h_use = r1, h
-            any_kept = torch.ones(batch, dtype=torch.bool, device=self._device)
+            # A rejected measurement: r = 0, h = 0 (so P⁻hᵀ = 0), R = 1 and the stored P⁻
+            # (not the adapted one); then K = 0 and x⁺ = x⁻, P⁺ = P⁻ bitwise, so the
+            # sample is committed with the others (no per-entry selection) and reported
+            # as not applied.
+            any_kept: torch.Tensor | None = None
             if adaptation.keep is not None:
                 any_kept = adaptation.keep.to(torch.bool)[:, 0]
+            pt_use: torch.Tensor = pt
+            u_use: list[torch.Tensor] | None = u
+            if adaptation.P_prior is not None:
+                pt_use = adaptation.P_prior.permute(1, 2, 0).contiguous()
+                if any_kept is not None:
+                    pt_use = torch.where(any_kept, pt_use, pt)
+                u_use = None
+            if adaptation.p_scale is not None:
+                scale = adaptation.p_scale
+                if any_kept is not None:
+                    scale = torch.where(any_kept, scale, 1.0)
+                pt_use = pt_use * scale
+                if u_use is not None:
+                    u_use = [ui * scale for ui in u_use]
+            r_use = R if adaptation.R is None else adaptation.R.reshape(batch)
+            res_use, h_use = r1, h
+            if any_kept is not None:
                 res_use = torch.where(any_kept, r1, 0.0)
                 h_use = [torch.where(any_kept, hj, 0.0) for hj in h]
                 r_use = torch.where(any_kept, r_use, 1.0)
-            xt, p_up, S, kt = update_scalar_upper(self._xt, pt_use, res_use, h_use, r_use)
+                if u_use is not None:
+                    u_use = [torch.where(any_kept, ui, 0.0) for ui in u_use]
+            xt, p_up, S, kt = update_scalar_upper(self._xt, pt_use, res_use, h_use, r_use,
+                                                  u=u_use)
+            p_full = full_from_upper(p_up, n)
             r_used = r_use.expand(batch) if r_use.ndim == 0 else r_use
             posterior = Posterior(
-                x=xt.t(), P=full_from_upper(p_up, n).permute(2, 0, 1),
+                x=xt.t(), P=p_full.permute(2, 0, 1),
                 P_prior=pt_use.permute(2, 0, 1), R=r_used.reshape(batch, 1, 1),
                 S=S.reshape(batch, 1, 1), gain=kt.t().unsqueeze(-1),
                 residual=res_use.unsqueeze(-1),
@@ -781,8 +802,10 @@ class BatchedEKF:
                 break
             adaptation = nxt
         assert posterior is not None
-        candidates = any_kept if mask is None else any_kept & mask
-        applied = self._commit(xt, p_up, candidates, extra_ok=(S > 0) & (S < math.inf))
+        applied = self._commit(xt, p_up, mask, extra_ok=(S > 0) & (S < math.inf),
+                               stacked=p_full)
+        if any_kept is not None:
+            applied = applied & any_kept
         policy.commit(context, adaptation, posterior, applied)
         self._n_updates += 1
         nis = res_use * res_use / S

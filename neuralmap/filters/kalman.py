@@ -162,6 +162,7 @@ def update_scalar_upper(
     residual: torch.Tensor,
     h: Sequence[torch.Tensor],
     R: torch.Tensor,
+    u: Sequence[torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, list[torch.Tensor], torch.Tensor, torch.Tensor]:
     """Scalar-measurement update (m = 1) on batch-last storage, entry by entry.
 
@@ -180,17 +181,19 @@ def update_scalar_upper(
         residual: ``(N,)`` innovation.
         h: n entries of the measurement row, each ``(N,)`` or a 0-d shared value.
         R: ``()`` or ``(N,)`` measurement variance.
+        u: Optional precomputed ``P hᵀ`` (n entries, ``(N,)`` each) when the caller has it.
 
     Returns:
         ``x⁺`` ``(n, N)``, upper triangle of ``P⁺``, ``S`` ``(N,)``, gain ``(n, N)``.
     """
     n, batch = xt.shape
-    u = []
-    for i in range(n):
-        acc = pt[i, 0] * h[0]
-        for j in range(1, n):
-            acc = torch.addcmul(acc, pt[i, j], h[j])
-        u.append(acc)
+    if u is None:
+        u = []
+        for i in range(n):
+            acc = pt[i, 0] * h[0]
+            for j in range(1, n):
+                acc = torch.addcmul(acc, pt[i, j], h[j])
+            u.append(acc)
     S = R
     for j in range(n):
         S = torch.addcmul(S, h[j], u[j])  # S = h P hᵀ + R

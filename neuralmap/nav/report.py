@@ -496,6 +496,10 @@ def render_report(
     truth_model = results.get("truth_model") or {}
     if truth_model:
         setup.append(("truth terrain", truth_model.get("description", truth_model.get("kind"))))
+        voids = truth_model.get("void_exposure") or {}
+        if voids.get("samples"):
+            setup.append(("truth samples over DEM voids (nearest-node fill, not terrain)",
+                          f"{voids['samples']} in {voids['runs']} runs"))
     fit = map_info.get("fit_metrics", {}) or {}
     if _finite(fit.get("rmse_m")):
         setup.append(("map fit RMSE at the training nodes (in-sample)", f"{fit['rmse_m']:.2f} m"))

@@ -41,6 +41,16 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo terrain-aided navigation: linearisation methods against the PCRB",
         "tan.yaml",
     ),
+    "map_size": StudySpec(
+        "neuralmap.studies.map_size", "MapSizeStudyConfig",
+        "Stored bytes vs map error vs navigation accuracy: neural maps against compressed grids",
+        "map_size.yaml",
+    ),
+    "acquisition": StudySpec(
+        "neuralmap.studies.acquisition", "AcquisitionStudyConfig",
+        "TAN acquisition from large initial errors: EKF, EKF bank, point mass, point mass -> EKF",
+        "acquisition.yaml",
+    ),
     "tan_outliers": StudySpec(
         "neuralmap.studies.tan_outliers", "TanOutliersConfig",
         "TAN under radar-altimeter faults: robust and adaptive update policies",
@@ -61,6 +71,11 @@ STUDIES: dict[str, StudySpec] = {
         "neuralmap.studies.dem_errors", "DemErrorsStudyConfig",
         "DEM-related error models: identification, linearisation error m2, 5/6/7-state filters",
         "dem_errors.yaml",
+    ),
+    "gnss_ins": StudySpec(
+        "neuralmap.studies.gnss_ins", "GnssInsStudyConfig",
+        "Monte Carlo GNSS/MEMS-IMU loosely coupled navigation on an urban drive (paper 003)",
+        "gnss_ins.yaml",
     ),
 }
 

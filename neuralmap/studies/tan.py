@@ -301,6 +301,18 @@ def prepare(config: Any, *, scenario: Any = None) -> TanSetup:
                     fit_variance, methods)
 
 
+def void_exposure(tile: Any, truth: Any) -> dict[str, int]:
+    """Truth samples (and runs) whose terrain height is read from a DEM void.
+
+    Under a void the truth terrain is the grid's nearest-node fill, not real terrain; the
+    count goes into the report so that a study over voids is never silently wrong.
+    """
+    if tile.n_void == 0:
+        return {"samples": 0, "runs": 0}
+    under = tile.void_under(truth.pos[..., :2].detach().cpu().double().numpy(), halo=1)
+    return {"samples": int(under.sum()), "runs": int(under.any(axis=1).sum())}
+
+
 def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     """Runs the TAN Monte Carlo study and fills ``outputs``.
 
@@ -333,6 +345,11 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     )
     for name, filter_run in runs.items():
         timing[f"filter_{name}"] = float(filter_run.elapsed_s)
+    voids = void_exposure(tile, truth)
+    if voids["samples"]:
+        print(f"warning: {voids['samples']} truth samples ({voids['runs']} runs) fly over DEM "
+              "voids: the truth there is a nearest-node fill of the DEM, not terrain. They stay "
+              "in the metrics and are counted in the report.", flush=True)
     kept = truth.on_map.all(dim=1)  # the metrics drop runs whose truth left the map
     if not bool(kept.any()):
         raise NeuralMapError(
@@ -369,7 +386,7 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         map_info=setup.map_info(),
         off_map=off_map,
         timing_s=timing,
-        truth_model=truth_terrain.summary(),
+        truth_model={**truth_terrain.summary(), "void_exposure": voids},
         pcrb_kind=scenario.pcrb_kind(),
     )
     claims = check_claims(results)

@@ -376,7 +376,7 @@ def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str,
             policies = [p for p in config.policies if p != "ekf" and entry[p]["rmse_pos_m"]]
             best_rmse = min(policies, key=lambda p: entry[p]["rmse_pos_m"]) if policies else None
             outputs.add_claim(
-                "SEEDS 002", f"{label}: RAF is the most accurate",
+                "SEEDS 002", f"{label}: RAF (alone or after the quality-based R) is the most accurate",
                 f"RAF {fmt(raf['rmse_pos_m'])} m; best {POLICIES.get(best_rmse, 'n/a')} "
                 f"{fmt(entry[best_rmse]['rmse_pos_m'] if best_rmse else None)} m",
                 "holds" if best_rmse in ("raf", "raf_quality") else "does not hold")

@@ -349,6 +349,22 @@ class BlockwiseTerrainNet(TerrainModel):
             0, block
         ) * normalised
 
+    def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Heights and slopes in one forward-mode pass, without autograd.
+
+        Equal to :meth:`forward` and the autograd gradient of its sum (see
+        :func:`neuralmap.terrain.forward_slope.blockwise_height_and_slope`).
+
+        Args:
+            xy: ``(..., 2)`` east/north metres.
+
+        Returns:
+            ``(height (...), slope (..., 2))`` in ``xy``'s dtype.
+        """
+        from neuralmap.terrain.forward_slope import blockwise_height_and_slope
+
+        return blockwise_height_and_slope(self, xy)
+
     def _finite_points(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Replaces non-finite points by a block centre; returns the finite mask (or None).
 

@@ -11,9 +11,11 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import atomic_write_torch
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+from neuralmap.terrain.quantize import check_scheme, dequantize_state, quantize_state
 
 FORMAT = "neuralmap-terrain-map"
-FORMAT_VERSION = 1
+#: Version 2 adds the optional ``quantization`` entry; unquantised files stay version 1.
+FORMAT_VERSION = 2
 _CLASSES: dict[str, type[BlockwiseTerrainNet]] = {"BlockwiseTerrainNet": BlockwiseTerrainNet}
 
 
@@ -23,31 +25,50 @@ def save_map(
     *,
     metrics: dict[str, Any] | None = None,
     extra: dict[str, Any] | None = None,
+    quantization: str | None = None,
 ) -> Path:
     """Writes a neural map atomically (temporary file, then rename).
 
     The file records the model class, its constructor config (including the tile it was
     fitted to: name, fingerprint, extent), the float state dict and optional metrics.
+    With ``quantization`` the parameters are stored in that compact form instead
+    (:mod:`neuralmap.terrain.quantize`; buffers stay float32) and :func:`load_map`
+    dequantises them; the file size is then the map's stored size.
 
     Args:
         model: The fitted network.
         path: Destination, conventionally ``runs/<experiment>/<version>/neural_map.pt``.
         metrics: Final fit metrics (JSON-like), stored for reports.
         extra: Any further JSON-like information (e.g. the training config).
+        quantization: ``None`` (float32) or a scheme of
+            :data:`neuralmap.terrain.quantize.QUANT_SCHEMES` (``"fp16"``, ``"int8_tensor"``,
+            ``"int8_block"``, ``"int8_channel"``).
 
     Returns:
         The path written.
+
+    Raises:
+        NeuralMapError: Unknown quantisation scheme.
     """
     path = Path(path)
-    payload = {
+    # clone: a parameter that is a view (e.g. a bias sliced from a larger init tensor) would
+    # otherwise drag its whole storage into the file.
+    state = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+    payload: dict[str, Any] = {
         "format": FORMAT,
-        "format_version": FORMAT_VERSION,
+        "format_version": 1,
         "class": type(model).__name__,
         "config": model.config,
-        "state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "state_dict": state,
         "metrics": dict(metrics or {}),
         "extra": dict(extra or {}),
     }
+    if quantization is not None:
+        quantized = quantize_state(model, check_scheme(quantization))
+        for name in quantized["tensors"]:
+            state.pop(name, None)
+        payload["quantization"] = quantized
+        payload["format_version"] = FORMAT_VERSION
     return atomic_write_torch(path, payload)
 
 
@@ -93,6 +114,16 @@ def load_map_payload(path: str | os.PathLike[str]) -> dict[str, Any]:
     return payload
 
 
+def _damaged(path: str | os.PathLike[str], payload: dict[str, Any], exc: Exception) -> NeuralMapError:
+    """The error for a file whose header is ours but whose config or weights do not load."""
+    first = str(exc).splitlines()[0] if str(exc) else ""
+    return NeuralMapError(
+        f"{path}: the header says neuralmap map, but its config or weights do not build "
+        f"a {payload.get('class')} ({type(exc).__name__}: {first}). The file is damaged "
+        "or was edited; export it again with `python train.py`."
+    )
+
+
 def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
 
@@ -106,8 +137,9 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
         ``.tile_info`` say which tile it was fitted to, ``.metrics`` holds the stored metrics.
 
     Raises:
-        NeuralMapError: If the file is missing, not a neuralmap export, or its stored
-            config or weights do not build the model (a damaged or hand-edited file).
+        NeuralMapError: If the file is missing, not a neuralmap export, its stored config
+            or weights do not build the model (a damaged or hand-edited file), or a
+            quantised file lacks values or scales.
     """
     from neuralmap.terrain.sharded import ShardedTerrainMap, is_sharded_index
 
@@ -115,19 +147,27 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
         index = Path(path)
         return ShardedTerrainMap(index / "map_index.json" if index.is_dir() else index)  # type: ignore[return-value]
     payload = load_map_payload(path)
+    state = payload.get("state_dict")
+    state = dict(state) if isinstance(state, dict) else state
+    if "quantization" in payload and isinstance(state, dict):
+        state.update(dequantize_state(payload["quantization"]))
     try:
         config = dict(payload["config"])
         model = _CLASSES[payload["class"]](**config)
-        model.load_state_dict(payload["state_dict"])
     except NeuralMapError as exc:
         raise NeuralMapError(f"{path}: the stored map config is invalid ({exc}).") from None
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as exc:
-        first = str(exc).splitlines()[0] if str(exc) else ""
+        raise _damaged(path, payload, exc) from None
+    missing = sorted(set(model.state_dict()) - set(state)) if isinstance(state, dict) else []
+    if missing:
         raise NeuralMapError(
-            f"{path}: the header says neuralmap map, but its config or weights do not build "
-            f"a {payload.get('class')} ({type(exc).__name__}: {first}). The file is damaged "
-            "or was edited; export it again with `python train.py`."
-        ) from None
+            f"{path}: the map file lacks the tensor(s) {', '.join(missing)}; it is incomplete "
+            "or damaged. Export the map again with save_map."
+        )
+    try:
+        model.load_state_dict(state)  # type: ignore[arg-type]
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as exc:
+        raise _damaged(path, payload, exc) from None
     model.metrics = payload.get("metrics", {})  # type: ignore[assignment]
     model.eval()
     return model

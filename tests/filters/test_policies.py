@@ -410,3 +410,57 @@ def test_scalar_policy_fast_path_equals_dense_path(shared_h: bool) -> None:
         torch.testing.assert_close(fast.x, dense.x, rtol=1e-10, atol=1e-10)
         torch.testing.assert_close(fast.P, dense.P, rtol=1e-10, atol=1e-10)
         assert torch.equal(fast.P, fast.P.transpose(1, 2))
+
+
+def test_scalar_path_rejection_with_adapted_P_leaves_sample_unchanged() -> None:
+    """A rejected sample keeps x and P even when the same adaptation rescales P⁻."""
+    from neuralmap.filters import Adaptation, FilterPolicy
+
+    class _RejectAndScale(FilterPolicy):
+        def adapt(self, context):  # type: ignore[no-untyped-def]
+            keep = torch.tensor([[True], [False], [True]])
+            return Adaptation(p_scale=torch.full((3,), 2.0, dtype=D), keep=keep)
+
+    prob = _problem(5, 1, batch=3, seed=2)
+    ekf = BatchedEKF(prob["x"], prob["P"])
+    start = BatchedEKF(prob["x"], prob["P"])
+    diag = ekf.update(prob["z"], prob["H"], prob["R"], policy=_RejectAndScale())
+    assert diag.applied.tolist() == [True, False, True]
+    assert torch.equal(ekf.x[1], start.x[1]) and torch.equal(ekf.P[1], start.P[1])
+    ref = _plain(prob, P=2.0 * prob["P"])
+    torch.testing.assert_close(ekf.P[0], ref.P[0], rtol=1e-12, atol=1e-12)
+
+
+def test_compose_chains_covariance_adaptations_and_prefixes_info() -> None:
+    """Inflation then Yang: Yang sees the inflated P⁻; the update uses both, in order."""
+    prob = _problem(4, 2, batch=6, seed=17, scale=2.5)
+    F = torch.eye(4, dtype=D)
+    Q = 0.3 * torch.eye(4, dtype=D)
+    ekf = BatchedEKF(prob["x"], prob["P"])
+    ekf.predict(F, Q)
+    P_minus = ekf.P.clone()
+    diag = ekf.update(prob["z"], prob["H"], prob["R"],
+                      policy=Compose(InnovationInflation(1.0), YangAdaptive(1.0, 3.0)))
+    info = diag.policy_info
+    assert set(info) == {"inflation.alpha", "inflation.lambda", "yang.alpha", "yang.delta"}
+    a = info["inflation.alpha"].reshape(-1, 1, 1)
+    P_infl = a * P_minus - (a - 1) * Q
+    HPH = prob["H"] @ P_infl @ prob["H"].transpose(1, 2)
+    delta = torch.sqrt((prob["z"] ** 2).sum(-1)
+                       / torch.diagonal(HPH + prob["R"], 0, 1, 2).sum(-1))
+    torch.testing.assert_close(info["yang.delta"], delta, rtol=1e-12, atol=1e-12)
+    alpha = info["yang.alpha"].reshape(-1, 1, 1)
+    ref = BatchedEKF(prob["x"], P_infl / alpha)
+    ref.update(prob["z"], prob["H"], prob["R"])
+    torch.testing.assert_close(ekf.x, ref.x, rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(ekf.P, ref.P, rtol=1e-10, atol=1e-10)
+    assert bool((info["inflation.alpha"] > 1).any()) and bool((info["yang.alpha"] < 1).any())
+
+
+def test_compose_rejects_an_iterating_member_that_is_not_last() -> None:
+    from neuralmap.exceptions import NeuralMapError
+
+    with pytest.raises(NeuralMapError, match="last"):
+        Compose(VariationalAdaptive(iterations=3), Huber())
+    with pytest.raises(NeuralMapError, match="FilterPolicy"):
+        Compose(Huber(), "igg3")  # type: ignore[arg-type]

@@ -127,3 +127,23 @@ def test_flight_off_the_tile_exits_2_with_the_reason(tmp_path: Path, tiny_map: P
     err = capsys.readouterr().err
     assert code == 2 and "no run could be scored" in err and "start_xy" in err
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("*.json"))
+
+
+def test_voids_under_the_flight_path_are_counted() -> None:
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from neuralmap.dem.tile import DemTile
+    from neuralmap.studies.tan import void_exposure
+
+    heights = np.zeros((20, 20))
+    heights[10, 10] = np.nan
+    tile = DemTile(heights, spacing=(10.0, 10.0), name="holey")
+    pos = torch.zeros(3, 4, 3, dtype=torch.float64)
+    pos[..., 0] = 15.0
+    pos[..., 1] = 15.0
+    pos[1, 2, :2] = torch.tensor([100.0, 100.0], dtype=torch.float64)  # next to the void
+    pos[2, :, :2] = torch.tensor([102.0, 104.0], dtype=torch.float64)  # over it, always
+    found = void_exposure(tile, SimpleNamespace(pos=pos))
+    assert found == {"samples": 5, "runs": 2}

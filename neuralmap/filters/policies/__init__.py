@@ -11,6 +11,24 @@ policy=...)`` for the ones adapting Q). Families (one module each):
   :class:`VariationalAdaptive` (Huang et al., IEEE TAC 2018).
 
 The pure weight/factor functions (batched tensors in, tensors out) are exported too.
+
+Every policy reports per sample what it did in ``UpdateDiagnostics.policy_info``
+(weights, factors, adapted variances); a policy with per-sample state (Sage-Husa, the
+variational filter) belongs to one filter: call ``reset()`` before a new batch.
+
+Example::
+
+    raf = RobustAdaptive(k0=1.5, k1=4.5, c0=1.0, c1=3.0)
+    diag = ekf.update(residual, H, R, policy=raf)       # diag.policy_info["yang.alpha"]
+
+    quality = QualityR.altimeter()
+    tuned = Compose(quality, InnovationInflation(c0=1.2))  # paper 003: R first, then α
+    quality.set_quality(indicators)                       # (N, 3) before every update
+    ekf.update(residual, H, R, policy=tuned)
+
+    sh = SageHusa(b=0.97, R_min=1.0, R_max=1e4, adapt_Q=True)
+    ekf.predict(F, Q, policy=sh)                          # Q̂ where estimated
+    ekf.update(residual, H, R, policy=sh)
 """
 
 from neuralmap.filters.policies.compose import Compose

@@ -57,7 +57,7 @@ def standardised_residual(context: UpdateContext) -> torch.Tensor:
     composition). Rejected components report 0.
     """
     s_ii = diagonal(context.HPHt) + diagonal(context.R)
-    v = context.residual.abs() / torch.sqrt(s_ii)
+    v = context.residual.abs() * torch.rsqrt(s_ii)
     keep = kept(context)
     return v if keep is None else torch.where(keep, v, 0.0)
 
@@ -72,9 +72,12 @@ def residual_statistic(context: UpdateContext, R: torch.Tensor | None = None) ->
     rr = context.residual.square()
     tr = diagonal(context.HPHt) + diagonal(R)
     keep = kept(context)
-    if keep is not None:
-        rr = torch.where(keep, rr, 0.0)
-        tr = torch.where(keep, tr, 0.0)
+    if keep is None:  # every component kept: tr > 0 (R is positive definite)
+        if rr.shape[-1] == 1:
+            return rr[:, 0] / tr[:, 0]
+        return rr.sum(-1) / tr.sum(-1)
+    rr = torch.where(keep, rr, 0.0)
+    tr = torch.where(keep, tr, 0.0)
     tr_sum = tr.sum(-1)
     return torch.where(tr_sum > 0, rr.sum(-1) / torch.where(tr_sum > 0, tr_sum, 1.0), 0.0)
 

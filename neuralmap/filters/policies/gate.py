@@ -64,10 +64,11 @@ class ChiSquareGate(FilterPolicy):
             v = standardised_residual(context)
             ok = v.square() <= self._threshold(1)
             ok = ok | ~context.mask.unsqueeze(-1)
+            keep = None if bool(ok.all()) else ok
             if self.per_component:
-                return Adaptation(keep=ok, info={"standardised_residual": v, "rejected": ~ok})
+                return Adaptation(keep=keep, info={"standardised_residual": v, "rejected": ~ok})
             nis = v[:, 0].square()
-            return Adaptation(keep=ok, info={"nis": nis, "rejected": ~ok[:, 0]})
+            return Adaptation(keep=keep, info={"nis": nis, "rejected": ~ok[:, 0]})
         # NIS over the kept components: rejected ones get r = 0 and an identity row of S
         r, S = context.residual, context.S
         if keep_in is not None:
@@ -83,5 +84,5 @@ class ChiSquareGate(FilterPolicy):
         table = torch.tensor([math.inf] + [self._threshold(k) for k in range(1, m + 1)],
                              dtype=nis.dtype, device=nis.device)
         ok = (nis <= table[dof]) | ~context.mask
-        return Adaptation(keep=ok.unsqueeze(-1).expand(batch, m),
-                          info={"nis": nis, "rejected": ~ok})
+        keep = None if bool(ok.all()) else ok.unsqueeze(-1).expand(batch, m)
+        return Adaptation(keep=keep, info={"nis": nis, "rejected": ~ok})

@@ -57,5 +57,7 @@ class Huber(FilterPolicy):
         """Huber weights and the equivalent R."""
         v = standardised_residual(context)
         w = huber_weights(v, self.k)
-        return Adaptation(R=scale_variances(context.R, w),
-                          info={"weight": w, "standardised_residual": v})
+        info = {"weight": w, "standardised_residual": v}
+        if bool((w == 1).all()):
+            return Adaptation(info=info)  # clean epoch: R unchanged
+        return Adaptation(R=scale_variances(context.R, w), info=info)

@@ -46,7 +46,7 @@ def igg3_weights(v_std: torch.Tensor, k0: float, k1: float) -> torch.Tensor:
     mid = (v > k0) & (v <= k1)
     vs = torch.where(mid, v, k0)  # no division by 0 (and clean gradients) off the middle
     taper = (k0 / vs) * ((k1 - vs) / (k1 - k0)).square()
-    return torch.where(v <= k0, torch.ones_like(v), torch.where(mid, taper, torch.zeros_like(v)))
+    return torch.where(v <= k0, 1.0, torch.where(mid, taper, 0.0))
 
 
 class IGG3(FilterPolicy):
@@ -76,10 +76,9 @@ class IGG3(FilterPolicy):
         """Weights from the standardised residuals; the equivalent R and the rejections."""
         v = standardised_residual(context)
         w = igg3_weights(v, self.k0, self.k1)
+        info = {"weight": w, "standardised_residual": v}
+        if bool((w == 1).all()):
+            return Adaptation(info=info)  # clean epoch: R unchanged, nothing rejected
         keep = w > 0
         R = scale_variances(context.R, torch.where(keep, w, 1.0))
-        return Adaptation(
-            R=R,
-            keep=keep,
-            info={"weight": w, "standardised_residual": v},
-        )
+        return Adaptation(R=R, keep=keep, info=info)

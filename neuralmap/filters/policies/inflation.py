@@ -55,6 +55,8 @@ class InnovationInflation(FilterPolicy):
         alpha = torch.where(context.mask, innovation_inflation_factor(lam, self.c0), 1.0)
         info = {"alpha": alpha, "lambda": lam}
         Q = context.process_noise
+        if not alpha.requires_grad and bool((alpha == 1).all()):
+            return Adaptation(info=info)  # clean epoch: P⁻ unchanged
         if Q is None:
             return Adaptation(p_scale=alpha, info=info)
         a = alpha.reshape(-1, 1, 1)

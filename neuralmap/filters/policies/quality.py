@@ -270,6 +270,6 @@ class QualityR(FilterPolicy):
         info = {"rho": rho, "membership": mu, "rejected": rejected}
         R = context.R * rho.reshape(-1, 1, 1)
         keep = None
-        if flags:
+        if flags and bool(rejected.any()):
             keep = (~rejected).unsqueeze(-1).expand(batch, m)
         return Adaptation(R=R, keep=keep, info=info)

@@ -77,14 +77,13 @@ def yang_factor(
     d = delta.abs()
     if segments == 2:
         big = d > c0
-        alpha = torch.where(big, c0 / torch.where(big, d, c0), torch.ones_like(d))
+        alpha = torch.where(big, c0 / torch.where(big, d, c0), 1.0)
     else:
         assert c1 is not None
         mid = (d > c0) & (d <= c1)
         ds = torch.where(mid, d, c0)
         taper = (c0 / ds) * ((c1 - ds) / (c1 - c0)).square()
-        alpha = torch.where(d <= c0, torch.ones_like(d),
-                            torch.where(mid, taper, torch.zeros_like(d)))
+        alpha = torch.where(d <= c0, 1.0, torch.where(mid, taper, 0.0))
     return alpha.clamp_min(floor)
 
 
@@ -123,4 +122,7 @@ class YangAdaptive(FilterPolicy):
         delta = torch.sqrt(residual_statistic(context))
         alpha = yang_factor(delta, self.c0, self.c1, self.segments, self.floor)
         alpha = torch.where(context.mask, alpha, 1.0)
-        return Adaptation(p_scale=1.0 / alpha, info={"alpha": alpha, "delta": delta})
+        info = {"alpha": alpha, "delta": delta}
+        if not alpha.requires_grad and bool((alpha == 1).all()):
+            return Adaptation(info=info)  # nothing to scale (clean epoch): skip the product
+        return Adaptation(p_scale=1.0 / alpha, info=info)

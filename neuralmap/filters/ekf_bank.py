@@ -1,0 +1,253 @@
+"""EKF bank (Gaussian-sum filter): K weighted EKF hypotheses per run, N runs at once.
+
+The classical answer to a multimodal prior that one EKF cannot linearise (SITAN-style
+parallel EKFs; Alspach and Sorenson's Gaussian sum): the prior of each run is split into
+K Gaussian components, each run by its own EKF, and each component's weight is multiplied
+by the likelihood of its innovation,
+
+    log w_k ← log w_k − ½ (log 2π S_k + ν_k² / S_k),      then normalised per run,
+
+(scalar measurements; ``ν_k`` the innovation, ``S_k`` its variance). All ``N · K``
+components live in one :class:`~neuralmap.filters.ekf.BatchedEKF` (component ``k`` of run
+``n`` is sample ``n · K + k``), so any linearisation a caller uses with the EKF works with
+the bank. Components whose weight falls below ``prune_threshold × max`` are pruned (weight
+0, no further updates); components closer than ``merge_distance`` (squared Mahalanobis
+distance of the means under the heavier one's covariance) are merged by moment matching
+into the heavier one. The mixture's mean and covariance are the run's estimate. A run
+whose components all get zero likelihood keeps its weights (a counted recovery).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.ekf import BatchedEKF
+
+__all__ = ["GaussianSumEKF", "lattice_prior"]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def lattice_prior(
+    x0: torch.Tensor,
+    P0: torch.Tensor,
+    *,
+    per_axis: int,
+    span_sigma: float = 2.5,
+    axes: tuple[int, int] = (0, 1),
+    shrink: float = 0.6,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Splits a Gaussian prior into a ``per_axis × per_axis`` lattice of components.
+
+    The component means sit on a regular lattice over ``± span_sigma · σ`` of two state
+    ``axes`` (the horizontal error); each component keeps ``P0`` but with those two
+    variances replaced by ``(shrink · spacing)²``; the weights are the prior density at the
+    means, normalised.
+
+    Args:
+        x0: ``(N, n)`` prior means.
+        P0: ``(n, n)`` prior covariance (positive definite; diagonal on ``axes`` assumed).
+        per_axis: Components per axis (K = per_axis²).
+        span_sigma: Lattice half-width in prior standard deviations.
+        axes: The two state indices spread over.
+        shrink: Component standard deviation as a fraction of the lattice spacing.
+
+    Returns:
+        ``(means (N, K, n), covs (K, n, n), log_weights (N, K))``.
+    """
+    if per_axis < 1:
+        raise NeuralMapError(f"lattice_prior: per_axis must be >= 1, got {per_axis}.")
+    dtype = x0.dtype
+    P0 = torch.as_tensor(P0, dtype=dtype)
+    i, j = axes
+    si, sj = float(P0[i, i]) ** 0.5, float(P0[j, j]) ** 0.5
+    if per_axis == 1:
+        unit = torch.zeros(1, dtype=dtype)
+    else:
+        unit = torch.linspace(-span_sigma, span_sigma, per_axis, dtype=dtype)
+    gi, gj = torch.meshgrid(unit, unit, indexing="ij")
+    gi, gj = gi.reshape(-1), gj.reshape(-1)
+    k = gi.numel()
+    means = x0[:, None, :].expand(-1, k, -1).clone()
+    means[..., i] += gi * si
+    means[..., j] += gj * sj
+    covs = P0.expand(k, -1, -1).clone()
+    if per_axis > 1:
+        step = 2.0 * span_sigma / (per_axis - 1)
+        covs[:, i, i] = (shrink * step * si) ** 2
+        covs[:, j, j] = (shrink * step * sj) ** 2
+        covs[:, i, j] = covs[:, j, i] = 0.0
+    logw = -0.5 * (gi**2 + gj**2)
+    logw = logw - torch.logsumexp(logw, 0)
+    return means, covs, logw.expand(x0.shape[0], k).clone()
+
+
+class GaussianSumEKF:
+    """A bank of K EKFs per run with innovation-likelihood weights, pruning and merging.
+
+    Args:
+        means: ``(N, K, n)`` component means.
+        covs: ``(n, n)``, ``(K, n, n)`` or ``(N, K, n, n)`` component covariances.
+        log_weights: ``(N, K)`` log prior weights (normalised here); None = uniform.
+        prune_threshold: Relative weight below which a component is pruned.
+        merge_distance: Squared Mahalanobis distance under which components merge
+            (0 disables merging).
+        dtype: Filter dtype (default: that of ``means``).
+
+    Attributes:
+        ekf: The underlying :class:`BatchedEKF` over ``N · K`` samples.
+        log_weights: ``(N, K)`` normalised log weights (−inf = pruned).
+        recoveries: ``(N,)`` count of updates where every component's likelihood vanished.
+    """
+
+    def __init__(
+        self,
+        means: torch.Tensor,
+        covs: torch.Tensor,
+        *,
+        log_weights: torch.Tensor | None = None,
+        prune_threshold: float = 1e-4,
+        merge_distance: float = 1.0,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        if means.ndim != 3:
+            raise NeuralMapError(
+                f"GaussianSumEKF: means must have shape (N, K, n), got {tuple(means.shape)}."
+            )
+        if not 0.0 <= prune_threshold < 1.0 or merge_distance < 0.0:
+            raise NeuralMapError(
+                "GaussianSumEKF: prune_threshold must be in [0, 1) and merge_distance >= 0, "
+                f"got {prune_threshold} and {merge_distance}."
+            )
+        dtype = dtype or (means.dtype if means.is_floating_point() else torch.float64)
+        n, k, d = means.shape
+        self.n_runs, self.n_components, self.n_states = n, k, d
+        covs = torch.as_tensor(covs, dtype=dtype, device=means.device)
+        covs = covs.expand(n, k, d, d).reshape(n * k, d, d)
+        self.ekf = BatchedEKF(means.reshape(n * k, d).to(dtype), covs, dtype=dtype)
+        if log_weights is None:
+            log_weights = torch.zeros(n, k, dtype=dtype, device=means.device)
+        log_weights = torch.as_tensor(log_weights, dtype=dtype, device=means.device)
+        if tuple(log_weights.shape) != (n, k):
+            raise NeuralMapError(
+                f"GaussianSumEKF: log_weights must have shape (N, K) = ({n}, {k}), got "
+                f"{tuple(log_weights.shape)}."
+            )
+        self.log_weights = log_weights - torch.logsumexp(log_weights, 1, keepdim=True)
+        self.prune_threshold = prune_threshold
+        self.merge_distance = merge_distance
+        self.recoveries = torch.zeros(n, dtype=torch.int64, device=means.device)
+
+    @property
+    def alive(self) -> torch.Tensor:
+        """``(N · K,)`` bool, components still in the mixture (flattened like the EKF)."""
+        return (torch.isfinite(self.log_weights).reshape(-1) & self.ekf.healthy)
+
+    def reweight(self, residual: torch.Tensor, S: torch.Tensor,
+                 applied: torch.Tensor) -> torch.Tensor:
+        """Multiplies weights by the innovation likelihoods, normalises, prunes and merges.
+
+        Args:
+            residual: ``(N · K,)`` innovations of the last scalar update.
+            S: ``(N · K,)`` innovation variances.
+            applied: ``(N · K,)`` bool, components whose update was applied (others keep
+                their weight factor 1, i.e. no information).
+
+        Returns:
+            ``(N,)`` log predictive likelihood of the measurement per run.
+        """
+        n, k = self.n_runs, self.n_components
+        r = residual.reshape(n, k).to(self.log_weights.dtype)
+        s = S.reshape(n, k).to(self.log_weights.dtype)
+        use = applied.reshape(n, k)
+        loglik = -0.5 * (_LOG_2PI + s.log() + r * r / s)
+        loglik = torch.where(use & torch.isfinite(loglik), loglik,
+                             torch.where(use, -math.inf, 0.0))
+        alive = self.alive.reshape(n, k)
+        logw = torch.where(alive, self.log_weights + loglik, -math.inf)
+        total = torch.logsumexp(logw, 1)
+        ok = torch.isfinite(total)
+        self.recoveries.add_((~ok).long())
+        self.log_weights = torch.where(ok[:, None], logw - total[:, None], self.log_weights)
+        self.log_weights = torch.where(alive, self.log_weights, -math.inf)
+        self.prune()
+        if self.merge_distance > 0.0:
+            self.merge()
+        return torch.where(ok, total, -math.inf)
+
+    def prune(self) -> None:
+        """Sets components below ``prune_threshold × max`` weight to weight 0."""
+        if self.prune_threshold <= 0.0:
+            return
+        peak = self.log_weights.amax(1, keepdim=True)
+        dead = self.log_weights < peak + math.log(self.prune_threshold)
+        logw = torch.where(dead, -math.inf, self.log_weights)
+        self.log_weights = logw - torch.logsumexp(logw, 1, keepdim=True)
+
+    def merge(self) -> None:
+        """Moment-matched merge of components within ``merge_distance`` of a heavier one.
+
+        Loops over the component index (not over runs): component ``i`` absorbs every
+        lighter live component ``j`` with ``(x_j − x_i)ᵀ P_i⁻¹ (x_j − x_i) < merge_distance``.
+        """
+        n, k, d = self.n_runs, self.n_components, self.n_states
+        x = self.ekf.x.reshape(n, k, d)
+        P = self.ekf.P.reshape(n, k, d, d)
+        w = self.log_weights.exp()
+        changed = False
+        for i in range(k):
+            wi = w[:, i]
+            live_i = wi > 0
+            if not bool(live_i.any()):
+                continue
+            diff = x - x[:, i : i + 1]  # (n, k, d)
+            chol = torch.linalg.cholesky_ex(P[:, i])
+            sol = torch.cholesky_solve(diff.transpose(1, 2), chol.L)  # (n, d, k)
+            dist = (diff.transpose(1, 2) * sol).sum(1)  # (n, k)
+            grab = ((dist < self.merge_distance) & (w > 0) & (w <= wi[:, None])
+                    & live_i[:, None] & (chol.info == 0)[:, None])
+            grab[:, i] = False
+            if not bool(grab.any()):
+                continue
+            changed = True
+            gw = torch.where(grab, w, 0.0)
+            gw[:, i] = wi
+            tot = gw.sum(1)
+            mean = (gw[..., None] * x).sum(1) / tot[:, None]
+            dx = x - mean[:, None]
+            cov = (gw[..., None, None] * (P + dx[..., :, None] * dx[..., None, :])).sum(1)
+            cov = cov / tot[:, None, None]
+            cov = 0.5 * (cov + cov.transpose(1, 2))
+            took = grab.any(1)
+            x = x.clone()
+            P = P.clone()
+            x[:, i] = torch.where(took[:, None], mean, x[:, i])
+            P[:, i] = torch.where(took[:, None, None], cov, P[:, i])
+            w = torch.where(grab, 0.0, w)
+            w[:, i] = torch.where(took, tot, wi)
+        if changed:
+            self.ekf.x = x.reshape(n * k, d)
+            self.ekf.P = P.reshape(n * k, d, d)
+            self.log_weights = w.log()
+
+    def mixture(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mixture mean ``(N, n)`` and covariance ``(N, n, n)`` of every run."""
+        n, k, d = self.n_runs, self.n_components, self.n_states
+        w = self.log_weights.exp()
+        x = self.ekf.x.reshape(n, k, d)
+        P = self.ekf.P.reshape(n, k, d, d)
+        mean = (w[..., None] * x).sum(1)
+        dx = x - mean[:, None]
+        cov = (w[..., None, None] * (P + dx[..., :, None] * dx[..., None, :])).sum(1)
+        return mean, 0.5 * (cov + cov.transpose(1, 2))
+
+    def best(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean ``(N, n)`` and covariance ``(N, n, n)`` of each run's heaviest component."""
+        n, k, d = self.n_runs, self.n_components, self.n_states
+        idx = self.log_weights.argmax(1)
+        x = self.ekf.x.reshape(n, k, d)[torch.arange(n), idx]
+        P = self.ekf.P.reshape(n, k, d, d)[torch.arange(n), idx]
+        return x, P

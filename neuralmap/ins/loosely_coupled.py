@@ -1,0 +1,336 @@
+"""Loosely coupled GNSS/INS: the 15-state ψ-angle error-state EKF, batched over N runs.
+
+The system of paper 003 (SEEDS 003): the strapdown mechanisation runs at the IMU rate on
+bias-corrected measurements; the error covariance is propagated with
+``Φ = I + FT + (FT)²/2`` and ``Q_d`` every ``propagate_every`` IMU samples and at each GNSS
+epoch; a GNSS epoch updates the 15-state error with the 6 lever-arm position and velocity
+differences (predicted − measured); the estimated errors are fed back into the solution
+and the bias estimates (closed loop) and the error state is reset to zero.
+
+All N runs advance together on :class:`~neuralmap.filters.BatchedEKF` (per-sample
+``(N, 15, 15)`` Φ, ``Q_d`` and ``(N, 6, 15)`` H). Runs do not interact: an epoch without
+a solution (outage, NaN quality σ, a NaN measurement of one run) is skipped for the runs
+concerned through the update mask and counted.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters import BatchedEKF
+from neuralmap.filters.policy import FilterPolicy
+from neuralmap.ins.error_model import (
+    continuous_noise,
+    discretize,
+    error_dynamics,
+    process_noise_density,
+)
+from neuralmap.ins.error_state import correct, inject, navigation_error, total_attitude_error
+from neuralmap.ins.gnss import GnssRecord, sanitize_quality
+from neuralmap.ins.imu_model import ImuErrorProcess, ImuGrade, imu_grade
+from neuralmap.ins.measurement import check_lever_arm, gnss_measurement_model
+from neuralmap.ins.mechanization import strapdown_step
+from neuralmap.ins.trajectory import Trajectory, check_continuity
+
+__all__ = ["LooselyCoupledConfig", "LooselyCoupledResult", "initial_covariance",
+           "run_loosely_coupled"]
+
+_DEG = math.pi / 180.0
+
+
+@dataclass(frozen=True)
+class LooselyCoupledConfig:
+    """Filter settings.
+
+    Attributes:
+        grade: IMU grade assumed by the filter (Q and initial bias variances).
+        propagate_every: IMU samples per covariance propagation (≥ 1).
+        init_pos_sigma: Initial NED position σ (m).
+        init_vel_sigma: Initial NED velocity σ (m/s).
+        init_att_sigma_deg: Initial roll, pitch, heading σ (deg).
+        use_velocity: Use the GNSS velocity (m = 6) or position only (m = 3).
+        r_scale: Factor on the reported σ (R = diag((r_scale σ)²)).
+        lever_arm: Lever arm the filter assumes (None = the record's true one).
+    """
+
+    grade: str | ImuGrade = "tactical_mems"
+    propagate_every: int = 10
+    init_pos_sigma: tuple[float, float, float] = (0.05, 0.05, 0.1)
+    init_vel_sigma: tuple[float, float, float] = (0.02, 0.02, 0.02)
+    init_att_sigma_deg: tuple[float, float, float] = (0.1, 0.1, 0.5)
+    use_velocity: bool = True
+    r_scale: float = 1.0
+    lever_arm: tuple[float, float, float] | None = None
+
+    def validate(self) -> LooselyCoupledConfig:
+        """Checks the settings; returns self.
+
+        Raises:
+            NeuralMapError: Non-positive σ, interval or scale, or a bad lever arm.
+        """
+        imu_grade(self.grade)
+        if not (isinstance(self.propagate_every, int) and self.propagate_every >= 1):
+            raise NeuralMapError(
+                f"LooselyCoupledConfig: 'propagate_every' = {self.propagate_every!r} must be an "
+                "integer >= 1 (IMU samples per covariance propagation)."
+            )
+        for name in ("init_pos_sigma", "init_vel_sigma", "init_att_sigma_deg"):
+            value = getattr(self, name)
+            if len(value) != 3 or not all(math.isfinite(v) and v > 0 for v in value):
+                raise NeuralMapError(
+                    f"LooselyCoupledConfig: '{name}' = {value!r} must be three finite "
+                    "values > 0."
+                )
+        if not (math.isfinite(self.r_scale) and self.r_scale > 0):
+            raise NeuralMapError(
+                f"LooselyCoupledConfig: 'r_scale' = {self.r_scale!r} must be finite and > 0."
+            )
+        if self.lever_arm is not None:
+            check_lever_arm(self.lever_arm, where="LooselyCoupledConfig")
+        return self
+
+
+@dataclass
+class LooselyCoupledResult:
+    """Errors and covariances at the GNSS epochs (after the update where one applied).
+
+    Attributes:
+        time: ``(K,)`` epochs (s).
+        position_error: ``(N, K, 3)`` NED position error of the IMU (m), computed − true.
+        velocity_error: ``(N, K, 3)`` NED velocity error (m/s).
+        attitude_error: ``(N, K, 3)`` total attitude error φ (rad, NED axes; ≈ roll,
+            pitch, heading errors for a level vehicle).
+        std: ``(N, K, 15)`` filter standard deviations.
+        nees_position: ``(N, K)`` position NEES (3 degrees of freedom).
+        nees_navigation: ``(N, K)`` NEES of ``[δr, δv, ψ]`` (9 degrees of freedom).
+        nis: ``(N, K)`` NIS of the update (NaN where none applied).
+        applied: ``(N, K)`` update applied.
+        healthy: ``(N,)`` filter health at the end.
+        counts: Counted treatments (skipped epochs, sanitised quality indicators, runs
+            frozen after their solution became non-finite: ``failed_runs``).
+    """
+
+    time: torch.Tensor
+    position_error: torch.Tensor
+    velocity_error: torch.Tensor
+    attitude_error: torch.Tensor
+    std: torch.Tensor
+    nees_position: torch.Tensor
+    nees_navigation: torch.Tensor
+    nis: torch.Tensor
+    applied: torch.Tensor
+    healthy: torch.Tensor
+    counts: dict[str, int] = field(default_factory=dict)
+
+
+def _quality_policies(policy: FilterPolicy | None) -> list[FilterPolicy]:
+    """Every policy inside ``policy`` (itself or a composition) that reads quality records."""
+    if policy is None:
+        return []
+    members = getattr(policy, "policies", None)
+    if members:
+        return [found for inner in members for found in _quality_policies(inner)]
+    return [policy] if callable(getattr(policy, "set_quality", None)) else []
+
+
+def _guard(
+    y: torch.Tensor, y_good: torch.Tensor, failed: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Freezes runs whose solution left the valid domain (non-finite, |lat| ≥ 89°).
+
+    A run that diverged that far (e.g. after a huge correction) is marked in ``failed``
+    (in place; reported as unhealthy and counted) and keeps its last valid solution, so
+    that it cannot stop the batch with NaN in the shared tensors.
+
+    Returns:
+        ``(y, new last-good y)``.
+    """
+    bad = ~torch.isfinite(y).all(1) | (y[:, 0].abs() >= math.radians(89.0))
+    if bool(bad.any()):
+        failed |= bad
+        y = torch.where(bad[:, None], y_good, y)
+    return y, y
+
+
+def initial_covariance(config: LooselyCoupledConfig, *, dtype: torch.dtype) -> torch.Tensor:
+    """``P0`` ``(15, 15)``: configured navigation σ, bias σ² = turn-on² + instability²."""
+    g = imu_grade(config.grade)
+    sig_bg = math.hypot(g.gyro_turn_on_si, g.gyro_bias_sigma_si)
+    sig_ba = math.hypot(g.accel_turn_on_si, g.accel_bias_sigma_si)
+    diag = (list(config.init_pos_sigma) + list(config.init_vel_sigma)
+            + [a * _DEG for a in config.init_att_sigma_deg] + [sig_bg] * 3 + [sig_ba] * 3)
+    return torch.diag(torch.tensor(diag, dtype=dtype) ** 2)
+
+
+def run_loosely_coupled(
+    traj: Trajectory,
+    imu: ImuErrorProcess,
+    gnss: GnssRecord,
+    config: LooselyCoupledConfig,
+    *,
+    generator: torch.Generator,
+    measurement_noise: Callable[[int, torch.Tensor], torch.Tensor] | None = None,
+    policy: FilterPolicy | None = None,
+) -> LooselyCoupledResult:
+    """Runs the closed-loop error-state EKF over a drive for the N runs of ``imu``.
+
+    Args:
+        traj: Reference trajectory (truth and true IMU record).
+        imu: IMU error process of the N runs (advanced in place).
+        gnss: GNSS record of the same N runs (epochs on IMU samples).
+        config: Filter settings.
+        generator: Draws the initial navigation errors from ``P0``.
+        measurement_noise: Optional ``(epoch index, base R (m, m)) -> R`` hook (shared
+            ``(m, m)`` or per-run ``(N, m, m)``), e.g. a quality-based R; default: the
+            reported σ times ``r_scale``.
+        policy: Optional update policy of the batched Kalman core (adaptive factor on
+            ``P⁻``, robust R...), passed to every GNSS update. A policy with
+            ``set_quality`` (a quality-based R, or a composition holding one) receives the
+            epoch's indicators before each update as a mapping of ``(N,)`` tensors:
+            ``pdop``, ``fix_ratio``, ``satellites`` and ``sigma_m`` (the reported horizontal
+            position σ, RMS of north and east), after NaN treatment
+            (:func:`~neuralmap.ins.gnss.sanitize_quality`).
+
+    Returns:
+        :class:`LooselyCoupledResult`.
+
+    Raises:
+        NeuralMapError: Bad config, run counts that differ, GNSS epochs out of order, a
+            trajectory with a discontinuity.
+
+    Device: everything runs on the trajectory's device (``traj.to(device)``); the IMU
+    process and the GNSS record must live there too.
+    """
+    config.validate()
+    n = imu.n_runs
+    if gnss.position.shape[0] != n:
+        raise NeuralMapError(
+            f"run_loosely_coupled: the GNSS record has {gnss.position.shape[0]} runs but the "
+            f"IMU process has {n}; simulate both with the same n_runs."
+        )
+    dtype = traj.states.dtype
+    device = traj.states.device
+    kw = {"dtype": dtype, "device": device}
+    check_continuity(traj)
+    quality, counts = sanitize_quality(gnss.quality)
+    grade = imu_grade(config.grade)
+    arm = (gnss.lever_arm if config.lever_arm is None
+           else check_lever_arm(config.lever_arm, where="run_loosely_coupled")).to(**kw)
+    qc = process_noise_density(grade).to(dtype=dtype, device=device)
+    tau_g, tau_a = grade.gyro_corr_time, grade.accel_corr_time
+    p0 = initial_covariance(config, dtype=dtype).to(device)
+    chol = torch.linalg.cholesky(p0[:9, :9])
+    e0 = torch.randn(n, 9, generator=generator, dtype=dtype).to(device) @ chol.T
+    y = inject(traj.states[0].expand(n, 10), e0)
+    ekf = BatchedEKF(torch.zeros(n, 15, **kw), p0)
+    zeros = torch.zeros(n, 15, **kw)
+    bg_hat = torch.zeros(n, 3, **kw)
+    ba_hat = torch.zeros(n, 3, **kw)
+    m = 6 if config.use_velocity else 3
+    k_epochs = quality.n_epochs
+    index = quality.imu_index.tolist()
+    if any(b <= a for a, b in zip(index, index[1:], strict=False)) or (
+            index and (index[0] < 0 or index[-1] >= traj.n_samples)):
+        raise NeuralMapError(
+            "run_loosely_coupled: the GNSS epochs' IMU sample indices must increase strictly "
+            f"and lie in [0, {traj.n_samples - 1}]; got {index[:5]}... Rebuild the record "
+            "against this trajectory (simulate_gnss) or sort it by time."
+        )
+    epoch_of = {int(i): j for j, i in enumerate(index)}
+    out = {name: torch.full((n, k_epochs, 3), math.nan, **kw)
+           for name in ("pos", "vel", "att")}
+    std = torch.full((n, k_epochs, 15), math.nan, **kw)
+    nees_p = torch.full((n, k_epochs), math.nan, **kw)
+    nees_n = torch.full((n, k_epochs), math.nan, **kw)
+    nis = torch.full((n, k_epochs), math.nan, **kw)
+    applied = torch.zeros(n, k_epochs, dtype=torch.bool, device=device)
+    counts["skipped_epochs"] = 0
+    quality_takers = _quality_policies(policy)
+    if policy is not None:
+        policy.reset()
+    counts["nan_measurements"] = 0
+    dt = traj.dt
+
+    def record(j: int, k: int) -> None:
+        truth = traj.states[k].expand(n, 10)
+        err = navigation_error(truth, y)
+        out["pos"][:, j] = err[:, :3]
+        out["vel"][:, j] = y[:, 3:6] - truth[:, 3:6]
+        out["att"][:, j] = total_attitude_error(truth, y)
+        P = ekf.P
+        std[:, j] = P.diagonal(dim1=-2, dim2=-1).sqrt()
+        pr = torch.linalg.cholesky_ex(P[:, :3, :3])[0]
+        w = torch.linalg.solve_triangular(pr, err[:, :3, None], upper=False)
+        nees_p[:, j] = w.square().sum((-2, -1))
+        pn = torch.linalg.cholesky_ex(P[:, :9, :9])[0]
+        w = torch.linalg.solve_triangular(pn, err[:, :, None], upper=False)
+        nees_n[:, j] = w.square().sum((-2, -1))
+
+    def update(j: int, gyro: torch.Tensor) -> None:
+        nonlocal y, y_good, bg_hat, ba_hat
+        valid = bool(quality.valid[j])
+        if not valid:
+            counts["skipped_epochs"] += 1
+            return
+        pos, vel = gnss.position[:, j], gnss.velocity[:, j]
+        finite = torch.isfinite(pos).all(-1) & torch.isfinite(vel).all(-1)
+        counts["nan_measurements"] += int((~finite).sum())
+        pos = torch.where(finite[:, None], pos, y[:, :3])
+        vel = torch.where(finite[:, None], vel, y[:, 3:6])
+        resid, H = gnss_measurement_model(y, gyro, arm, pos, vel)
+        sig = torch.cat([quality.sigma_pos[j], quality.sigma_vel[j]]) * config.r_scale
+        R = torch.diag(sig[:m].square())
+        if measurement_noise is not None:
+            R = measurement_noise(j, R)
+        if quality_takers:
+            sig_h = quality.sigma_pos[j, :2].square().mean().sqrt()
+            indicators = {name: value.expand(n) for name, value in (
+                ("pdop", quality.pdop[j]), ("fix_ratio", quality.fix_ratio[j]),
+                ("satellites", quality.n_sats[j]), ("sigma_m", sig_h))}
+            for taker in quality_takers:
+                taker.set_quality(indicators)
+        diag = ekf.update(resid[:, :m], H[:, :m], R, mask=finite, policy=policy)
+        nis[:, j] = torch.where(diag.applied, diag.nis, math.nan)
+        applied[:, j] = diag.applied
+        x = ekf.x
+        y = correct(y, x[:, :9])
+        y, y_good = _guard(y, y_good, failed)
+        bg_hat = bg_hat - x[:, 9:12]
+        ba_hat = ba_hat - x[:, 12:15]
+        ekf.x = zeros
+
+    failed = torch.zeros(n, dtype=torch.bool, device=device)
+    y_good = y
+    raw_g, raw_a = imu.measure(traj.gyro[0], traj.accel[0])
+    if 0 in epoch_of:
+        update(epoch_of[0], raw_g - bg_hat)
+        record(epoch_of[0], 0)
+    since = 0
+    with torch.no_grad():
+        for k in range(1, traj.n_samples):
+            new_g, new_a = imu.measure(traj.gyro[k], traj.accel[k])
+            w1, f1 = new_g - bg_hat, new_a - ba_hat
+            y = strapdown_step(y, raw_g - bg_hat, raw_a - ba_hat, w1, f1, dt)
+            raw_g, raw_a = new_g, new_a
+            since += 1
+            j = epoch_of.get(k)
+            if since == config.propagate_every or j is not None:
+                y, y_good = _guard(y, y_good, failed)
+                F = error_dynamics(y, f1, gyro_corr_time=tau_g, accel_corr_time=tau_a)
+                phi, qd = discretize(F, continuous_noise(y, qc), since * dt)
+                ekf.predict(phi, qd)
+                since = 0
+            if j is not None:
+                update(j, w1)
+                record(j, k)
+    counts["failed_runs"] = int(failed.sum())
+    return LooselyCoupledResult(
+        time=quality.time, position_error=out["pos"], velocity_error=out["vel"],
+        attitude_error=out["att"], std=std, nees_position=nees_p, nees_navigation=nees_n,
+        nis=nis, applied=applied, healthy=ekf.healthy & ~failed, counts=counts,
+    )

@@ -1,5 +1,6 @@
 """DEM tiles: the grid container, file readers, sample tiles and synthetic terrain."""
 
+from neuralmap.dem.mosaic import load_mosaic, write_mosaic
 from neuralmap.dem.readers import (
     PLAUSIBLE_HEIGHT_M,
     SAMPLE_NAMES,
@@ -16,6 +17,8 @@ __all__ = [
     "DemTile",
     "GeoReference",
     "ProjectedReference",
+    "load_mosaic",
     "load_tile",
+    "write_mosaic",
     "synthetic_tile",
 ]

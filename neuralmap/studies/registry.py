@@ -56,6 +56,11 @@ STUDIES: dict[str, StudySpec] = {
         "TAN under radar-altimeter faults: robust and adaptive update policies",
         "tan_outliers.yaml",
     ),
+    "tan_scale": StudySpec(
+        "neuralmap.studies.tan_scale", "TanScaleConfig",
+        "TAN Monte Carlo at scale: chunked runs in bounded memory over worker processes",
+        "tan_scale.yaml",
+    ),
     "wind": StudySpec(
         "neuralmap.studies.wind", "WindStudyConfig",
         "Wind-field estimation: TVAR-model filters (KF, Sage-Husa, RAF, VB) against the LTI "

@@ -322,6 +322,33 @@ class BlockwiseTerrainNet(TerrainModel):
             height = torch.where(finite, height, torch.full_like(height, float("nan")))
         return height.reshape(lead).to(xy.dtype)
 
+    def block_heights(
+        self, xy: torch.Tensor, block: torch.Tensor, *, tile_size: int | None = None
+    ) -> torch.Tensor:
+        """Unblended heights of given blocks at given points (one block per point).
+
+        Used by shard-wise training (every block fits its own extended domain) and by the
+        lazily loaded sharded maps, which blend the blocks of several files.
+
+        Args:
+            xy: ``(Q, 2)`` metric points (finite), in the parameters' dtype.
+            block: ``(Q,)`` int64 block id of this net for each point.
+            tile_size: Rows per packed tile (None = automatic; fix it for bitwise
+                reproducible training across block groupings).
+
+        Returns:
+            ``(Q,)`` heights in metres of block ``block[q]``'s network at ``xy[q]``.
+        """
+        groups = TileGroups(block, self.layout.count, tile_size=tile_size)
+        local = (xy - self.block_center.index_select(0, block)) / (
+            self.block_half_width.index_select(0, block)
+        )
+        normalised, _ = self._block_outputs(local, groups)
+        normalised = normalised + self.out_bias.index_select(0, block)
+        return self.height_mean.index_select(0, block) + self.height_std.index_select(
+            0, block
+        ) * normalised
+
     def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Heights and slopes in one forward-mode pass, without autograd.
 

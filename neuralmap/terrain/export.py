@@ -128,7 +128,9 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
 
     Args:
-        path: A file written by :func:`save_map`.
+        path: A file written by :func:`save_map`, or the ``map_index.json`` (or its
+            folder) of a sharded region map: then a
+            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily.
 
     Returns:
         The terrain model; ``.tile_name``, ``.tile_fingerprint``, ``.extent`` and
@@ -139,6 +141,11 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
             or weights do not build the model (a damaged or hand-edited file), or a
             quantised file lacks values or scales.
     """
+    from neuralmap.terrain.sharded import ShardedTerrainMap, is_sharded_index
+
+    if isinstance(path, (str, os.PathLike)) and is_sharded_index(path):
+        index = Path(path)
+        return ShardedTerrainMap(index / "map_index.json" if index.is_dir() else index)  # type: ignore[return-value]
     payload = load_map_payload(path)
     state = payload.get("state_dict")
     state = dict(state) if isinstance(state, dict) else state

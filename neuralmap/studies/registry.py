@@ -57,6 +57,12 @@ STUDIES: dict[str, StudySpec] = {
         "DEM-related error models: identification, linearisation error m2, 5/6/7-state filters",
         "dem_errors.yaml",
     ),
+    "learned": StudySpec(
+        "neuralmap.studies.learned", "LearnedStudyConfig",
+        "Differentiable TAN: learned Q/R and refined map against hand-tuned, consistent and "
+        "variational filters; EM anchor",
+        "learned.yaml",
+    ),
 }
 
 

@@ -81,6 +81,7 @@ def fit_noise(
     tbptt_steps: int | None = None,
     batch_size: int | None = None,
     seed: int = 0,
+    eval_flights: int | None = None,
     callback: Callable[[int, dict[str, Any]], None] | None = None,
 ) -> NoiseFitResult:
     """Fits Q and R by maximising the innovation log-likelihood of the flights.
@@ -96,6 +97,7 @@ def fit_noise(
         tbptt_steps: Window length of truncated BPTT; None = whole flights.
         batch_size: Flights per optimiser step (None = all); shuffled per epoch.
         seed: Shuffling seed.
+        eval_flights: Flights (the first ones) of the per-epoch evaluation; None = all.
         callback: Called as ``callback(epoch, record)`` after each epoch's evaluation.
 
     Returns:
@@ -117,8 +119,10 @@ def fit_noise(
     gen = torch.Generator().manual_seed(seed)
     result = NoiseFitResult(noise)
 
+    probe = flights if eval_flights is None else flights.subset(slice(0, eval_flights))
+
     def record(epoch: int) -> None:
-        rec = {"epoch": epoch, **evaluate_noise(flights, linearizer, noise, F=F, P0=P0)}
+        rec = {"epoch": epoch, **evaluate_noise(probe, linearizer, noise, F=F, P0=P0)}
         result.history.append(rec)
         if callback is not None:
             callback(epoch, rec)

@@ -78,10 +78,10 @@ class LearnedStudyConfig(StudyConfig):
     map_error_points: int = 20000
     n_runs: int = 200
     n_train_flights: int = 1000
-    epochs: int = 10
+    epochs: int = 8
     lr: float = 0.1
     tbptt_steps: int | None = 50
-    batch_size: int | None = 250
+    batch_size: int | None = 100
     q_kind: str = "log_diagonal"
     q_scale: float = 0.1
     r_scale: float = 10.0
@@ -89,7 +89,7 @@ class LearnedStudyConfig(StudyConfig):
     bias_m: float = 20.0
     bias_box: list[float] = field(default_factory=lambda: [17000.0, 23000.0, 13500.0, 18500.0])
     n_refine_flights: int = 200
-    refine_epochs: int = 10
+    refine_epochs: int = 6
     refine_lr: float = 2.0
     correction_spacing_m: float = 500.0
     prior_sigma_m: float = 10.0
@@ -289,7 +289,7 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
 
     fit = fit_noise(flights, linearizer, noise, F=F, P0=P0, epochs=config.epochs, lr=config.lr,
                     tbptt_steps=config.tbptt_steps, batch_size=config.batch_size, seed=seed,
-                    callback=log_epoch)
+                    eval_flights=min(200, config.n_train_flights), callback=log_epoch)
     timing["learn_noise"] = time.perf_counter() - tick
     learned = fit.history[-1]
     learned_q, learned_r = learned["Q_diag"], learned["R"]

@@ -34,7 +34,7 @@ def plane() -> tuple[Scenario, DemTile, FlightBatch]:
     tile = DemTile(heights=0.08 * xx * SPACING - 0.05 * yy * SPACING + 500.0,
                    spacing=(SPACING, SPACING), name="plane")
     scenario = Scenario(
-        name="plane", tile="plane", dt=1.0, duration_s=20.0, start_xy=[3000.0, 3000.0],
+        name="plane", tile="plane", dt=1.0, duration_s=15.0, start_xy=[3000.0, 3000.0],
         start_spread_m=200.0, speed_mps=80.0, heading_deg=60.0, altitude_agl_m=500.0,
         init_pos_sigma_m=50.0, init_alt_sigma_m=10.0, init_vel_sigma_mps=0.5,
         altimeter_sigma_m=5.0, truth_model="dem",
@@ -65,7 +65,9 @@ def test_tan_likelihood_gradient_matches_finite_differences(plane, kind: str) ->
     step = 1e-6
     with torch.no_grad():
         for p, g in zip(params, grads, strict=True):
-            for i in range(p.numel()):
+            # every log-diagonal entry; for log-Cholesky the diagonal, one correlation and R
+            picks = range(p.numel()) if p.numel() <= 5 else (0, 1, 5, 9, 14)
+            for i in picks:
                 flat = p.view(-1)
                 flat[i] += step
                 up = _loss(flights, tile, scenario, noise)
@@ -104,11 +106,11 @@ def test_padded_flights_equal_separate_runs(plane) -> None:  # noqa: ANN001
     """Different lengths: a padded batch gives each flight's own likelihood; padding adds 0."""
     scenario, tile, flights = plane
     noise = NoiseModel(torch.tensor(scenario.Q_diag, dtype=F64), 25.0)
-    lengths = [21, 13, 8]
+    lengths = [16, 13, 8]
     batch = FlightBatch.from_sequences(
         1.0, [flights.ins_pos[i, :n] for i, n in enumerate(lengths)],
         [flights.radar[i, :n] for i, n in enumerate(lengths)])
-    assert batch.n_padded == (21 - 13) + (21 - 8)
+    assert batch.n_padded == (16 - 13) + (16 - 8)
     together = tan_log_likelihood(batch, make_linearizer("bilinear", tile=tile, variance="zero"),
                                   F=TanModel.from_scenario(scenario).transition(), Q=noise.Q(),
                                   R=noise.R(), P0=TanModel.from_scenario(scenario).filter_prior())
@@ -137,7 +139,7 @@ def test_nan_altimeter_samples_are_skipped_counted_and_keep_gradients_finite(pla
     run = tan_log_likelihood(holed, make_linearizer("bilinear", tile=tile, variance="zero"),
                              F=model.transition(), Q=noise.Q(), R=noise.R(),
                              P0=model.filter_prior())
-    assert run.n_updates.tolist() == [19, 20, 17, 20, 20, 20]
+    assert run.n_updates.tolist() == [14, 15, 12, 15, 15, 15]
     assert bool(torch.isnan(run.nis[0, 2])) and bool(torch.isnan(run.nis[2, 6:9]).all())
 
 

@@ -82,6 +82,7 @@ def fit_noise(
     batch_size: int | None = None,
     seed: int = 0,
     eval_flights: int | None = None,
+    lr_min_ratio: float = 1.0,
     callback: Callable[[int, dict[str, Any]], None] | None = None,
 ) -> NoiseFitResult:
     """Fits Q and R by maximising the innovation log-likelihood of the flights.
@@ -98,6 +99,9 @@ def fit_noise(
         batch_size: Flights per optimiser step (None = all); shuffled per epoch.
         seed: Shuffling seed.
         eval_flights: Flights (the first ones) of the per-epoch evaluation; None = all.
+        lr_min_ratio: Cosine decay of the learning rate over all optimiser steps down to
+            ``lr · lr_min_ratio`` (1 = constant rate; minibatch and window noise makes a
+            constant rate wander around the optimum by about ``lr`` in log-parameter).
         callback: Called as ``callback(epoch, record)`` after each epoch's evaluation.
 
     Returns:
@@ -113,9 +117,14 @@ def fit_noise(
         raise NeuralMapError(f"fit_noise: tbptt_steps must be >= 1 (or None), got {tbptt_steps}.")
     if batch_size is not None and batch_size < 1:
         raise NeuralMapError(f"fit_noise: batch_size must be >= 1 (or None), got {batch_size}.")
+    if not 0.0 < lr_min_ratio <= 1.0:
+        raise NeuralMapError(f"fit_noise: lr_min_ratio must be in (0, 1], got {lr_min_ratio}.")
     opt = make_optimizer(optimizer, noise.parameters(), lr)
     window = tbptt_steps or flights.n_steps
     batch = batch_size or flights.n_flights
+    n_opt_steps = epochs * -(-flights.n_flights // batch) * -(-flights.n_steps // window)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(n_opt_steps, 1),
+                                                          eta_min=lr * lr_min_ratio)
     gen = torch.Generator().manual_seed(seed)
     result = NoiseFitResult(noise)
 
@@ -142,6 +151,7 @@ def fit_noise(
                 if n_upd > 0:
                     (-run.log_likelihood.sum() / n_upd).backward()
                     opt.step()
+                schedule.step()
                 state = run.state.detach()
         record(epoch)
     return result

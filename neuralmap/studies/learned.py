@@ -56,6 +56,7 @@ class LearnedStudyConfig(StudyConfig):
         n_runs: Monte Carlo test draws (every configuration flies these).
         n_train_flights: Simulated flights for noise learning (other seeds).
         epochs, lr, tbptt_steps, batch_size, q_kind: Noise learning settings.
+        lr_min_ratio: Cosine decay of the learning rate to ``lr · lr_min_ratio`` (1 = none).
         q_scale, r_scale: Mis-specified start: Q × q_scale, R × r_scale.
         vb_iterations: Variational-Bayes iterations per update.
         bias_m: Systematic map error of the refinement scenario, m (0 = no refinement).
@@ -80,6 +81,7 @@ class LearnedStudyConfig(StudyConfig):
     n_train_flights: int = 1000
     epochs: int = 8
     lr: float = 0.1
+    lr_min_ratio: float = 1.0
     tbptt_steps: int | None = 50
     batch_size: int | None = 100
     q_kind: str = "log_diagonal"
@@ -120,7 +122,7 @@ class LearnedStudyConfig(StudyConfig):
                      "em_flights", "em_steps", "em_max_iter", "vb_iterations"):
             if getattr(self, name) < 1:
                 raise NeuralMapError(f"--{name} must be >= 1, got {getattr(self, name)}.")
-        for name in ("lr", "q_scale", "r_scale", "refine_lr", "correction_spacing_m",
+        for name in ("lr", "lr_min_ratio", "q_scale", "r_scale", "refine_lr", "correction_spacing_m",
                      "prior_sigma_m", "target_param_rel", "target_em_rel", "target_map_ratio"):
             if not getattr(self, name) > 0:
                 raise NeuralMapError(f"--{name} must be > 0, got {getattr(self, name)}.")
@@ -289,7 +291,8 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
 
     fit = fit_noise(flights, linearizer, noise, F=F, P0=P0, epochs=config.epochs, lr=config.lr,
                     tbptt_steps=config.tbptt_steps, batch_size=config.batch_size, seed=seed,
-                    eval_flights=min(200, config.n_train_flights), callback=log_epoch)
+                    eval_flights=min(200, config.n_train_flights),
+                    lr_min_ratio=config.lr_min_ratio, callback=log_epoch)
     timing["learn_noise"] = time.perf_counter() - tick
     learned = fit.history[-1]
     learned_q, learned_r = learned["Q_diag"], learned["R"]

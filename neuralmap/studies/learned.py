@@ -81,9 +81,9 @@ class LearnedStudyConfig(StudyConfig):
     n_train_flights: int = 1000
     epochs: int = 8
     lr: float = 0.1
-    lr_min_ratio: float = 1.0
+    lr_min_ratio: float = 0.01
     tbptt_steps: int | None = 50
-    batch_size: int | None = 100
+    batch_size: int | None = 25
     q_kind: str = "log_diagonal"
     q_scale: float = 0.1
     r_scale: float = 10.0
@@ -391,7 +391,8 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
         f"Scenario **{scenario.name}** (truth: {world.description}); map: "
         f"{config.map_source} ({config.method}). Noise learning: {config.n_train_flights} "
         f"simulated flights (seed {seed + 1000}), {config.epochs} epochs of Adam "
-        f"(lr {config.lr}), TBPTT window {config.tbptt_steps}, {config.q_kind} Q, start "
+        f"(lr {config.lr}, cosine decay to ×{config.lr_min_ratio:g}; {config.batch_size} "
+        f"flights per step; per-epoch records on the first 200 flights), TBPTT window {config.tbptt_steps}, {config.q_kind} Q, start "
         f"Q × {config.q_scale:g}, R × {config.r_scale:g}. Every configuration flies the "
         f"same {config.n_runs} test draws (seed {seed}). Divergence rule: "
         f"{divergence_rule(config.pcrb_factor, config.divergence_sigma)}")

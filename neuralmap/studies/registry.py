@@ -77,6 +77,12 @@ STUDIES: dict[str, StudySpec] = {
         "Monte Carlo GNSS/MEMS-IMU loosely coupled navigation on an urban drive (paper 003)",
         "gnss_ins.yaml",
     ),
+    "learned": StudySpec(
+        "neuralmap.studies.learned", "LearnedStudyConfig",
+        "Differentiable TAN: learned Q/R and refined map against hand-tuned, consistent and "
+        "variational filters; EM anchor",
+        "learned.yaml",
+    ),
 }
 
 

@@ -198,6 +198,15 @@ def main(args: list[str] | None = None) -> Path | None:
         SystemExit: Code 2 on bad input (:class:`NeuralMapError`: the message goes to
             stderr without a traceback) or bad arguments.
     """
+    from neuralmap.training.noise_cli import learn_mode, main_noise
+
+    try:
+        mode = learn_mode(args)
+    except NeuralMapError as error:
+        print(f"error: {error}", file=sys.stderr, flush=True)
+        raise SystemExit(EXIT_BAD_INPUT) from None
+    if mode == "noise":
+        return main_noise(args)
     default_config = default_config_path()
     parser_kwargs: dict[str, Any] = {
         "description": "Fit a neural terrain map (blockwise MLPs) to a DEM tile.",

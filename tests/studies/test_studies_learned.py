@@ -1,0 +1,48 @@
+"""The differentiable-TAN study end to end on its tiny config, and its bad options."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.studies import cli
+from neuralmap.studies.learned import LearnedStudyConfig
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_bad_options_are_refused() -> None:
+    for bad in ({"q_kind": "cholesky"}, {"map_source": "dem"}, {"method": "bilinear"},
+                {"n_train_flights": 0}, {"bias_box": [5.0, 1.0, 0.0, 1.0]}, {"lr": 0.0}):
+        with pytest.raises(NeuralMapError):
+            LearnedStudyConfig(**bad).validate()
+
+
+@pytest.mark.slow
+def test_learned_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    code = cli.main(["--config", str(REPO_ROOT / "configs" / "learned_tiny.yaml"),
+                     "--runs_dir", str(tmp_path / "runs"), "--n_runs", "12",
+                     "--n_train_flights", "16", "--epochs", "2", "--refine_epochs", "3",
+                     "--em_max_iter", "50"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    folder = tmp_path / "runs" / "learned_tiny" / "version_0"
+    results = json.loads((folder / "results.json").read_text())
+    nav = results["navigation"]
+    assert set(nav) == {"hand-tuned (paper 004)", "consistent (truth)", "mis-specified start",
+                        "learned", "variational (from start)", "learned, biased map",
+                        "learned + refined map"}
+    assert all(m["n_runs"] == 12 for m in nav.values())
+    hist = results["learning_history"]
+    assert len(hist) == 3 and hist[-1]["log_likelihood_per_update"] > hist[0][
+        "log_likelihood_per_update"]
+    assert results["refinement"]["corridor_test"]["ratio"] < 1.0
+    assert len(results["em"]["em_R_path"]) == 50
+    report = (folder / "report.md").read_text()
+    assert "Shumway" in report and "toolkit target" in report
+    for name in ("learning", "error_vs_time", "em_vs_gradient"):
+        assert (folder / f"{name}.png").is_file()
+    assert list(folder.glob("events.out.tfevents*"))

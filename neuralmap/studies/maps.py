@@ -35,7 +35,9 @@ def _map_tile_fingerprint(path: Path) -> str:
         payload = load_map_payload(path)
     except Exception:  # noqa: BLE001 - a broken candidate is simply not preferred
         return ""
-    return str((payload.get("config") or {}).get("tile_fingerprint", "") or "")
+    config = payload.get("config") or {}
+    info = config.get("tile_info") or {}
+    return str(config.get("tile_fingerprint") or info.get("fingerprint") or "")
 
 
 def find_latest_map(runs_dir: str | os.PathLike[str], *, tile_fingerprint: str = ""

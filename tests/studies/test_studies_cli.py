@@ -147,3 +147,40 @@ def test_voids_under_the_flight_path_are_counted() -> None:
     pos[2, :, :2] = torch.tensor([102.0, 104.0], dtype=torch.float64)  # over it, always
     found = void_exposure(tile, SimpleNamespace(pos=pos))
     assert found == {"samples": 5, "runs": 2}
+
+
+def test_newest_map_of_the_scenarios_tile_is_preferred(tmp_path: Path, tiny_map: Path) -> None:
+    """A newer map of another tile must not shadow the scenario's own map."""
+    import os
+
+    from neuralmap.dem import synthetic_tile
+    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.studies.maps import find_latest_map
+    from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+    from neuralmap.terrain.export import save_map
+
+    own = tmp_path / "tiny" / "version_0" / "neural_map.pt"
+    own.parent.mkdir(parents=True)
+    shutil.copy(tiny_map, own)
+    other = tmp_path / "other" / "version_0" / "neural_map.pt"
+    other_tile = synthetic_tile((40, 40), spacing=(30.0, 30.0), seed=9, name="other")
+    save_map(BlockwiseTerrainNet.from_tile(other_tile, block_nodes=48, hidden=8), other)
+    os.utime(own, (1000, 1000))
+    os.utime(other, (2000, 2000))  # newer
+    fingerprint = scenario_tile(load_scenario("tiny")).fingerprint()
+    assert find_latest_map(tmp_path) == other
+    assert find_latest_map(tmp_path, tile_fingerprint=fingerprint) == own
+
+
+def test_empty_scenario_file_is_refused(tmp_path: Path) -> None:
+    from neuralmap.exceptions import NeuralMapError
+    from neuralmap.nav.scenario import load_scenario
+
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# nothing here\n")
+    with pytest.raises(NeuralMapError, match="empty"):
+        load_scenario(empty)
+    exponent = tmp_path / "exp.yaml"
+    text = (REPO_ROOT / "configs" / "scenarios" / "tiny.yaml").read_text()
+    exponent.write_text(text.replace("R_m2: 9.0", "R_m2: 9e0"))
+    assert load_scenario(exponent).R_m2 == 9.0

@@ -158,7 +158,6 @@ def test_bad_input(tiny) -> None:
         AcquisitionConfig(handoff_affinity=0.0).validate()
 
 
-@pytest.mark.slow
 def test_acquisition_study_end_to_end(tmp_path) -> None:  # noqa: ANN001
     """``python evaluate.py --config configs/acquisition_tiny.yaml`` writes a complete run."""
     import json

@@ -18,7 +18,6 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 TINY = REPO_ROOT / "configs" / "dem_errors_tiny.yaml"
 
 
-@pytest.mark.slow
 def test_end_to_end_tiny(tmp_path: Path) -> None:
     config = cli.parse_config(["--config", str(TINY), "--runs_dir", str(tmp_path),
                                "--tensorboard", "false"])

@@ -21,7 +21,6 @@ def test_bad_options_are_refused() -> None:
             LearnedStudyConfig(**bad).validate()
 
 
-@pytest.mark.slow
 def test_learned_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     code = cli.main(["--config", str(REPO_ROOT / "configs" / "learned_tiny.yaml"),
                      "--runs_dir", str(tmp_path / "runs"), "--n_runs", "12",

@@ -15,7 +15,6 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 TINY = REPO_ROOT / "configs" / "wind_tiny.yaml"
 
 
-@pytest.mark.slow
 def test_wind_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code = main(["--config", str(TINY), "--runs_dir", str(tmp_path), "--experiment", "w"])
     out = capsys.readouterr()

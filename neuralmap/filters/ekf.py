@@ -431,7 +431,15 @@ class BatchedEKF:
             Q_b = Q if Q.ndim == 3 else Q.expand(batch, n, n)
             adapted = policy.process_noise(F=F_b, Q=Q_b, P=self.P)
             if adapted is not None:
-                Q = self._process_noise(adapted)[0]
+                # A policy's Q is only shape-checked and symmetrised here: a Q that is not
+                # positive semi-definite (or not finite) makes P⁻ fail the health check of
+                # the commit below, which flags that sample, so a per-sample Cholesky test of
+                # Q at every predict would only cost time.
+                adapted = self._float(adapted, "Q", "BatchedEKF.predict (policy)")
+                if tuple(adapted.shape) != (batch, n, n):
+                    raise shape_error("BatchedEKF.predict (policy)", "Q",
+                                      f"(N, n, n) = ({batch}, {n}, {n})", adapted.shape)
+                Q = 0.5 * (adapted + adapted.transpose(1, 2))
                 q_min = q_max = 0.0
         self._last_Q = Q
         certified = self._check_pd and self._certified_pd(plan, q_min, q_max)

@@ -73,6 +73,6 @@ def test_bench_ins_quick(capsys: pytest.CaptureFixture[str]) -> None:
     bench = _load("bench_ins_under_test", REPO_ROOT / "benchmarks" / "bench_ins.py")
     assert bench.main(["--quick"]) == 0
     out = capsys.readouterr().out
-    assert "NumPy loop" in out and "torch batched" in out
+    assert "NumPy loop" in out and "block filter" in out and "per-sample filter" in out
     deviation = float(out.split("max difference ")[1].split(" m")[0])
     assert deviation < 1e-6  # same algorithm, same inputs, float64

@@ -109,7 +109,9 @@ class LooselyCoupledResult:
         applied: ``(N, K)`` update applied.
         healthy: ``(N,)`` filter health at the end.
         counts: Counted treatments (skipped epochs, sanitised quality indicators, runs
-            frozen after their solution became non-finite: ``failed_runs``).
+            frozen after their solution became non-finite: ``failed_runs``, samples the
+            filter froze when their covariance lost positive definiteness:
+            ``frozen_samples``).
     """
 
     time: torch.Tensor
@@ -344,6 +346,8 @@ def run_loosely_coupled(
                 record(j, end)
             start = end
     counts["failed_runs"] = int(failed.sum())
+    # samples the filter froze (P or S lost positive definiteness, non-finite values)
+    counts["frozen_samples"] = int((~ekf.healthy).sum())
     return LooselyCoupledResult(
         time=quality.time, position_error=out["pos"], velocity_error=out["vel"],
         attitude_error=out["att"], std=std, nees_position=nees_p, nees_navigation=nees_n,

@@ -35,7 +35,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import check_writable_dir, next_version_dir
-from neuralmap.training.callbacks import DashboardLayout, FitReport, ResumeHint
+from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
 from neuralmap.training.datamodule import DemDataModule
 from neuralmap.training.module import TerrainFitModule
 from neuralmap.training.resume import inspect_checkpoint
@@ -189,6 +189,7 @@ def _trainer_callbacks() -> tuple[list[Any], FitReport]:
         DashboardLayout(),
         report,
         ResumeHint(),
+        EpochLines(),
     ]
     return callbacks, report
 

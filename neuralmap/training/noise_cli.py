@@ -20,6 +20,7 @@ from lightning.pytorch.cli import LightningArgumentParser
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import load_yaml
+from neuralmap.training.callbacks.epoch_lines import EpochLines
 
 __all__ = ["learn_mode", "main_noise"]
 
@@ -86,7 +87,7 @@ def main_noise(args: list[str] | None = None) -> Path | None:
                 seed_everything_default=0, auto_configure_optimizers=False,
                 save_config_kwargs={"overwrite": True},
                 parser_kwargs={"description": "Learn the TAN filter's Q and R from flights."},
-                trainer_defaults={"callbacks": [checkpoint]},
+                trainer_defaults={"callbacks": [checkpoint, EpochLines()]},
             )
         cli.trainer.fit(cli.model, datamodule=cli.datamodule,
                         ckpt_path=cli.config.get("ckpt_path"))

@@ -204,11 +204,13 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
     total = len(config.methods) * (len(config.policies) + 1)
     bar = None
     if config.progress:
-        from tqdm.auto import tqdm
+        from neuralmap.progress import progress_bar
 
-        bar = tqdm(total=total, desc="tan_outliers", unit="filter")
+        bar = progress_bar(total=total, desc="tan_outliers", unit="filter")
     try:
         for method in config.methods:
+            if bar is not None:
+                bar.set_description(f"tan_outliers [{method}]")
             linearizer = setup.methods[method]
             check_map_matches(linearizer, clean, method=method)
             reference = run_filter(clean, linearizer, clean_scenario, method=method)

@@ -5,7 +5,8 @@ policy=...)`` for the ones adapting Q). Families (one module each):
 
 * robust weights: :class:`IGG3` (SEEDS 002), :class:`Huber`, :class:`ChiSquareGate`;
 * adaptive factors on ``P⁻``: :class:`YangAdaptive` (SEEDS 002),
-  :class:`InnovationInflation` (SEEDS 003);
+  :class:`InnovationInflation` (SEEDS 003, the literal single-epoch form) and
+  :class:`WindowedInflation` (SEEDS 003 with a window of innovations, on a state block);
 * their composition :class:`RobustAdaptive` (SEEDS 002's RAF) and :class:`Compose`;
 * noise estimation: :class:`SageHusa` (SEEDS 002), :class:`QualityR` (SEEDS 003),
   :class:`VariationalAdaptive` (Huang et al., IEEE TAC 2018).
@@ -56,6 +57,10 @@ from neuralmap.filters.policies.registry import (
 from neuralmap.filters.policies.robust_adaptive import RobustAdaptive
 from neuralmap.filters.policies.sage_husa import SageHusa, sage_husa_weight
 from neuralmap.filters.policies.variational import VariationalAdaptive
+from neuralmap.filters.policies.windowed_inflation import (
+    WindowedInflation,
+    windowed_inflation_factor,
+)
 from neuralmap.filters.policies.yang import YangAdaptive, yang_factor
 
 __all__ = [
@@ -72,6 +77,7 @@ __all__ = [
     "RobustAdaptive",
     "SageHusa",
     "VariationalAdaptive",
+    "WindowedInflation",
     "YangAdaptive",
     "chi_square_threshold",
     "huber_weights",
@@ -83,5 +89,6 @@ __all__ = [
     "quality_members",
     "quality_membership",
     "sage_husa_weight",
+    "windowed_inflation_factor",
     "yang_factor",
 ]

@@ -128,9 +128,11 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
 
     Args:
-        path: A file written by :func:`save_map`, or the ``map_index.json`` (or its
+        path: A file written by :func:`save_map`, the ``map_index.json`` (or its
             folder) of a sharded region map: then a
-            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily.
+            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily,
+            or a latent-grid map bitstream (recognised by its magic bytes): then a
+            :class:`~neuralmap.terrain.latent.LatentTerrainMap`.
 
     Returns:
         The terrain model; ``.tile_name``, ``.tile_fingerprint``, ``.extent`` and
@@ -146,6 +148,10 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     if isinstance(path, (str, os.PathLike)) and is_sharded_index(path):
         index = Path(path)
         return ShardedTerrainMap(index / "map_index.json" if index.is_dir() else index)  # type: ignore[return-value]
+    from neuralmap.terrain.latent.bitstream import is_latent_file, read_latent_map
+
+    if isinstance(path, (str, os.PathLike)) and is_latent_file(path):  # magic b"NMLATENT"
+        return read_latent_map(path)  # type: ignore[return-value]
     payload = load_map_payload(path)
     state = payload.get("state_dict")
     state = dict(state) if isinstance(state, dict) else state

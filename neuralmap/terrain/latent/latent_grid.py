@@ -12,6 +12,7 @@ straight-through rounding (forward rounds, backward is the identity); the rate i
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import numpy as np
@@ -52,6 +53,21 @@ def gather_features(lattice: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> 
     vals = flat[:, index.reshape(-1)].view(c, -1, 4, 4)  # (C, M, a, b)
     weights = wy.T[:, :, None] * wx.T[:, None, :]  # (M, a, b)
     return (vals * weights).sum((-1, -2)).T
+
+
+def node_operator(nodes: int, scale: int, count: int) -> torch.Tensor:
+    """Sparse ``(nodes, count)`` matrix of a level's B-splines at the nodes of one axis.
+
+    Entry ``(n, k)`` is ``B(n / scale - (k - 1))`` (at most 4 non-zeros per row).
+    """
+    n = torch.arange(nodes, dtype=torch.float64)[:, None]
+    k = torch.arange(count, dtype=torch.float64)[None, :]
+    a = (n / scale - (k - 1)).abs()
+    dense = torch.where(a < 1, 2.0 / 3.0 - a**2 + a**3 / 2,
+                        torch.where(a < 2, (2 - a).clamp(min=0) ** 3 / 6, torch.zeros_like(a)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "sparse CSR support is in beta"
+        return dense.float().to_sparse_csr()
 
 
 class LatentGrid(nn.Module):
@@ -97,6 +113,13 @@ class LatentGrid(nn.Module):
         spread = torch.stack([z.float().abs().mean() for z in init]).clamp(min=1e-3) / step
         self.log_scale = nn.Parameter(spread.clamp(min=0.05).log())
         self.synthesis = Synthesis(self.levels, self.hidden, scale.float(), bias=mean, seed=seed)
+        # node-evaluation operators (sparse, not state): features_l = A_y c_l A_x^T
+        shapes = level_shapes(self.shape, self.levels)
+        self._node_ops = [
+            (node_operator(ny, 2**level, shapes[level][0]),
+             node_operator(nx, 2**level, shapes[level][1]))
+            for level in range(self.levels)
+        ]
 
     # ------------------------------------------------------------------ quantisation
     @property
@@ -143,15 +166,24 @@ class LatentGrid(nn.Module):
                     for z, s in zip(self.latents, self.steps, strict=True)]
 
     # ------------------------------------------------------------------ decoding
+    def node_features(self, decoded: list[torch.Tensor]) -> torch.Tensor:
+        """``(ny, nx, L)`` features at every node: ``A_y c_l A_x^T`` per level (sparse
+        banded B-spline operators; equal to refining to the node lattice)."""
+        feats = []
+        for (op_y, op_x), c in zip(self._node_ops, decoded, strict=True):
+            t = torch.sparse.mm(op_y, c.to(op_y.dtype))  # (ny, kx)
+            feats.append(torch.sparse.mm(op_x, t.T.contiguous()))  # (nx, ny)
+        return torch.stack(feats, dim=-1).transpose(0, 1)
+
     def node_heights(self, decoded: list[torch.Tensor]) -> torch.Tensor:
         """``(ny, nx)`` heights at every node from decoded latents."""
-        feats = node_values(node_lattice(decoded, self.shape))  # (L, ny, nx)
-        return self.synthesis(feats.permute(1, 2, 0))
+        return self.synthesis(self.node_features(decoded))
 
     def point_heights(self, decoded: list[torch.Tensor], uv: torch.Tensor) -> torch.Tensor:
         """``(M,)`` heights at fractional node positions ``uv (M, 2)`` (east, north)."""
-        lattice = node_lattice(decoded, self.shape)
-        return self.synthesis(gather_features(lattice, uv[:, 0], uv[:, 1]))
+        feats = [gather_features(c.unsqueeze(0), uv[:, 0] / 2**level, uv[:, 1] / 2**level)
+                 for level, c in enumerate(decoded)]
+        return self.synthesis(torch.cat(feats, dim=-1))
 
     def config(self) -> dict[str, Any]:
         """Constructor-level description stored in the bitstream header."""

@@ -80,6 +80,7 @@ class RateDistortion:
         self.heights = torch.as_tensor(filled, dtype=torch.float32)
         self.valid = torch.as_tensor(tile.valid_mask)
         self.n_nodes = int(self.valid.sum())
+        self.all_valid = self.n_nodes == self.valid.numel()
         self.bicubic = GridTerrain(tile, method="bicubic", dtype=torch.float64)
         self.spacing = tile.spacing
         self.origin = tile.origin
@@ -103,7 +104,8 @@ class RateDistortion:
         """The objective under a rounding relaxation (see :meth:`LatentGrid.relaxed`)."""
         decoded, bits = grid.relaxed(quantizer)
         nodes = grid.node_heights(decoded)
-        node_mse = ((nodes - self.heights) ** 2)[self.valid].mean()
+        err2 = (nodes - self.heights) ** 2
+        node_mse = err2.mean() if self.all_valid else err2[self.valid].mean()
         between = node_mse.new_zeros(())
         if self.between_weight > 0 and self.between_points > 0:
             uv, target = self.between_targets(self.between_points, generator)

@@ -19,6 +19,7 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.policies.compose import quality_members
 from neuralmap.linearize.base import Linearizer
 from neuralmap.nav.model import N_STATES, TanModel
 from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
@@ -186,7 +187,7 @@ def run_filter(
         bar, own_bar = progress_bar(total=k_steps, desc=method or "filter", unit="step"), True
     elif progress is not False and progress is not None:
         bar = progress
-    quality_policies = _quality_policies(policy)
+    quality_policies = quality_members(policy)
     if policy is not None:
         policy.reset()
     if quality_policies and getattr(truth, "quality", None) is None:
@@ -231,14 +232,6 @@ def run_filter(
     )
 
 
-def _quality_policies(policy: Any) -> list[Any]:
-    """Every policy inside ``policy`` (itself or a composition) that reads quality records."""
-    if policy is None:
-        return []
-    members = getattr(policy, "policies", None)
-    if members:  # a composition: its members (it may forward set_quality itself)
-        return [found for inner in members for found in _quality_policies(inner)]
-    return [policy] if callable(getattr(policy, "set_quality", None)) else []
 
 
 def run_monte_carlo(

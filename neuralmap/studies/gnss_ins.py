@@ -28,6 +28,8 @@ from typing import Any, Literal
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.policies.registry import make_policy
+from neuralmap.filters.policy import FilterPolicy
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import StudyOutputs
 
@@ -139,30 +141,23 @@ class GnssInsStudyConfig(StudyConfig):
             )
 
 
-def build_policy(name: str, config: GnssInsStudyConfig) -> Any:
-    """The update policy of a variant (None for the plain filters)."""
-    from neuralmap.filters.policies import (
-        Compose,
-        InnovationInflation,
-        QualityR,
-        RobustAdaptive,
-        VariationalAdaptive,
-    )
-
-    w = config.quality_weight
-    builders = {
-        "plain": lambda: None,
-        "r_scaled": lambda: None,
-        "inflation": lambda: InnovationInflation(config.c0),
-        "quality": lambda: QualityR.gnss(w, w, w, w),
-        "quality_inflation": lambda: Compose(QualityR.gnss(w, w, w, w),
-                                             InnovationInflation(config.c0)),
-        "raf": lambda: RobustAdaptive(1.5, 4.5, 1.5, 8.5),
-        "variational": lambda: VariationalAdaptive(3),
-    }
-    if name not in builders:
+def build_policy(name: str, config: GnssInsStudyConfig) -> FilterPolicy | None:
+    """The update policy of a variant (None for the plain filters), from the policy
+    registry (:func:`~neuralmap.filters.policies.make_policy`) with the study's ``c0`` and
+    ``quality_weight``."""
+    if name not in VARIANTS:
         raise NeuralMapError(f"--variants: unknown variant {name!r}; known: {', '.join(VARIANTS)}.")
-    return builders[name]()
+    w, c0 = config.quality_weight, config.c0
+    policy, args = {
+        "plain": ("ekf", {}),
+        "r_scaled": ("ekf", {}),
+        "inflation": ("inflation", {"c0": c0}),
+        "quality": ("quality_gnss", {"weight": w}),
+        "quality_inflation": ("quality_gnss_inflation", {"weight": w, "c0": c0}),
+        "raf": ("raf", {}),
+        "variational": ("variational", {}),
+    }[name]
+    return make_policy(policy, args, where=f"--variants {name}")
 
 
 def _verdict_factor(factor: float, *, holds: float, partly: float = 1.2) -> str:

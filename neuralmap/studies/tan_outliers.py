@@ -25,59 +25,33 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.policies.registry import POLICY_NAMES, make_policy, policy_label
+from neuralmap.filters.policy import FilterPolicy
 from neuralmap.linearize.factory import LINEARIZER_NAMES, method_label
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import StudyOutputs
 
-__all__ = ["POLICIES", "TanOutliersConfig", "make_policy", "run"]
+__all__ = ["POLICIES", "TanOutliersConfig", "run", "study_policy"]
 
-#: Policy names of the study, with their labels (paper defaults for the parameters).
+#: The study's default policies (registry names of :mod:`neuralmap.filters.policies`, in
+#: report order) with their labels; ``--policies`` takes any registry name.
 POLICIES: dict[str, str] = {
-    "ekf": "plain EKF",
-    "chi2": "χ² gate (p = 0.99)",
-    "huber": "Huber (k = 1.345)",
-    "sage_husa": "Sage-Husa (b = 0.97)",
-    "igg3": "IGG-III (k0 = 1.5, k1 = 4.5)",
-    "raf": "RAF: IGG-III + Yang (c0 = 1.5, c1 = 8.5)",
-    "raf_quality": "quality R, then RAF",
-    "quality_inflation": "quality R, then innovation inflation (paper 003's tuning)",
-    "variational": "variational Bayes (3 iterations)",
+    name: policy_label(name)
+    for name in ("ekf", "chi2", "huber", "sage_husa", "igg3", "raf", "raf_quality",
+                 "quality_inflation", "variational")
 }
 
 
-def make_policy(name: str, *, R: float) -> Any:
-    """A fresh policy by name (None for the plain EKF).
+def study_policy(name: str, *, R: float) -> FilterPolicy | None:
+    """A fresh policy of the registry (None for the plain EKF), Sage-Husa clamped to the
+    filter's nominal measurement variance: ``R/4 … 100 R``.
 
     Args:
-        name: One of :data:`POLICIES`.
-        R: The filter's nominal measurement variance (Sage-Husa's clamps: R/4 … 100 R).
+        name: A registry name (:data:`~neuralmap.filters.policies.POLICY_NAMES`).
+        R: The filter's nominal measurement variance, m².
     """
-    from neuralmap.filters.policies import (
-        IGG3,
-        ChiSquareGate,
-        Compose,
-        Huber,
-        InnovationInflation,
-        QualityR,
-        RobustAdaptive,
-        SageHusa,
-        VariationalAdaptive,
-    )
-
-    builders = {
-        "ekf": lambda: None,
-        "chi2": lambda: ChiSquareGate(0.99),
-        "huber": lambda: Huber(1.345),
-        "sage_husa": lambda: SageHusa(0.97, R_min=R / 4.0, R_max=100.0 * R),
-        "igg3": lambda: IGG3(1.5, 4.5),
-        "raf": lambda: RobustAdaptive(1.5, 4.5, 1.5, 8.5),
-        "raf_quality": lambda: Compose(QualityR.altimeter(), RobustAdaptive(1.5, 4.5, 1.5, 8.5)),
-        "quality_inflation": lambda: Compose(QualityR.altimeter(), InnovationInflation(1.2)),
-        "variational": lambda: VariationalAdaptive(3),
-    }
-    if name not in builders:
-        raise NeuralMapError(f"--policies: unknown policy {name!r}; known: {', '.join(POLICIES)}.")
-    return builders[name]()
+    args = {"R_min": R / 4.0, "R_max": 100.0 * R} if name == "sage_husa" else {}
+    return make_policy(name, args, where="--policies")
 
 
 @dataclass
@@ -89,7 +63,8 @@ class TanOutliersConfig(StudyConfig):
         scenario: Base scenario (its own fault settings are replaced by the ones below).
         n_runs: Monte Carlo runs (the same draws for every policy).
         methods: Linearisation methods.
-        policies: Update policies (:data:`POLICIES`); ``ekf`` is the plain filter.
+        policies: Update policies, registry names (default :data:`POLICIES`); ``ekf`` is the
+            plain filter.
         spike_prob: Probability per epoch of an isolated spike.
         spike_min_m: Smallest spike, m.
         spike_max_m: Largest spike, m.
@@ -139,10 +114,10 @@ class TanOutliersConfig(StudyConfig):
             raise NeuralMapError(
                 f"--methods: give one or more of {', '.join(LINEARIZER_NAMES)}; unknown {unknown}."
             )
-        bad = [p for p in self.policies if p not in POLICIES]
+        bad = [p for p in self.policies if p not in POLICY_NAMES]
         if not self.policies or bad:
             raise NeuralMapError(
-                f"--policies: give one or more of {', '.join(POLICIES)}; unknown {bad}."
+                f"--policies: give one or more of {', '.join(POLICY_NAMES)}; unknown {bad}."
             )
         for key in ("spike_prob", "patch_prob", "lock_loss_prob"):
             if not 0.0 <= getattr(self, key) <= 1.0:
@@ -249,14 +224,14 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
             for name in config.policies:
                 tick = time.perf_counter()
                 filtered = run_filter(faulty, linearizer, faulty_scenario, method=method,
-                                      policy=make_policy(name, R=R))
+                                      policy=study_policy(name, R=R))
                 m = navigation_metrics(filtered, pcrb_pos, pcrb_factor=config.pcrb_factor,
                                        divergence_sigma=config.divergence_sigma)
                 summary = _summary(m, filtered, faulty_epochs)
                 summary["wall_s"] = time.perf_counter() - tick
                 entry[name] = summary
-                curves[method][POLICIES[name]] = m["rmse_pos_curve"]
-                rows.append([method_label(method), POLICIES[name],
+                curves[method][policy_label(name)] = m["rmse_pos_curve"]
+                rows.append([method_label(method), policy_label(name),
                              *_row(summary, ref_m["rmse_pos_m"])])
                 for k, value in enumerate(m["rmse_pos_curve"]):
                     if value is not None:
@@ -356,7 +331,7 @@ def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str,
                 "toolkit target",
                 f"{label}: best robust policy diverges ≤ {config.target_divergence:.0%} with "
                 f"all-run RMSE ≤ {config.target_rmse_ratio:g}× clean",
-                f"{POLICIES[best]}: {fmt(ratio, '{:.2f}')}× clean, divergence {div:.1%}",
+                f"{policy_label(best)}: {fmt(ratio, '{:.2f}')}× clean, divergence {div:.1%}",
                 "holds" if ok else "does not hold")
         if "ekf" in entry:
             ekf = entry["ekf"]
@@ -379,7 +354,7 @@ def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str,
             best_rmse = min(policies, key=lambda p: entry[p]["rmse_pos_m"]) if policies else None
             outputs.add_claim(
                 "SEEDS 002", f"{label}: RAF (alone or after the quality-based R) is the most accurate",
-                f"RAF {fmt(raf['rmse_pos_m'])} m; best {POLICIES.get(best_rmse, 'n/a')} "
+                f"RAF {fmt(raf['rmse_pos_m'])} m; best {policy_label(best_rmse) if best_rmse else 'n/a'} "
                 f"{fmt(entry[best_rmse]['rmse_pos_m'] if best_rmse else None)} m",
                 "holds" if best_rmse in ("raf", "raf_quality") else "does not hold")
         if {"ekf", "quality_inflation"} <= set(entry):

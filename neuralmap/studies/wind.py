@@ -20,7 +20,6 @@ Examples:
 
 from __future__ import annotations
 
-import importlib.util
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -51,18 +50,19 @@ __all__ = ["CONDITIONS", "DEFAULT_FILTERS", "WindStudyConfig", "run"]
 #: The conditions a study can run.
 CONDITIONS: tuple[str, ...] = ("clean", "outliers", "shear")
 
-#: Filters compared when the config does not list them.
+#: Filters compared when the config does not list them (policies by registry name,
+#: :data:`neuralmap.filters.policies.POLICIES`; "raf" is SEEDS 002's c0 = 1.5, c1 = 8.5).
 DEFAULT_FILTERS: tuple[dict[str, Any], ...] = (
     {"name": "KF"},
-    {"name": "Sage-Husa", "policy": "SageHusa",
-     "policy_args": {"b": 0.97, "R_min": 1.0e-4, "R_max": 100.0}},
-    {"name": "RAF", "policy": "RobustAdaptive",
-     "policy_args": {"k0": 1.5, "k1": 4.5, "c0": 1.5, "c1": 8.5}},
-    {"name": "VB", "policy": "VariationalAdaptive"},
+    {"name": "Sage-Husa", "policy": "sage_husa",
+     "policy_args": {"R_min": 1.0e-4, "R_max": 100.0}},
+    {"name": "RAF", "policy": "raf"},
+    {"name": "VB", "policy": "variational"},
+    {"name": "Sage-Husa (R and Q)", "policy": "sage_husa",
+     "policy_args": {"R_min": 1.0e-4, "R_max": 100.0, "adapt_Q": True}},
+    {"name": "RAF (c0=1 c1=3)", "policy": "raf", "policy_args": {"c0": 1.0, "c1": 3.0}},
     {"name": "LTI", "model": "lti"},
 )
-
-_POLICY_MODULE = "neuralmap.filters.policies"
 
 
 @dataclass
@@ -93,10 +93,8 @@ class WindStudyConfig(StudyConfig):
         coeff_var: Random-walk variance of the AR coefficient (TVAR model).
         lti_correlation_time: ``τ`` (s) of the LTI first-order Markov model.
         filters: The estimators: mappings with ``name``, optional ``model`` (``tvar`` or
-            ``lti``), ``policy`` (class name in ``neuralmap.filters.policies``),
-            ``policy_args`` and ``correlated``.
-        skip_missing_policies: Skip (and report) filters whose policy module is not
-            installed instead of failing.
+            ``lti``), ``policy`` (a registry name of :mod:`neuralmap.filters.policies`),
+            ``policy_args`` (a mapping over the policy's defaults) and ``correlated``.
         divergence_threshold: A run diverges when its final error RMS exceeds this (m/s).
         heading_deg: Heading of the dead-reckoned vehicle.
         correction_step: ``l`` (s), ``0 ≤ l ≤ Δt``; null = ``Δt``.
@@ -139,7 +137,6 @@ class WindStudyConfig(StudyConfig):
     lti_correlation_time: float = 300.0
     filters: list[dict[str, Any]] = field(
         default_factory=lambda: [dict(f) for f in DEFAULT_FILTERS])
-    skip_missing_policies: bool = True
     divergence_threshold: float = 10.0
     heading_deg: float = 45.0
     correction_step: float | None = None
@@ -210,7 +207,7 @@ class WindStudyConfig(StudyConfig):
                 )
             specs.append(WindFilterSpec(
                 name=str(entry["name"]), model=str(entry.get("model", "tvar")),
-                policy=entry.get("policy"), policy_args=dict(entry.get("policy_args") or {}),
+                policy=entry.get("policy"), policy_args=entry.get("policy_args") or {},
                 correlated=bool(entry.get("correlated", True)),
             ).validate())
         names = [s.name for s in specs]
@@ -250,15 +247,10 @@ class WindStudyConfig(StudyConfig):
             raise NeuralMapError(f"plot_run must be in [0, n_runs) = [0, {self.n_runs}), got "
                                  f"{self.plot_run}.")
         for spec in self.filter_specs():
-            if spec.policy == "SageHusa" and "b" in spec.policy_args:
+            if spec.policy == "sage_husa" and "b" in spec.policy_args:
                 require_open_unit(spec.policy_args["b"], "b",
                                   f"filters '{spec.name}' (Sage-Husa forgetting factor)")
-            if spec.policy is not None and _policies_available():
-                make_policy(spec)  # bad policy arguments (e.g. b outside (0, 1)) fail now
-
-
-def _policies_available() -> bool:
-    return importlib.util.find_spec(_POLICY_MODULE) is not None
+            make_policy(spec)  # bad policy arguments (e.g. b outside (0, 1)) fail now
 
 
 _NOTES = """### How to read the wind results
@@ -325,25 +317,15 @@ def run(config: WindStudyConfig, outputs: StudyOutputs) -> None:
     config.seed = seed
     dtype, device = config.torch_dtype, config.torch_device
     specs = config.filter_specs()
-    skipped: list[str] = []
-    if not _policies_available():
-        if not config.skip_missing_policies and any(s.policy for s in specs):
-            raise NeuralMapError(
-                f"filters need {_POLICY_MODULE}, which this installation lacks; drop the "
-                "policy filters or set skip_missing_policies: true."
-            )
-        skipped = [s.name for s in specs if s.policy is not None]
-        specs = [s for s in specs if s.policy is None]
     names = [s.name for s in specs]
     tvar, lti = config.tvar_model(), config.lti_model()
     dt = config.step / config.airspeed
     t = np.arange(config.n_steps) * dt
     print(f"wind: {config.n_runs} runs x {config.n_steps} samples (dt {dt:g} s) | "
-          f"conditions {', '.join(config.conditions)} | filters {', '.join(names)}"
-          + (f" | skipped (no {_POLICY_MODULE}): {', '.join(skipped)}" if skipped else ""),
+          f"conditions {', '.join(config.conditions)} | filters {', '.join(names)}",
           flush=True)
     results: dict[str, Any] = {
-        "filters": names, "skipped_filters": skipped, "dt_s": dt,
+        "filters": names, "dt_s": dt,
         "turbulence": vars(config.sim_config().turbulence()),
         "divergence_rule": (f"a run diverged when the RMS of its wind error over the last "
                             f"10 % of the samples exceeds {config.divergence_threshold:g} "
@@ -440,8 +422,7 @@ def run(config: WindStudyConfig, outputs: StudyOutputs) -> None:
         note=("RMSE and NEES over the non-diverged runs (NEES: time-averaged, per axis, "
               f"ideal 1). Divergence: {results['divergence_rule']}. Patch columns: mean over "
               "runs of the largest error / one-sample error change inside the outlier "
-              "samples.") + (f" Not run (no {_POLICY_MODULE} in this installation): "
-                             f"{', '.join(skipped)}." if skipped else ""),
+              "samples."),
     )
     outputs.add_text(_NOTES.format(n_steps=config.n_steps, walk=config.meas_walk_var,
                                    level=(config.meas_walk_var * (config.n_steps - 1)) ** 0.5))

@@ -10,17 +10,17 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies import cli
-from neuralmap.studies.tan_outliers import POLICIES, make_policy
+from neuralmap.studies.tan_outliers import POLICIES, study_policy
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_policy_builds_fresh_and_unknown_is_refused() -> None:
-    built = {name: make_policy(name, R=106.0) for name in POLICIES}
+    built = {name: study_policy(name, R=106.0) for name in POLICIES}
     assert built["ekf"] is None and all(p is not None for n, p in built.items() if n != "ekf")
-    assert make_policy("raf", R=1.0) is not make_policy("raf", R=1.0)
+    assert study_policy("raf", R=1.0) is not study_policy("raf", R=1.0)
     with pytest.raises(NeuralMapError, match="unknown policy"):
-        make_policy("kalman", R=1.0)
+        study_policy("kalman", R=1.0)
 
 
 def test_tan_outliers_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -29,7 +29,7 @@ def test_wind_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert results["study"] == "wind"
     ran = results["filters"]
     assert "KF" in ran and "LTI" in ran
-    assert set(ran) | set(results["skipped_filters"]) == {"KF", "Sage-Husa", "RAF", "VB", "LTI"}
+    assert ran == ["KF", "Sage-Husa", "RAF", "VB", "LTI"]
     for cond in ("clean", "outliers", "shear"):
         for name in ran:
             entry = results["conditions"][cond][name]
@@ -54,10 +54,16 @@ def test_wind_study_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str
         ({"filters": [{"name": "KF", "modle": "tvar"}]}, "unknown keys"),
         ({"filters": [{"name": "X", "model": "arma"}]}, "'model'"),
         ({"patch_std": -1.0}, "'patch_std'"),
-        ({"filters": [{"name": "SH", "policy": "SageHusa", "policy_args": {"b": 1.0}}]},
+        ({"filters": [{"name": "SH", "policy": "sage_husa", "policy_args": {"b": 1.0}}]},
          r"open interval \(0, 1\)"),
-        ({"filters": [{"name": "SH", "policy": "SageHusa", "policy_args": {"b": 0.0}}]},
+        ({"filters": [{"name": "SH", "policy": "sage_husa", "policy_args": {"b": 0.0}}]},
          "forgetting factor"),
+        # policy_args as a list (not a mapping): a clear message, not a TypeError
+        ({"filters": [{"name": "RAF", "policy": "raf", "policy_args": [1.5, 4.5]}]},
+         "'policy_args' must be a mapping"),
+        ({"filters": [{"name": "RAF", "policy": "RobustAdaptive"}]}, "unknown policy"),
+        ({"filters": [{"name": "RAF", "policy": "raf", "policy_args": {"k2": 1.0}}]},
+         "no option"),
     ],
 )
 def test_bad_study_options(override: dict, match: str) -> None:

@@ -389,8 +389,9 @@ class KfGinsConfig:
     """A KF-GINS configuration (``kf-gins.yaml``) in SI units.
 
     Attributes:
-        imupath, gnsspath, outputpath: Files and output folder (relative paths resolved
-            against the config file's folder).
+        imupath, gnsspath, outputpath: Files and output folder (a relative path is taken
+            from the working directory, as KF-GINS does, when it exists there, else from the
+            config file's folder).
         imudatalen: IMU columns; imudatarate: IMU rate (Hz).
         starttime, endtime: Processing interval (s; endtime None = to the end).
         init_position: ``(3,)`` lat, lon (rad), h (m).
@@ -504,7 +505,9 @@ def read_config(path: str | Path) -> KfGinsConfig:
                 raise NeuralMapError(f"{where}: key '{key}' is missing (a file path).")
             return None
         p = Path(str(value)).expanduser()
-        return p if p.is_absolute() else base / p
+        if p.is_absolute() or p.exists():  # KF-GINS: relative to the working directory
+            return p
+        return base / p  # else next to the config file
 
     def number(key: str, default: Any = None, section: dict[str, Any] | None = None) -> float:
         src = cfg if section is None else section

@@ -11,6 +11,10 @@ policy=...)`` for the ones adapting Q). Families (one module each):
 * noise estimation: :class:`SageHusa` (SEEDS 002), :class:`QualityR` (SEEDS 003),
   :class:`VariationalAdaptive` (Huang et al., IEEE TAC 2018).
 
+Configs, studies and benchmarks build policies by name through :func:`make_policy`
+(:data:`POLICIES`: name → label, builder and the papers' defaults), e.g.
+``make_policy("raf")`` or ``make_policy("sage_husa", {"R_min": 1.0, "R_max": 1e4})``.
+
 The pure weight/factor functions (batched tensors in, tensors out) are exported too.
 
 Every policy reports per sample what it did in ``UpdateDiagnostics.policy_info``
@@ -19,7 +23,7 @@ variational filter) belongs to one filter: call ``reset()`` before a new batch.
 
 Example::
 
-    raf = RobustAdaptive(k0=1.5, k1=4.5, c0=1.0, c1=3.0)
+    raf = RobustAdaptive(k0=1.5, k1=4.5, c0=1.5, c1=8.5)    # = make_policy("raf")
     diag = ekf.update(residual, H, R, policy=raf)       # diag.policy_info["yang.alpha"]
 
     quality = QualityR.altimeter()
@@ -32,7 +36,7 @@ Example::
     ekf.update(residual, H, R, policy=sh)
 """
 
-from neuralmap.filters.policies.compose import Compose
+from neuralmap.filters.policies.compose import Compose, quality_members
 from neuralmap.filters.policies.gate import ChiSquareGate, chi_square_threshold
 from neuralmap.filters.policies.huber import Huber, huber_weights
 from neuralmap.filters.policies.igg3 import IGG3, igg3_weights
@@ -42,6 +46,13 @@ from neuralmap.filters.policies.quality import (
     QualityR,
     quality_factor,
     quality_membership,
+)
+from neuralmap.filters.policies.registry import (
+    POLICIES,
+    POLICY_NAMES,
+    PolicyInfo,
+    make_policy,
+    policy_label,
 )
 from neuralmap.filters.policies.robust_adaptive import RobustAdaptive
 from neuralmap.filters.policies.sage_husa import SageHusa, sage_husa_weight
@@ -54,6 +65,9 @@ from neuralmap.filters.policies.yang import YangAdaptive, yang_factor
 
 __all__ = [
     "IGG3",
+    "POLICIES",
+    "POLICY_NAMES",
+    "PolicyInfo",
     "ChiSquareGate",
     "Compose",
     "Huber",
@@ -69,7 +83,10 @@ __all__ = [
     "huber_weights",
     "igg3_weights",
     "innovation_inflation_factor",
+    "make_policy",
+    "policy_label",
     "quality_factor",
+    "quality_members",
     "quality_membership",
     "sage_husa_weight",
     "windowed_inflation_factor",

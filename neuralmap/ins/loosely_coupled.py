@@ -168,6 +168,7 @@ def run_loosely_coupled(
     generator: torch.Generator,
     measurement_noise: Callable[[int, torch.Tensor], torch.Tensor] | None = None,
     policy: FilterPolicy | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> LooselyCoupledResult:
     """Runs the closed-loop error-state EKF over a drive for the N runs of ``imu``.
 
@@ -187,6 +188,8 @@ def run_loosely_coupled(
             ``pdop``, ``fix_ratio``, ``satellites`` and ``sigma_m`` (the reported horizontal
             position σ, RMS of north and east), after NaN treatment
             (:func:`~neuralmap.ins.gnss.sanitize_quality`).
+        progress: Optional callback, called with the number of IMU samples advanced after
+            each stretch between GNSS epochs (e.g. a progress bar's ``update``).
 
     Returns:
         :class:`LooselyCoupledResult`.
@@ -337,6 +340,8 @@ def run_loosely_coupled(
             if j is not None:
                 update(j, raw_g - bg_hat)
                 record(j, end)
+            if progress is not None:
+                progress(end - start)
             start = end
     counts["failed_runs"] = int(failed.sum())
     # samples the filter froze (P or S lost positive definiteness, non-finite values)

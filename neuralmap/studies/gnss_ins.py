@@ -313,6 +313,12 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
     summaries: dict[str, dict[str, Any]] = {}
     timing: dict[str, float] = {}
     quality = None
+    from neuralmap.progress import progress_bar
+
+    # IMU samples over all variants (each sample advances every run): progress lines with
+    # the rate and the time left in logs, a bar on a terminal
+    bar = progress_bar(total=len(config.variants) * (traj.n_samples - 1), desc="gnss_ins",
+                       unit="IMU sample")
     for name in config.variants:
         gen = torch.Generator().manual_seed(seed)  # the same draws for every variant
         imu = ImuErrorProcess(config.imu_grade, n_runs=config.n_runs, dt=dt, generator=gen)
@@ -324,8 +330,9 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
             r_scale=config.r_scale if name == "r_scaled" else 1.0,
         )
         tick = time.perf_counter()
+        bar.set_description(f"gnss_ins {name} ({config.n_runs} runs)")
         runs[name] = run_loosely_coupled(traj, imu, rec, cfg, generator=gen,
-                                         policy=build_policy(name, config))
+                                         policy=build_policy(name, config), progress=bar.update)
         timing[f"filter_{name}"] = time.perf_counter() - tick
         summaries[name] = navigation_summary(runs[name], rec.quality,
                                              divergence_m=config.divergence_m,
@@ -334,6 +341,7 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
         outputs.log_curve(f"{name}/horizontal_rmse_m", horiz.tolist())
         outputs.log_scalar(f"{name}/rmse_horizontal_m", summaries[name]["rmse_horizontal_m"])
         print(f"  {name}: {timing[f'filter_{name}']:.1f} s", flush=True)
+    bar.close()
     assert quality is not None
 
     outputs.add_text(

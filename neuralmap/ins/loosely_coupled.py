@@ -149,6 +149,23 @@ def _guard(
     return y, y
 
 
+def _freeze_overflow(
+    P: torch.Tensor, phi: torch.Tensor, qd: torch.Tensor, P_old: torch.Tensor,
+    failed: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Runs whose error model overflowed (a diverged run's huge bias estimate or solution)
+    are marked in ``failed`` (in place) and keep their covariance (Φ = I, Q = 0)."""
+    ok = (torch.isfinite(phi).flatten(1).all(1) & torch.isfinite(qd).flatten(1).all(1)
+          & torch.isfinite(P).flatten(1).all(1))
+    if bool(ok.all()):
+        return P, phi, qd
+    failed |= ~ok
+    keep = ok.reshape(-1, 1, 1)
+    eye = torch.eye(phi.shape[-1], dtype=phi.dtype, device=phi.device)
+    return (torch.where(keep, P, P_old), torch.where(keep, phi, eye),
+            torch.where(keep, qd, 0.0))
+
+
 def initial_covariance(config: LooselyCoupledConfig, *, dtype: torch.dtype) -> torch.Tensor:
     """``P0`` ``(15, 15)``: configured navigation σ, bias σ² = turn-on² + instability²."""
     g = imu_grade(config.grade)
@@ -333,6 +350,7 @@ def run_loosely_coupled(
                 # check, and the process noise that policies read)
                 P, phi, qd = propagate_block(ekf.P, ekf.healthy, states, f_stops, intervals,
                                              qc, tau_g, tau_a)
+                P, phi, qd = _freeze_overflow(P, phi, qd, ekf.P, failed)
                 if len(stops) > 1:
                     ekf.P = P
                 ekf.predict(phi, qd)

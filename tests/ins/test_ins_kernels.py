@@ -174,3 +174,19 @@ def test_imu_block_draws_the_same_numbers_as_sample_by_sample(n: int) -> None:
     assert torch.equal(torch.cat([w1, w2], 1), torch.stack([s[0] for s in steps], 1))
     assert torch.equal(torch.cat([f1, f2], 1), torch.stack([s[1] for s in steps], 1))
     assert torch.equal(a.gyro_gm, b.gyro_gm) and torch.equal(a.accel_gm, b.accel_gm)
+
+
+def test_a_run_whose_error_model_overflows_is_frozen_and_counted() -> None:
+    # a run with an absurd accelerometer reading: its bias estimate and error model blow up;
+    # it is counted as failed and the other runs go on
+    traj = short_drive(duration=6.0, dt=0.02)
+    gen = torch.Generator().manual_seed(1)
+    imu = ImuErrorProcess("tactical_mems", n_runs=2, dt=0.02, generator=gen)
+    imu.accel_turn_on = imu.accel_turn_on.clone()
+    imu.accel_turn_on[1] = 1e300
+    rec = simulate_gnss(traj, n_runs=2, lever_arm=[0.5, 0.2, -1.2], generator=gen)
+    res = run_loosely_coupled(traj, imu, rec, LooselyCoupledConfig(propagate_every=5),
+                              generator=gen)
+    assert res.counts["failed_runs"] >= 1
+    assert res.healthy.tolist() == [True, False]
+    assert torch.isfinite(res.position_error[0]).all()

@@ -8,7 +8,9 @@
   ``python train.py noise --config configs/learn_noise.yaml``);
 - ``region``: fit a region-scale sharded map on several processes
   (:mod:`neuralmap.training.region_cli`, ``python train.py region --config
-  configs/train_region.yaml``).
+  configs/train_region.yaml``);
+- ``latent``: fit a latent-grid map (:mod:`neuralmap.training.latent_cli`,
+  ``python train.py latent --config configs/latent_map.yaml``).
 
 Map fit: ``python train.py`` fits the jacksboro sample with ``configs/train.yaml``;
 ``python train.py --config configs/paper_bp.yaml`` uses the SEEDS 004 preset;
@@ -39,8 +41,8 @@ from typing import Any
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.training import noise_cli, region_cli
-from neuralmap.training.callbacks import DashboardLayout, FitReport, ResumeHint
+from neuralmap.training import latent_cli, noise_cli, region_cli
+from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
 from neuralmap.training.cli_base import (
     EXIT_BAD_INPUT,
     EXIT_NO_MAP,
@@ -53,7 +55,7 @@ from neuralmap.training.module import TerrainFitModule
 __all__ = ["MODES", "default_config_path", "main", "main_map"]
 
 #: The modes of ``train.py``: its first word (default ``map``).
-MODES = ("map", "noise", "region")
+MODES = ("map", "noise", "region", "latent")
 
 def default_config_path() -> Path | None:
     """The shipped ``configs/train.yaml`` (package data), else one in the cwd."""
@@ -76,6 +78,7 @@ def _trainer_callbacks() -> tuple[list[Any], FitReport]:
         DashboardLayout(),
         report,
         ResumeHint(),
+        EpochLines(),
     ]
     return callbacks, report
 
@@ -107,6 +110,8 @@ def main(args: list[str] | None = None) -> Path | None:
         return noise_cli.main_noise(argv)
     if mode == "region":
         return region_cli.main_region(argv)
+    if mode == "latent":
+        return latent_cli.main_latent(argv)
     return main_map(argv)
 
 

@@ -18,6 +18,7 @@ from pathlib import Path
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.training.callbacks.epoch_lines import EpochLines
 from neuralmap.training.cli_base import (
     EXIT_BAD_INPUT,
     EXIT_NO_MAP,
@@ -53,7 +54,7 @@ def main_noise(args: list[str] | None = None) -> Path | None:
                 save_config_kwargs={"overwrite": True},
                 parser_kwargs={"prog": "train.py noise",
                                "description": "Learn the TAN filter's Q and R from flights."},
-                trainer_defaults={"callbacks": [checkpoint]},
+                trainer_defaults={"callbacks": [checkpoint, EpochLines()]},
             )
         cli.trainer.fit(cli.model, datamodule=cli.datamodule,
                         ckpt_path=cli.config.get("ckpt_path"))

@@ -227,17 +227,20 @@ def _snapshot(out: Path) -> dict[str, bytes]:
 @pytest.mark.parametrize("case", ["points_0", "points_neg", "all_nan", "spacing_0", "lr_nan",
                                   "threads_0", "strategy", "out_file", "sidecar_not_json",
                                   "sidecar_text_spacing", "text_npy", "mosaic_refused",
-                                  "out_foreign"])
+                                  "out_foreign", "no_spacing"])
 def test_region_bad_input_exits_2_and_leaves_the_output_as_it_was(
     case: str, published: Path, region_path: Path, tmp_path: Path,
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     before = _snapshot(published)
     source, out, extra = str(region_path), published, []
-    if case in ("sidecar_not_json", "sidecar_text_spacing", "text_npy", "all_nan"):
+    if case in ("sidecar_not_json", "sidecar_text_spacing", "text_npy", "all_nan",
+                "no_spacing"):
         source = str(tmp_path / "r.npy")
         if case == "text_npy":
             Path(source).write_text("not an array\n")
+        elif case == "no_spacing":
+            np.save(source, np.load(region_path))
         else:
             values = np.load(region_path)
             np.save(source, np.full_like(values, np.nan) if case == "all_nan" else values)
@@ -268,6 +271,8 @@ def test_region_bad_input_exits_2_and_leaves_the_output_as_it_was(
         "text_npy": ([], "is not a NumPy .npy array"),
         "mosaic_refused": ([], "disagree"),
         "out_foreign": ([], "holding other files"),
+        # the region trainer's own option (was: the Python keyword spacing=)
+        "no_spacing": ([], "give it in metres (--data.spacing 100"),
     }[case]
     err = _region_fails(["--data.path", source, "--out", str(out), "--model.steps", "2",
                          *extra], capsys)

@@ -113,3 +113,12 @@ def test_flight_logs_that_cannot_teach_anything_exit_2_and_leave_no_run_folder(
     assert exit_info.value.code == 2, err[-2000:]
     assert "error:" in err and expect in err and "Traceback" not in err
     assert not list(runs.glob("*/version_*"))  # no folder holding only an event file
+
+
+def test_a_good_flight_log_is_learned_from(tiny_log: Path, tmp_path: Path) -> None:
+    """The checks above refuse nothing usable: the tiny log (dt 1 s, on the tile) trains."""
+    path = main(["noise", "--config", str(REPO_ROOT / "configs" / "learn_noise_tiny.yaml"),
+                 "--runs_dir", str(tmp_path), "--data.log_path", str(tiny_log),
+                 "--data.n_val_flights", "1", "--trainer.max_epochs", "1"])
+    assert path is not None and path.is_file() and path.name == "learned_scenario.yaml"
+    assert load_scenario(path).dt == 1.0

@@ -471,6 +471,9 @@ def fit_region(
 ) -> dict[str, Any]:
     """Fits a region shard by shard on ``devices × num_nodes`` CPU processes.
 
+    Writes into ``out_dir`` directly; to publish whole (as ``train.py region`` does), build
+    inside ``with neuralmap.io.replacing_dir(out) as build: fit_region(data, build)``.
+
     Args:
         data: The region (:meth:`RegionData.open` for a memory-mapped ``.npy``).
         out_dir: Folder for ``map_index.json`` and ``shards/``.

@@ -1,10 +1,12 @@
-"""The Lightning command line shared by every ``train.py`` mode (map fit, noise learning).
+"""The Lightning command line shared by the ``train.py`` modes (map, noise, latent).
 
 :class:`NeuralMapCLI` adds ``--experiment``, ``--runs_dir``, ``--ckpt_path`` and
 ``--threads`` to LightningCLI, checks them before anything is built, and gives every run a
 ``version_N`` folder of its own, reserved atomically. The modes live in
-:mod:`neuralmap.training.cli` (dispatch, map fit), :mod:`neuralmap.training.noise_cli` and
-:mod:`neuralmap.training.region_cli`.
+:mod:`neuralmap.training.cli` (dispatch, map fit), :mod:`neuralmap.training.noise_cli`,
+:mod:`neuralmap.training.latent_cli` and :mod:`neuralmap.training.region_cli` (the region
+fit runs on Lightning Fabric, not a Trainer: the same option style on jsonargparse, the
+parser LightningCLI is built on, and the exit codes defined here).
 """
 
 from __future__ import annotations

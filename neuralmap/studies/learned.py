@@ -70,6 +70,7 @@ class LearnedStudyConfig(StudyConfig):
 
     study: str = "learned"
     experiment: str = "learned"
+    threads: int | None = 1
     scenario: str = "jacksboro"
     hand_scenario: str = "paper"
     map_source: str = "neural"

@@ -82,6 +82,7 @@ class TanOutliersConfig(StudyConfig):
         target_rmse_ratio: Target all-run RMSE of the best policy over the clean run's.
     """
 
+    study: str = "tan_outliers"
     experiment: str = "tan_outliers"
     map: str | None = None
     scenario: str = "jacksboro"

@@ -34,7 +34,11 @@ class TanScaleConfig(TanStudyConfig):
         workers: Processes the chunks are dealt to (``--workers``; 1 = this process).
     """
 
+    study: str = "tan_scale"
     experiment: str = "tan_scale"
+    threads: int | None = 1
+    progress: bool = False
+    tensorboard: bool = False
     n_runs: int = 100_000
     methods: list[str] = field(default_factory=lambda: ["bilinear", "nine_point"])
     chunk_runs: int = 8192

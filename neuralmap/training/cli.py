@@ -34,7 +34,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.io import check_writable_dir, next_version_dir
+from neuralmap.io import check_experiment_name, check_writable_dir, next_version_dir
 from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
 from neuralmap.training.datamodule import DemDataModule
 from neuralmap.training.module import TerrainFitModule
@@ -46,15 +46,6 @@ EXIT_BAD_INPUT = 2
 EXIT_NO_MAP = 1
 #: Environment variable through which DDP worker processes learn rank 0's run folder.
 RUN_DIR_ENV = "NEURALMAP_RUN_DIR"
-
-
-def check_experiment_name(name: str) -> None:
-    """Refuses experiment names that would leave ``runs_dir`` (``..``, separators)."""
-    if name in ("", ".", "..") or "/" in name or "\\" in name or os.sep in name:
-        raise NeuralMapError(
-            f"--experiment {name!r} must be a plain folder name inside --runs_dir (no '/', "
-            "'\\', '.' or '..'); choose the parent folder with --runs_dir instead."
-        )
 
 
 def default_config_path() -> Path | None:

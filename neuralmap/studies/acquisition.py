@@ -76,7 +76,6 @@ class AcquisitionStudyConfig(StudyConfig):
     study: str = "acquisition"
     experiment: str = "acquisition"
     progress: bool = False
-    tensorboard: bool = False
     scenario: str = "jacksboro"
     sigmas_m: list[float] = field(default_factory=lambda: [300.0, 1000.0, 3000.0])
     n_runs: int = 1000
@@ -317,6 +316,12 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     results["flat_leg"] = flat
     results["curves"] = curves
     results["timing_s"] = {"total": time.perf_counter() - started}
+    for key, curve in curves.items():  # TensorBoard: RMSE curves and the summary per row
+        outputs.log_curve(f"rmse_pos/{key}", curve)
+    for sigma_key, per_sigma in results["sigmas"].items():
+        for name, m in per_sigma.items():
+            for metric in ("rmse_pos_m", "pcrb_ratio_all", "acquired_fraction", "n_diverged"):
+                outputs.log_scalar(f"summary/{metric}/sigma{sigma_key}/{name}", m[metric])
     outputs.results.update(results)
     _write_report(outputs, config, rows, headers, results, notes)
 

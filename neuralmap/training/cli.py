@@ -57,7 +57,6 @@ __all__ = ["MODES", "default_config_path", "main", "main_map"]
 #: The modes of ``train.py``: its first word (default ``map``).
 MODES = ("map", "noise", "region", "latent")
 
-
 def default_config_path() -> Path | None:
     """The shipped ``configs/train.yaml`` (package data), else one in the cwd."""
     from neuralmap.resources import config_file

@@ -208,7 +208,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--lambdas", nargs="+", type=float, default=[0.1, 0.5, 2.0, 8.0, 32.0])
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--levels", type=int, default=6)
-    parser.add_argument("--hidden", type=int, default=8)
+    parser.add_argument("--hidden", type=int, default=0)
     parser.add_argument("--psnr_levels", nargs="+", type=float,
                         default=[40, 45, 50, 55, 60, 65, 70, 75, 80, 85, 90])
     parser.add_argument("--bounds", nargs="+", type=float, default=[1, 2, 4, 8, 16])

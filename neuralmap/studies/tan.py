@@ -323,7 +323,12 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     from neuralmap.nav.metrics import divergence_rule, navigation_metrics
     from neuralmap.nav.monte_carlo import run_monte_carlo
     from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.report import build_results, check_claims, format_table, render_report
+    from neuralmap.studies.tan_report import (
+        build_results,
+        check_claims,
+        format_table,
+        render_report,
+    )
 
     started = time.perf_counter()
     timing: dict[str, float] = {}

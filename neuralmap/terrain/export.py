@@ -129,9 +129,11 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
 
     Args:
-        path: A file written by :func:`save_map`, or the ``map_index.json`` (or its
+        path: A file written by :func:`save_map`, the ``map_index.json`` (or its
             folder) of a sharded region map: then a
-            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily.
+            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily,
+            or a latent-grid map bitstream (recognised by its magic bytes): then a
+            :class:`~neuralmap.terrain.latent.LatentTerrainMap`.
 
     Returns:
         The terrain model; ``.tile_name``, ``.tile_fingerprint``, ``.extent`` and
@@ -146,6 +148,10 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
         index = Path(path)
         return ShardedTerrainMap(  # type: ignore[return-value]
             index / "map_index.json" if index.is_dir() else index, load_shard=load_map_file)
+    from neuralmap.terrain.latent.bitstream import is_latent_file, read_latent_map
+
+    if isinstance(path, (str, os.PathLike)) and is_latent_file(path):  # magic b"NMLATENT"
+        return read_latent_map(path)  # type: ignore[return-value]
     return load_map_file(path)
 
 

@@ -218,6 +218,10 @@ def main(args: list[str] | None = None) -> Path | None:
         raise SystemExit(EXIT_BAD_INPUT) from None
     if mode == "noise":
         return main_noise(args)
+    if mode == "latent":
+        from neuralmap.training.latent_cli import main_latent
+
+        return main_latent(args)
     default_config = default_config_path()
     parser_kwargs: dict[str, Any] = {
         "description": "Fit a neural terrain map (blockwise MLPs) to a DEM tile.",

@@ -25,11 +25,11 @@ from neuralmap.training.callbacks.epoch_lines import EpochLines
 __all__ = ["learn_mode", "main_noise"]
 
 #: Values of the ``learn:`` switch.
-LEARN_MODES = ("map", "noise")
+LEARN_MODES = ("map", "noise", "latent")
 
 
 def learn_mode(args: list[str] | None) -> str:
-    """``"noise"`` when ``--learn noise`` or a ``--config`` file with ``learn: noise``."""
+    """``"noise"`` / ``"latent"`` when ``--learn X`` or a ``--config`` file with ``learn: X``."""
     argv = list(sys.argv[1:] if args is None else args)
     mode = "map"
     for i, arg in enumerate(argv):

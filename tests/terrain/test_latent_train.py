@@ -13,7 +13,7 @@ from neuralmap.terrain.latent import LatentTerrainMap
 from neuralmap.training.cli import main
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
-BASE = ["--config", str(CONFIGS / "latent_map.yaml"), "--config", str(CONFIGS / "latent_map_tiny.yaml")]
+BASE = ["latent", "--config", str(CONFIGS / "latent_map.yaml"), "--config", str(CONFIGS / "latent_map_tiny.yaml")]
 
 
 def test_tiny_config_trains_and_exports(tmp_path: Path, capsys):

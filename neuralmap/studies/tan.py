@@ -24,9 +24,18 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
+from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.monte_carlo import run_monte_carlo
+from neuralmap.nav.pcrb import pcrb, pcrb_position
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import StudyOutputs
 from neuralmap.studies.setup import prepare_tan, void_exposure
+from neuralmap.studies.tan_report import (
+    build_results,
+    check_claims,
+    format_table,
+    report_text,
+)
 from neuralmap.studies.trajectories import write_trajectories
 from neuralmap.viz.navigation import (
     plot_error_vs_time,
@@ -184,15 +193,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad input (no map, tile mismatch, bad scenario, device...).
     """
-    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-    from neuralmap.nav.monte_carlo import run_monte_carlo
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.studies.tan_report import (
-        build_results,
-        check_claims,
-        format_table,
-        report_text,
-    )
 
     started = time.perf_counter()
     timing: dict[str, float] = {}

@@ -34,11 +34,37 @@ from typing import Any
 import numpy as np
 import torch
 
+from neuralmap.dem.tile import DemTile
+from neuralmap.errors import (
+    ar1_coefficient,
+    ar_error_field,
+    arma_moments,
+    correlation_length,
+    linearization_error,
+    summarise_error_sequences,
+    survey_recovery,
+)
+from neuralmap.errors.arma import check_stationary
 from neuralmap.errors.simulation import DEM_ERROR_AR2
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
+from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS, make_linearizer
+from neuralmap.nav.augmented import (
+    AugmentedTanModel,
+    augment_information,
+    paper_tan_model,
+)
+from neuralmap.nav.metrics import navigation_metrics
+from neuralmap.nav.model import TanModel
+from neuralmap.nav.monte_carlo import run_filter
+from neuralmap.nav.pcrb import pcrb, pcrb_position, pcrb_recursion, terrain_information
+from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.nav.simulator import simulate
+from neuralmap.nav.truth_terrain import TrueTerrain, true_terrain
 from neuralmap.studies.base import StudyConfig
+from neuralmap.studies.maps import check_map_tile, resolve_map_path
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.terrain.export import load_map
+from neuralmap.terrain.grid import GridTerrain
 
 __all__ = ["DemErrorsStudyConfig", "prior_estimates", "run"]
 
@@ -123,7 +149,6 @@ class DemErrorsStudyConfig(StudyConfig):
                 "--survey_nodes and --survey_passes must be >= 2 and --survey_trials >= 1, got "
                 f"{self.survey_nodes}, {self.survey_passes}, {self.survey_trials}."
             )
-        from neuralmap.errors.arma import check_stationary
 
         if len(self.survey_phi) not in (1, 2):
             raise NeuralMapError(
@@ -189,7 +214,6 @@ def prior_estimates(truth: Any, run: Any, model: Any) -> tuple[torch.Tensor, tor
 
 def _survey_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
                     seed: int) -> dict[str, Any]:
-    from neuralmap.errors import survey_recovery
 
     out = survey_recovery(
         n_trials=config.survey_trials, phi=tuple(config.survey_phi),
@@ -250,18 +274,9 @@ def _survey_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
 
 def _m2_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scenario: Any, tile: Any,
                 seed: int) -> dict[str, Any]:
-    from neuralmap.errors import linearization_error, summarise_error_sequences
-    from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import run_filter
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.nav.truth_terrain import true_terrain
-    from neuralmap.terrain.grid import GridTerrain
 
     terrain_map = None
     if any(m in TERRAIN_MODEL_METHODS for m in config.methods):
-        from neuralmap.studies.maps import check_map_tile, resolve_map_path
-        from neuralmap.terrain.export import load_map
 
         map_path = resolve_map_path(config.map, config.runs_dir,
                                     tile_fingerprint=tile.fingerprint())
@@ -397,7 +412,6 @@ def _plot_sequences(typical: dict[str, np.ndarray], config: DemErrorsStudyConfig
 
 def _identify_along_path(field_model: Any, truth: Any, max_order: int) -> dict[str, Any]:
     """AR(1) and AR(2) moments of the DEM error sampled along the true paths (pooled)."""
-    from neuralmap.errors import arma_moments
 
     with torch.no_grad():
         e = field_model(truth.pos[..., :2].to(torch.float64)).numpy()  # (N, K+1)
@@ -415,21 +429,6 @@ def _identify_along_path(field_model: Any, truth: Any, max_order: int) -> dict[s
 def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scenario: Any,
                        tile: Any, seed: int, device: torch.device,
                        dtype: torch.dtype) -> dict[str, Any]:
-    from neuralmap.dem.tile import DemTile
-    from neuralmap.errors import ar1_coefficient, ar_error_field, correlation_length
-    from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.augmented import (
-        AugmentedTanModel,
-        augment_information,
-        paper_tan_model,
-    )
-    from neuralmap.nav.metrics import navigation_metrics
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import run_filter
-    from neuralmap.nav.pcrb import pcrb, pcrb_position, pcrb_recursion, terrain_information
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.nav.truth_terrain import TrueTerrain, true_terrain
-    from neuralmap.terrain.grid import GridTerrain
 
     corr = config.dem_error_corr_m or correlation_length(0.5315, 100.0)
     phi = (ar1_coefficient(corr, tile.spacing[0]),)
@@ -554,6 +553,23 @@ def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scen
     return results
 
 
+def _check_periods(periods: list[float], scenario: Any) -> None:
+    """Every Table 2 period must be a valid filter period of the scenario.
+
+    Raises:
+        NeuralMapError: Naming ``--periods`` (the scenario's own check names its YAML key).
+    """
+    for period in periods:
+        try:
+            dataclasses.replace(scenario, dt=float(period)).validate(where="with it")
+        except NeuralMapError as exc:
+            why = str(exc).split(" Fix it in")[0].rstrip(".")
+            raise NeuralMapError(
+                f"--periods: T = {period:g} s does not fit scenario {scenario.name!r} ({why}); "
+                "give periods the flight can be filtered at (the paper: 0.5, 1, 2 s)."
+            ) from exc
+
+
 def _fmt(value: Any, digits: int = 2) -> str:
     return "—" if value is None else f"{float(value):.{digits}f}"
 
@@ -564,10 +580,10 @@ def run(config: DemErrorsStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad input (scenario, methods, map...).
     """
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
 
     started = time.perf_counter()
     scenario = load_scenario(config.scenario)
+    _check_periods(config.periods, scenario)  # before minutes of work, named as the option
     tile = scenario_tile(scenario)
     seed = scenario.seed if config.seed is None else int(config.seed)
     config.seed = seed

@@ -32,10 +32,26 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.policies.variational import VariationalAdaptive
 from neuralmap.learning.covariance import COVARIANCE_KINDS
+from neuralmap.learning.em import em_noise
+from neuralmap.learning.flights import FlightBatch
+from neuralmap.learning.likelihood import linear_log_likelihood
+from neuralmap.learning.map_correction import BiasedTerrain, CorrectedTerrain
+from neuralmap.learning.map_refine import refine_map
+from neuralmap.learning.noise_fit import fit_noise
+from neuralmap.learning.noise_model import NoiseModel
+from neuralmap.linearize.factory import make_linearizer
+from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.model import TanModel
+from neuralmap.nav.monte_carlo import run_filter
+from neuralmap.nav.pcrb import pcrb, pcrb_position
+from neuralmap.nav.scenario import load_scenario
+from neuralmap.nav.simulator import simulate
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.setup import prepare_tan
+from neuralmap.terrain.grid import GridTerrain
 from neuralmap.viz.navigation import plot_error_vs_time
 
 __all__ = ["LearnedStudyConfig", "run"]
@@ -178,9 +194,6 @@ def _linear_problem(n_flights: int, n_steps: int, seed: int) -> dict[str, np.nda
 
 
 def _em_comparison(config: LearnedStudyConfig, seed: int) -> dict[str, Any]:
-    from neuralmap.learning.em import em_noise
-    from neuralmap.learning.likelihood import linear_log_likelihood
-    from neuralmap.learning.noise_model import NoiseModel
 
     prob = _linear_problem(config.em_flights, config.em_steps, seed)
     q0 = np.diag(prob["Q"]) * 10.0
@@ -256,20 +269,6 @@ def _unflown_drift(correction: Any, flown: torch.Tensor, *, distance_m: float) -
 # ---------------------------------------------------------------------- run
 def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
     """Learns, refines, flies every configuration on the same draws and fills ``outputs``."""
-    from neuralmap.filters.policies.variational import VariationalAdaptive
-    from neuralmap.learning.flights import FlightBatch
-    from neuralmap.learning.map_correction import BiasedTerrain, CorrectedTerrain
-    from neuralmap.learning.map_refine import refine_map
-    from neuralmap.learning.noise_fit import fit_noise
-    from neuralmap.learning.noise_model import NoiseModel
-    from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import run_filter
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.scenario import load_scenario
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.terrain.grid import GridTerrain
 
     started = time.perf_counter()
     timing: dict[str, float] = {}

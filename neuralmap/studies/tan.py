@@ -24,10 +24,25 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
+from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.monte_carlo import run_monte_carlo
+from neuralmap.nav.pcrb import pcrb, pcrb_position
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import StudyOutputs
 from neuralmap.studies.setup import prepare_tan, void_exposure
+from neuralmap.studies.tan_report import (
+    build_results,
+    check_claims,
+    format_table,
+    report_text,
+)
 from neuralmap.studies.trajectories import write_trajectories
+from neuralmap.viz.navigation import (
+    plot_error_vs_time,
+    plot_final_error_histogram,
+    plot_trajectories,
+)
+from neuralmap.viz.tensorboard_nav import log_navigation
 
 __all__ = ["DEFAULT_METHODS", "TanStudyConfig", "run"]
 
@@ -135,15 +150,8 @@ def _plot_indices(truth: Any, runs: dict[str, Any], count: int) -> list[int]:
 
 
 def _write_figures(outputs: StudyOutputs, *, config: TanStudyConfig, results: dict[str, Any],
-                   truth: Any, runs: dict[str, Any], tile: Any, pcrb_pos: np.ndarray
-                   ) -> dict[str, str]:
-    """Plots into the run folder and TensorBoard; returns caption -> file name."""
-    from neuralmap.io import atomic_write_figure
-    from neuralmap.viz.navigation import (
-        plot_error_vs_time,
-        plot_final_error_histogram,
-        plot_trajectories,
-    )
+                   truth: Any, runs: dict[str, Any], tile: Any, pcrb_pos: np.ndarray) -> None:
+    """Plots through the outputs writer (PNG, report, TensorBoard) and logs the curves."""
 
     curves = results["curves"]
     t = np.asarray(curves["t"])
@@ -167,19 +175,16 @@ def _write_figures(outputs: StudyOutputs, *, config: TanStudyConfig, results: di
         final_errors, pcrb_final=float(pcrb_pos[-1])
     )
     for name, fig in figures.items():
-        atomic_write_figure(outputs.dir / f"{name}.png", fig)
-    if config.tensorboard:
-        from neuralmap.viz.tensorboard_nav import log_navigation
-
+        outputs.add_figure(name, fig, _FIGURES[name])
+    writer = outputs.writer()
+    if writer is not None:
         log_navigation(
-            outputs.dir,
+            writer,
             curves={m: curves[m] for m in runs},
             pcrb_pos=pcrb_pos,
             final_errors=final_errors,
             summary={m: results["methods"][m] for m in runs},
-            figures=figures,
         )
-    return {_FIGURES[name]: f"{name}.png" for name in figures}
 
 
 def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
@@ -188,15 +193,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad input (no map, tile mismatch, bad scenario, device...).
     """
-    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-    from neuralmap.nav.monte_carlo import run_monte_carlo
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.studies.tan_report import (
-        build_results,
-        check_claims,
-        format_table,
-        render_report,
-    )
 
     started = time.perf_counter()
     timing: dict[str, float] = {}
@@ -276,22 +272,15 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         f"{config.n_runs}; per method: "
         + ", ".join(f"{k} {v}" for k, v in off_map["per_method"].items())
     )
-    for check in claims:
-        outputs.claims.append(_as_claim(check))
-        print(f"claim: {check.claim}: {check.measured} -> {check.verdict}")
     results["timing_s"]["total"] = time.perf_counter() - started
-    figures = _write_figures(outputs, config=config, results=results, truth=truth, runs=runs,
+    outputs.add_text(report_text(results))
+    for check in claims:
+        paper = "SEEDS 004" if "SEEDS 004" in check.claim else "toolkit target"
+        outputs.add_claim(paper, check.claim, check.measured, check.verdict, detail=check.detail)
+    _write_figures(outputs, config=config, results=results, truth=truth, runs=runs,
                              tile=tile, pcrb_pos=pcrb_pos)
     tracks = {"truth": truth.pos, "ins": truth.ins_pos,
               **{name: truth.pos + r.err[..., :3] for name, r in runs.items()}}
     write_trajectories(outputs.dir, tile, truth.t.cpu().numpy(),
                        {name: v.detach().cpu().numpy() for name, v in tracks.items()})
     outputs.results.update(results)
-    outputs.set_report(render_report(results, claims=claims, figures=figures))
-
-
-def _as_claim(check: Any) -> Any:
-    from neuralmap.studies.outputs import Claim
-
-    paper = "SEEDS 004" if "SEEDS 004" in check.claim else "toolkit target"
-    return Claim(paper, check.claim, check.measured, check.verdict)

@@ -28,6 +28,14 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies.registry import POLICY_NAMES, make_policy, policy_label
 from neuralmap.filters.policy import FilterPolicy
 from neuralmap.linearize.factory import LINEARIZER_NAMES, method_label
+from neuralmap.nav.altimeter import FAULT_CODES
+from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.model import TanModel
+from neuralmap.nav.monte_carlo import check_map_matches, run_filter
+from neuralmap.nav.pcrb import pcrb, pcrb_position
+from neuralmap.nav.scenario import load_scenario
+from neuralmap.nav.simulator import simulate
+from neuralmap.progress import progress_bar
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.setup import prepare_tan
@@ -164,13 +172,6 @@ def _fault_error(run: Any, faulty: torch.Tensor) -> float | None:
 
 def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
     """Flies the clean and faulty altimeter with every policy and fills ``outputs``."""
-    from neuralmap.nav.altimeter import FAULT_CODES
-    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import check_map_matches, run_filter
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.scenario import load_scenario
-    from neuralmap.nav.simulator import simulate
 
     started = time.perf_counter()
     base = load_scenario(config.scenario)
@@ -210,7 +211,6 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
     total = len(config.methods) * (len(config.policies) + 1)
     bar = None
     if config.progress:
-        from neuralmap.progress import progress_bar
 
         bar = progress_bar(total=total, desc="tan_outliers", unit="filter")
     try:

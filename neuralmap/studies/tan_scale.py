@@ -19,6 +19,7 @@ import time
 from dataclasses import dataclass, field
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.chunked import SEED_BLOCK_RUNS, peak_rss_mb, run_monte_carlo_chunked
 from neuralmap.studies.outputs import StudyOutputs
 from neuralmap.studies.setup import prepare_tan
 from neuralmap.studies.tan import TanStudyConfig
@@ -56,7 +57,6 @@ class TanScaleConfig(TanStudyConfig):
 
 def run(config: TanScaleConfig, outputs: StudyOutputs) -> None:
     """Runs the chunked Monte Carlo and writes the reduced metrics and the throughput."""
-    from neuralmap.nav.chunked import SEED_BLOCK_RUNS, peak_rss_mb, run_monte_carlo_chunked
 
     setup = prepare_tan(scenario=config.scenario, methods=config.methods, map_path=config.map,
                         runs_dir=config.runs_dir, seed=config.seed,

@@ -111,3 +111,16 @@ def test_default_survey_brings_back_all_three_table1_rows() -> None:
              "ARMA(1,1) φ, θ": out["arma11_mean"]}
     for row, paper in PAPER_TABLE1.items():
         assert found[row] == pytest.approx(list(paper), abs=2 * TABLE1_TOLERANCE), row
+
+
+def test_bad_period_is_named_as_the_option_before_any_work(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A period the flight cannot take was reported, after the survey section, as a
+    scenario-YAML key to fix."""
+    code = cli.main(["--config", str(TINY), "--runs_dir", str(tmp_path),
+                     "--periods", "[1000.0]", "--tensorboard", "false"])
+    captured = capsys.readouterr()
+    assert code == 2
+    assert "--periods: T = 1000 s does not fit scenario 'tiny'" in captured.err
+    assert "scenario YAML" not in captured.err
+    assert "claim (" not in captured.out  # refused before the survey section ran

@@ -18,7 +18,7 @@ from neuralmap.studies.tan_report import (
     build_results,
     check_claims,
     format_table,
-    render_report,
+    report_text,
 )
 
 K1 = 11  # samples (K + 1)
@@ -205,14 +205,31 @@ def test_tables_and_report_text() -> None:
     assert "n/a" in lines[3] and lines[-1].startswith("PCRB")
     md = format_table(results, markdown=True)
     assert md.splitlines()[1].startswith("|---|")
-    report = render_report(
-        results, claims=check_claims(results), figures={"Error vs time": "error_vs_time.png"}
-    )
+    report = report_text(results)
     assert "A run diverged when ..." in report
-    assert "![Error vs time](error_vs_time.png)" in report
-    assert "position error < 50 m (1σ)" in report and "**holds**" in report
     assert "1 truth trajectories left the tile" in report
     assert "nan" not in report.lower().replace("mean", "")
+
+
+def test_tan_report_goes_through_the_one_outputs_writer(tmp_path: Path) -> None:
+    """The TAN study wrote its PNGs itself, opened a second TensorBoard writer and replaced
+    the report; now sections, figures and claims go through StudyOutputs."""
+    import matplotlib.figure
+
+    from neuralmap.studies.outputs import StudyOutputs
+
+    results = _results()
+    with StudyOutputs(tmp_path, config={"study": "tan"}, title="TAN", echo=False,
+                      tensorboard=False) as outputs:
+        outputs.add_text(report_text(results))
+        for check in check_claims(results):
+            outputs.add_claim("SEEDS 004", check.claim, check.measured, check.verdict,
+                              detail=check.detail)
+        outputs.add_figure("error_vs_time", matplotlib.figure.Figure(), "Error vs time")
+        report = outputs.render()
+    assert report.startswith("# TAN") and "![Error vs time](error_vs_time.png)" in report
+    assert "position error < 50 m (1σ)" in report and "**holds**" in report
+    assert "| how |" in report
 
 
 def test_plots_and_tensorboard(tmp_path: Path) -> None:
@@ -245,15 +262,19 @@ def test_plots_and_tensorboard(tmp_path: Path) -> None:
     with pytest.raises(NeuralMapError, match="shape"):
         plot_trajectories(tile, truth, {"neural": truth[:, :-1]})
 
+    from torch.utils.tensorboard import SummaryWriter
+
     log_dir = tmp_path / "tb"
+    writer = SummaryWriter(log_dir=str(log_dir))
     log_navigation(
-        log_dir,
+        writer,
         curves={m: {"rmse_pos_curve": v, "nees_curve": v} for m, v in curves.items()},
         pcrb_pos=np.linspace(40, 4, K1),
         final_errors=finals,
         summary={"neural": {"rmse_pos_m": 3.0, "pcrb_ratio": None}},
-        figures={"err": fig1},
     )
+    writer.add_figure("figures/err", fig1)  # as StudyOutputs.add_figure does
+    writer.close()
     acc = EventAccumulator(str(log_dir), size_guidance={"scalars": 0, "images": 0}).Reload()
     tags = acc.Tags()
     assert {"rmse_pos/neural", "rmse_pos/bilinear", "pcrb_pos", "summary/rmse_pos_m/neural"} <= set(

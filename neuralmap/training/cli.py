@@ -43,7 +43,6 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import load_yaml
-from neuralmap.training import latent_cli, noise_cli, region_cli
 from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
 from neuralmap.training.cli_base import (
     EXIT_BAD_INPUT,
@@ -52,7 +51,10 @@ from neuralmap.training.cli_base import (
     remove_orphan_run_dir,
 )
 from neuralmap.training.datamodule import DemDataModule
+from neuralmap.training.latent_cli import main_latent
 from neuralmap.training.module import TerrainFitModule
+from neuralmap.training.noise_cli import main_noise
+from neuralmap.training.region_cli import main_region
 
 __all__ = ["MODES", "default_config_path", "main", "main_map"]
 
@@ -127,11 +129,11 @@ def main(args: list[str] | None = None) -> Path | None:
                   f"{', '.join(MODES)} (or an option, for map).", file=sys.stderr, flush=True)
             raise SystemExit(EXIT_BAD_INPUT)
     if mode == "noise":
-        return noise_cli.main_noise(argv)
+        return main_noise(argv)
     if mode == "region":
-        return region_cli.main_region(argv)
+        return main_region(argv)
     if mode == "latent":
-        return latent_cli.main_latent(argv)
+        return main_latent(argv)
     return main_map(argv)
 
 

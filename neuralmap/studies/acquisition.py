@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.metrics import nees
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
@@ -74,6 +75,7 @@ class AcquisitionStudyConfig(StudyConfig):
 
     study: str = "acquisition"
     experiment: str = "acquisition"
+    progress: bool = False
     scenario: str = "jacksboro"
     sigmas_m: list[float] = field(default_factory=lambda: [300.0, 1000.0, 3000.0])
     n_runs: int = 1000
@@ -349,7 +351,7 @@ def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: Any, acq_cfg: Any
         "final_posterior_sigma_median_m": float(post_sigma.median()),
         "final_error_rms_m": float(err.square().mean().sqrt()),
         "handed_off_fraction": float((res.handoff_step >= 0).double().mean()),
-        "nees_final_mean": float(_nees(res.run.err[:, -1, :2], P).mean()),
+        "nees_final_mean": float(nees(res.run.err[:, -1, :2], P).mean()),
     }
 
 
@@ -357,11 +359,6 @@ def _plane_linearizer(tile: Any) -> Any:
     from neuralmap.linearize.factory import make_linearizer
 
     return make_linearizer("bilinear", tile=tile)
-
-
-def _nees(err: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
-    e = err.double()[..., None]
-    return (e.transpose(-1, -2) @ torch.linalg.solve(P, e)).reshape(-1)
 
 
 def _fmt(value: Any) -> str:

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from neuralmap.errors.simulation import DEM_ERROR_AR2
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
 from neuralmap.studies.base import StudyConfig
@@ -45,6 +46,14 @@ __all__ = ["DemErrorsStudyConfig", "prior_estimates", "run"]
 DEFAULT_METHODS: tuple[str, ...] = (
     "lsq_max", "lsq_mean", "lsq_min", "lsq_adaptive", "nine_point", "mean_point",
 )
+#: The paper's Table 1 (coefficients identified from its repeat survey).
+PAPER_TABLE1: dict[str, tuple[float, ...]] = {
+    "AR(1) φ": (0.53150,),
+    "AR(2) φ₁, φ₂": (0.44417, 0.16430),
+    "ARMA(1,1) φ, θ": (0.75330, 0.31867),
+}
+#: Largest |identified mean − paper| for the Table 1 rows to count as brought back.
+TABLE1_TOLERANCE = 0.03
 #: The paper's Table 2 (std of m2, m) for the rows it has, by period 0.5 / 1 / 2 s.
 PAPER_TABLE2: dict[str, tuple[float, float, float]] = {
     "lsq_max": (25.39, 24.99, 24.26),
@@ -64,7 +73,10 @@ class DemErrorsStudyConfig(StudyConfig):
         max_order: Largest ARMA order identified (Tables 1 and 2).
         survey_nodes: Nodes of the simulated repeat survey (paper: 61).
         survey_passes: Passes (paper: 10).
-        survey_phi: AR coefficients of the simulated survey error (paper: AR(1) 0.5315).
+        survey_phi: AR coefficients of the simulated survey error. Default the paper's
+            AR(2) (0.44417, 0.16430): the one process consistent with all three rows of
+            its Table 1 (an AR(1) 0.5315 implies ρ₂ ≈ 0.283, the AR(2) and ARMA(1,1)
+            rows ρ₂ ≈ 0.400), so the identification can bring back every row.
         survey_trials: Surveys simulated for the recovery statistics.
         periods: Filter periods T of Table 2, s.
         methods: Linearisation methods of Table 2 (``neural`` needs ``map``).
@@ -82,11 +94,12 @@ class DemErrorsStudyConfig(StudyConfig):
 
     study: str = "dem_errors"
     experiment: str = "dem_errors"
+    progress: bool = False
     scenario: str = "jacksboro"
     max_order: int = 2
     survey_nodes: int = 61
     survey_passes: int = 10
-    survey_phi: list[float] = field(default_factory=lambda: [0.5315])
+    survey_phi: list[float] = field(default_factory=lambda: list(DEM_ERROR_AR2))
     survey_trials: int = 100
     periods: list[float] = field(default_factory=lambda: [0.5, 1.0, 2.0])
     methods: list[str] = field(default_factory=lambda: list(DEFAULT_METHODS))
@@ -191,30 +204,46 @@ def _survey_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
         f"(sample σ set to the paper's 1.0435 m). One survey:\n\n" + first.to_markdown()
     )
     counts = ", ".join(f"{k} {v}" for k, v in sorted(out["chosen_counts"].items()))
+    identified = {"AR(1) φ": (out["ar1_phi_mean"], out["ar1_phi_std"]),
+                  "AR(2) φ₁, φ₂": (out["ar2_phi_mean"], out["ar2_phi_std"]),
+                  "ARMA(1,1) φ, θ": (out["arma11_mean"], out["arma11_std"])}
+    rows = []
+    for row, paper in PAPER_TABLE1.items():
+        mean, std = identified[row]
+        rows.append([row, ", ".join(f"{v:.4f}" for v in paper),
+                     "—" if mean is None else ", ".join(
+                         f"{m:.4f} ± {d:.4f}" for m, d in zip(mean, std, strict=True))])
+    rows += [["sample σ, m", "1.0435", f"{out['sample_std_mean']:.4f}"],
+             ["chosen order", f"AR({len(config.survey_phi)}) simulated", counts]]
     outputs.add_table(
-        f"Recovery over {config.survey_trials} simulated surveys",
-        ["quantity", "true", "identified (mean ± std)"],
-        [
-            ["AR(1) φ", f"{config.survey_phi[0]:.4f}" if len(config.survey_phi) == 1 else "—",
-             f"{out['ar1_phi_mean'][0]:.4f} ± {out['ar1_phi_std'][0]:.4f}"],
-            ["AR(2) φ₁, φ₂",
-             ", ".join(f"{v:.4f}" for v in config.survey_phi) if len(config.survey_phi) == 2
-             else "—",
-             "—" if out["ar2_phi_mean"] is None else ", ".join(
-                 f"{m:.4f} ± {s:.4f}" for m, s in zip(out["ar2_phi_mean"], out["ar2_phi_std"],
-                                                      strict=True))],
-            ["sample σ, m", "1.0435", f"{out['sample_std_mean']:.4f}"],
-            ["chosen order", f"AR({len(config.survey_phi)})", counts],
-        ],
+        f"Recovery over {config.survey_trials} simulated surveys (paper's Table 1 beside)",
+        ["quantity", "paper (Table 1)", "identified (mean ± std)"], rows,
+        note=f"Simulated error: AR φ = {list(config.survey_phi)}. This checks the "
+             "identification on data drawn from a known model; that the paper's printed "
+             "parameters solve back from their own autocorrelations is a separate check of "
+             "the formulas (tests/errors), not of data.",
     )
+    runs = RunCounts(config.survey_trials, config.survey_trials)
     chosen_share = out["chosen_counts"].get(f"AR({len(config.survey_phi)})", 0) / max(
         config.survey_trials, 1)
     outputs.add_claim(
         "SEEDS 000", "the DEM-making error sample is stationary and AR(1) or AR(2)",
         f"simulated AR({len(config.survey_phi)}) survey identified as such in "
         f"{100 * chosen_share:.0f} % of {config.survey_trials} surveys",
-        verdict(chosen_share >= 0.7, detail="simulation"),
-        runs=RunCounts(config.survey_trials, config.survey_trials),
+        verdict(chosen_share >= 0.7, detail="simulation"), runs=runs,
+    )
+    misses = {row: max(abs(m - p) for m, p in zip(identified[row][0], paper, strict=True))
+              for row, paper in PAPER_TABLE1.items() if identified[row][0] is not None}
+    outputs.add_claim(
+        "SEEDS 000", "Table 1: AR(1) 0.5315, AR(2) 0.444 / 0.164, ARMA(1,1) 0.753 / 0.319 "
+        "describe one sample",
+        "largest |identified − paper| per row: " + ", ".join(
+            f"{row} {miss:.3f}" for row, miss in misses.items())
+        + f" (simulated AR φ = {list(config.survey_phi)})",
+        verdict(len(misses) == len(PAPER_TABLE1)
+                and max(misses.values()) <= TABLE1_TOLERANCE,
+                partly=any(v <= TABLE1_TOLERANCE for v in misses.values()),
+                detail="simulation"), runs=runs,
     )
     return {"one_survey": first.to_dict(), **out}
 

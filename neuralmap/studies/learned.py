@@ -35,6 +35,8 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.learning.covariance import COVARIANCE_KINDS
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.studies.setup import prepare_tan
+from neuralmap.viz.navigation import plot_error_vs_time
 
 __all__ = ["LearnedStudyConfig", "run"]
 
@@ -70,6 +72,7 @@ class LearnedStudyConfig(StudyConfig):
 
     study: str = "learned"
     experiment: str = "learned"
+    threads: int | None = 1
     scenario: str = "jacksboro"
     hand_scenario: str = "paper"
     map_source: str = "neural"
@@ -106,7 +109,7 @@ class LearnedStudyConfig(StudyConfig):
 
     @property
     def methods(self) -> list[str]:
-        """The linearisers :func:`neuralmap.studies.tan.prepare` builds."""
+        """The linearisers :func:`neuralmap.studies.setup.prepare_tan` builds."""
         return [self.method] if self.map_source == "neural" else ["bilinear"]
 
     def validate(self) -> None:
@@ -266,12 +269,15 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
     from neuralmap.nav.pcrb import pcrb, pcrb_position
     from neuralmap.nav.scenario import load_scenario
     from neuralmap.nav.simulator import simulate
-    from neuralmap.studies.tan import prepare
     from neuralmap.terrain.grid import GridTerrain
 
     started = time.perf_counter()
     timing: dict[str, float] = {}
-    setup = prepare(config)
+    setup = prepare_tan(scenario=config.scenario, methods=config.methods, map_path=config.map,
+                        runs_dir=config.runs_dir, seed=config.seed,
+                        neural_fit_variance=config.neural_fit_variance,
+                        map_error_points=config.map_error_points, device=config.torch_device)
+    setup.pin(config)
     scenario, tile, seed, world = setup.scenario, setup.tile, setup.seed, setup.truth_terrain
     if config.bias_m != 0.0:
         _check_bias_box(config.bias_box, tile)  # before minutes of learning, not after
@@ -531,17 +537,11 @@ def _figures(outputs: StudyOutputs, history: list[dict[str, Any]], truth_q: list
     outputs.add_figure("learning", fig, "Likelihood and parameter trajectories of noise learning")
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, m in metrics.items():
-        curve = [np.nan if v is None else v for v in m["rmse_pos_curve"]]
-        ax.plot(curve, label=name)
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_ylabel("horizontal RMSE (m)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    curves = {name: m["rmse_pos_curve"] for name, m in metrics.items()}
+    steps = len(next(iter(curves.values())))
+    fig = plot_error_vs_time(np.arange(steps), curves, None, xlabel="step",
+                             title="Horizontal position error vs time, same draws")
     outputs.add_figure("error_vs_time", fig, "Horizontal position RMSE vs time, same draws")
-    plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(7, 4))
     path = np.asarray(em["em_R_path"])

@@ -88,7 +88,10 @@ class MapSizeStudyConfig(StudyConfig):
             filter's own 1σ horizontal bound.
     """
 
+    study: str = "map_size"
     experiment: str = "map_size"
+    threads: int | None = 1
+    progress: bool = False
     scenario: str = "jacksboro"
     n_runs: int = 500
     codecs: list[str] = field(default_factory=lambda: ["lerc", "jpegls", "jpeg2k", "zstd"])

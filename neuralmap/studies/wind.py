@@ -111,6 +111,8 @@ class WindStudyConfig(StudyConfig):
 
     study: str = "wind"
     experiment: str = "wind"
+    threads: int | None = 1
+    progress: bool = False
     n_runs: int = 500
     n_steps: int = 400
     conditions: list[str] = field(default_factory=lambda: list(CONDITIONS))

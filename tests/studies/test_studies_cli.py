@@ -196,7 +196,7 @@ def test_voids_under_the_flight_path_are_counted() -> None:
     import numpy as np
 
     from neuralmap.dem.tile import DemTile
-    from neuralmap.studies.tan import void_exposure
+    from neuralmap.studies.setup import void_exposure
 
     heights = np.zeros((20, 20))
     heights[10, 10] = np.nan

@@ -286,3 +286,20 @@ def test_numerical_failures_count_against_the_claims() -> None:
     assert checks[0].verdict == "holds"  # 58 converged runs still give the 1σ claims
     assert checks[3].verdict.startswith("does not hold (40 of 98 runs failed numerically")
     assert checks[4].verdict == "does not hold" and "40.8%" in checks[4].measured
+
+
+def test_one_error_vs_time_figure_for_every_study() -> None:
+    """tan, tan_outliers and learned draw through viz.navigation.plot_error_vs_time:
+    None gaps (results.json curves), no bound, a dash-dot reference."""
+    from neuralmap.viz.navigation import plot_error_vs_time
+
+    fig = plot_error_vs_time(np.arange(4), {"clean": [3.0, 2.0, None, 1.0], "raf": [4, 3, 2, 1]},
+                             None, references=["clean"], xlabel="time step")
+    ax = fig.axes[0]
+    assert [line.get_label() for line in ax.lines] == ["clean", "raf"]
+    assert ax.lines[0].get_linestyle() == "-." and math.isnan(ax.lines[0].get_ydata()[2])
+    assert ax.get_yscale() == "log" and ax.get_xlabel() == "time step"
+    import neuralmap.studies.learned as learned
+    import neuralmap.studies.tan_outliers as tan_outliers
+
+    assert learned.plot_error_vs_time is tan_outliers.plot_error_vs_time is plot_error_vs_time

@@ -92,7 +92,7 @@ def test_plain_grid_without_crs(tmp_path: Path) -> None:
     path = tmp_path / "grid.npy"
     np.save(path, heights)
     tile = load_tile(path, spacing=10.0)
-    out = write_map_geotiffs(GridTerrain(tile), tile, tmp_path / "out", layers=("height",))
+    out = GridTerrain(tile).to_geotiff(tmp_path / "out", tile, layers=("height",))
     with rasterio.open(out["height"]) as ds:
         assert ds.crs is None and tuple(ds.transform)[:6] == (10.0, 0.0, -5.0, 0.0, -10.0, 395.0)
         np.testing.assert_allclose(np.flipud(ds.read(1)), heights, atol=1e-4)

@@ -83,6 +83,8 @@ class GnssInsStudyConfig(StudyConfig):
 
     study: str = "gnss_ins"
     experiment: str = "gnss_ins"
+    threads: int | None = 1
+    progress: bool = False
     n_runs: int = 200
     drive: Literal["urban", "short"] = "urban"
     duration_s: float = 1527.0

@@ -196,7 +196,7 @@ def test_voids_under_the_flight_path_are_counted() -> None:
     import numpy as np
 
     from neuralmap.dem.tile import DemTile
-    from neuralmap.studies.tan import void_exposure
+    from neuralmap.studies.setup import void_exposure
 
     heights = np.zeros((20, 20))
     heights[10, 10] = np.nan
@@ -231,6 +231,11 @@ def test_newest_map_of_the_scenarios_tile_is_preferred(tmp_path: Path, tiny_map:
     fingerprint = scenario_tile(load_scenario("tiny")).fingerprint()
     assert find_latest_map(tmp_path) == other
     assert find_latest_map(tmp_path, tile_fingerprint=fingerprint) == own
+    # the map-size study discovers maps the same way (it read another key of the file)
+    from neuralmap.studies.map_size import find_neural_maps
+
+    assert find_neural_maps(str(tmp_path), fingerprint) == [own]
+    assert find_neural_maps(str(tmp_path), other_tile.fingerprint()) == [other]
 
 
 def test_empty_scenario_file_is_refused(tmp_path: Path) -> None:

@@ -52,7 +52,7 @@ def _linear_flight(n: int, steps: int, seed: int, config: TrackerConfig | None =
         hs = _slope(k)
         H = torch.cat([hs, C_ALT]).expand(n, 5)
         y = (H * truth).sum(1) + math.sqrt(R) * torch.randn(n, generator=gen, dtype=D)
-        tracker.update(y, lambda pts, hs=hs: pts @ hs, R=R)
+        tracker.update(y, lambda pts, hs=hs: pts @ hs.to(pts.dtype), R=R)
         S = torch.einsum("ni,nij,nj->n", H, P, H) + R
         K = torch.einsum("nij,nj->ni", P, H) / S[:, None]
         x = x + K * (y - (H * x).sum(1))[:, None]

@@ -49,6 +49,9 @@ class TrackerOptions:
         lost_window: NIS window of the lost-track test (0 disables widening).
         widen_min_sigma_m: Smallest σ of a widened grid, m.
         chunk_runs: Runs per tracker batch (bounds memory; 0 = all at once).
+        flatten_likelihood: Add the map's height spread over each cell to the likelihood
+            variance (:func:`neuralmap.nav.acquisition.cell_height_variance`): needed while
+            the cells are coarser than the terrain's detail (large initial errors).
     """
 
     cells: int = 32
@@ -58,6 +61,7 @@ class TrackerOptions:
     lost_window: int = 10
     widen_min_sigma_m: float = 50.0
     chunk_runs: int = 0
+    flatten_likelihood: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
 
     def tracker_config(self) -> TrackerConfig:
@@ -170,7 +174,13 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
             tracker.predict(Q_s=qs, Q_z=qz)
             ins_xy = truth.ins_pos[rows, k, :2]
             y = (truth.ins_pos[rows, k, 2] - truth.radar[rows, k]).to(pm_dtype)
-            upd = tracker.update(y, _heights(terrain, ins_xy, truth.extent), R=R)
+            g = _heights(terrain, ins_xy, truth.extent)(tracker.points())
+            cell_var = None
+            if opts.flatten_likelihood:
+                from neuralmap.nav.acquisition import cell_height_variance
+
+                cell_var = torch.nan_to_num(cell_height_variance(g), nan=0.0)
+            upd = tracker.update(y, g, R=R, cell_variance=cell_var)
             cell_updates += m * cfg.cells**2
             mean, cov = tracker.moments()
             err[rows, k] = truth.ins_error[rows, k] - mean.to(out_dtype)

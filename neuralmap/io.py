@@ -4,7 +4,8 @@ Every writer goes through a temporary file in the destination folder and
 :func:`os.replace`, so a reader (or a crash) never sees a half-written file. Files get the
 permission bits a plain ``open`` would give under the current umask (``tempfile`` alone
 would leave them owner-only). Run folders are built under a hidden temporary name and
-published as the next free ``version_<N>``; the number is reserved with an atomic
+published as the next free ``version_<N>`` (or in place of an earlier output:
+:func:`replacing_dir`); the number is reserved with an atomic
 ``mkdir`` so two concurrent runs can never take the same folder.
 """
 
@@ -39,6 +40,7 @@ __all__ = [
     "default_mode",
     "next_version_dir",
     "publish_dir",
+    "replacing_dir",
     "staging_dir",
     "to_jsonable",
     "version_number",
@@ -201,22 +203,124 @@ def publish_dir(staging: Path, root: str | os.PathLike[str]) -> Path:
     return target
 
 
+_STAGING_PREFIX = ".tmp-version_"
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether a process with this id runs on this machine (signal 0 probes, sends nothing)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists but belongs to someone else, or cannot tell: keep its folder
+    return True
+
+
+def remove_stale_staging(root: str | os.PathLike[str]) -> list[Path]:
+    """Removes the staging folders in ``root`` left by processes that no longer run
+    (a study killed with SIGKILL cannot clean up after itself).
+
+    Staging folders are named ``.tmp-version_<pid>_<random>``; folders of a live process,
+    or without a pid in the name, are kept.
+
+    Returns:
+        The removed folders.
+    """
+    removed = []
+    for path in Path(root).glob(f"{_STAGING_PREFIX}*"):
+        pid_text = path.name[len(_STAGING_PREFIX):].split("_", 1)[0]
+        if path.is_dir() and pid_text.isdigit() and not _pid_alive(int(pid_text)):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
+def make_staging_dir(root: str | os.PathLike[str]) -> Path:
+    """A new hidden staging folder ``root/.tmp-version_<pid>_<random>`` (``root`` created),
+    after removing the stale ones of dead processes (:func:`remove_stale_staging`)."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    remove_stale_staging(root)
+    path = Path(tempfile.mkdtemp(prefix=f"{_STAGING_PREFIX}{os.getpid()}_", dir=root))
+    os.chmod(path, default_mode(directory=True))
+    return path
+
+
 @contextmanager
 def staging_dir(root: str | os.PathLike[str]) -> Iterator[Path]:
     """A hidden temporary folder in ``root``, removed again unless it was published.
 
     Used as ``with staging_dir(root) as tmp: ...write...; out = publish_dir(tmp, root)``:
-    an exception or Ctrl-C inside the block leaves no ``.tmp-version_*`` folder behind.
+    an exception or Ctrl-C inside the block leaves no ``.tmp-version_*`` folder behind,
+    and a folder left by a killed process is removed by the next run into ``root``.
     """
-    root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
-    path = Path(tempfile.mkdtemp(prefix=".tmp-version_", dir=root))
-    os.chmod(path, default_mode(directory=True))
+    path = make_staging_dir(root)
     try:
         yield path
     finally:
         if path.exists():
             shutil.rmtree(path, ignore_errors=True)
+
+
+@contextmanager
+def replacing_dir(target: str | os.PathLike[str], *, option: str = "--out") -> Iterator[Path]:
+    """Builds a folder under a hidden name beside ``target``; puts it in place when whole.
+
+    ``with replacing_dir(out) as tmp: ...write into tmp...``: when the block ends without an
+    exception the hidden ``.<name>.tmp-*`` folder replaces ``target`` (an earlier complete
+    output is moved aside and deleted only then); an exception, Ctrl-C or ``kill -9``
+    leaves ``target`` as it was. Only one builder per target at a time: an exclusive lock
+    on ``.<name>.lock`` (released by the kernel when its process dies) refuses a second;
+    hidden builds left by killed runs are removed when the lock is taken.
+
+    The replacement is two renames (old aside, new in); a crash between them, a window of
+    microseconds, leaves the complete old output under ``.<name>.old-*``.
+
+    Raises:
+        NeuralMapError: ``target`` is a file, its parent is not writable, or another run
+            is building it now.
+    """
+    import fcntl
+
+    target = Path(target)
+    if target.exists() and not target.is_dir():
+        raise NeuralMapError(
+            f"{option} '{target}' is a file; give a folder (new or an earlier output).")
+    parent = target.parent
+    lock_path = parent / f".{target.name}.lock"
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        lock = open(lock_path, "a+b")  # noqa: SIM115 - held to the end
+    except OSError as exc:
+        raise NeuralMapError(f"{option} '{target}': cannot write in '{parent}' ({exc}).") from None
+    try:
+        try:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            lock.close()
+            raise NeuralMapError(
+                f"{option} '{target}': another run is writing this output now; wait for it "
+                f"to finish or give another {option}.") from None
+        for stale in (*parent.glob(f".{target.name}.tmp-*"), *parent.glob(f".{target.name}.old-*")):
+            shutil.rmtree(stale, ignore_errors=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=parent))
+        os.chmod(staging, default_mode(directory=True))
+        try:
+            yield staging
+            old = None
+            if target.exists():
+                old = parent / f".{target.name}.old-{os.getpid()}"
+                os.replace(target, old)
+            os.replace(staging, target)
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+        finally:
+            if staging.exists():
+                shutil.rmtree(staging, ignore_errors=True)
+            lock_path.unlink(missing_ok=True)  # still held: no other run can be past flock
+    finally:
+        lock.close()
 
 
 class _NumberLoader(yaml.SafeLoader):

@@ -47,7 +47,7 @@ from torch import nn
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
 __all__ = ["MapEntry", "MapSizeStudyConfig", "pareto_front", "run"]
 
@@ -660,9 +660,12 @@ def _write_report(
                         "RMSE is set by the few diverged runs)")
 
     neural = [r for r in rows if r["kind"] == "neural"]
+    navigated = [r for r in rows if r.get("n_included") is not None]
+    nav_runs = (RunCounts.weakest(*(RunCounts(r["n_included"], r["n_included"])
+                                    for r in navigated)) if navigated else None)
     if not neural:
         compact_text = "no neural map was given (codecs only)"
-        compact_verdict = "not enough data (no neural map)"
+        compact_verdict = verdict(None, detail="no neural map")
         eq_text, eq_verdict = compact_text, compact_verdict
     else:
         best = min(neural, key=lambda r: (r["fraction_of_raw"] > TARGET_FRACTION,
@@ -674,10 +677,10 @@ def _write_report(
             f"closest: {best['name']} at {100 * best['fraction_of_raw']:.1f} % of raw with "
             f"node RMSE {best['node_rmse_m']:.2f} m"
         )
-        compact_verdict = "holds" if hit else "does not hold"
+        compact_verdict = verdict(bool(hit))
         eq_text = (_equal_accuracy_text(all_runs, "all-run RMSE") + "; robust check: "
                    + _equal_accuracy_text(converged, "converged-run RMSE, no more diverged runs"))
-        eq_verdict = "holds" if all_runs["met"] else "does not hold"
+        eq_verdict = verdict(bool(all_runs["met"]))
     outputs.add_claim(
         "toolkit target",
         f"a neural map <= {TARGET_FRACTION:.0%} of the raw float32 grid with node RMSE "
@@ -686,7 +689,7 @@ def _write_report(
         "toolkit target",
         f"at equal navigation accuracy (all-run RMSE within {EQUAL_ACCURACY:.0%} of the "
         "full-resolution grid's) a neural map no larger than the smallest compressed grid",
-        eq_text, eq_verdict)
+        eq_text, eq_verdict, runs=nav_runs)
     storage_text, storage_verdict = _storage_claim(rows, raw_bytes)
     outputs.add_claim("SEEDS 004", "the neural map needs less storage than the grid",
                       storage_text, storage_verdict)
@@ -716,7 +719,7 @@ def _storage_claim(rows: list[dict[str, Any]], raw_bytes: int) -> tuple[str, str
     """Paper 004's storage claim against the measured fronts, at equal max node error."""
     neural = [r for r in rows if r["kind"] == "neural"]
     if not neural:
-        return "no neural map measured", "not enough data (no neural map)"
+        return "no neural map measured", verdict(None, detail="no neural map")
     parts, beaten = [], 0
     for r in sorted(neural, key=lambda r: r["bytes"]):
         grids = [g for g in rows if g["kind"] == "grid" and g["family"] != "raw grid"
@@ -730,8 +733,8 @@ def _storage_claim(rows: list[dict[str, Any]], raw_bytes: int) -> tuple[str, str
             + (f"{best['name']} {_fmt_bytes(best['bytes'])}" if best else "no grid as accurate")
         )
     smaller_than_raw = sum(r["bytes"] < raw_bytes for r in neural)
-    verdict = "holds" if beaten == 0 else "partly" if beaten < len(neural) else "does not hold"
+    storage_verdict = verdict(beaten == 0, partly=beaten < len(neural))
     summary = (f"{smaller_than_raw} of {len(neural)} neural maps are smaller than the raw "
                f"float32 grid; {beaten} of {len(neural)} are larger than a compressed grid of "
                "equal or smaller maximum node error: ")
-    return summary + "; ".join(parts), verdict
+    return summary + "; ".join(parts), storage_verdict

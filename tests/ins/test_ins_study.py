@@ -25,7 +25,9 @@ def _load(name: str, path: Path) -> ModuleType:
 
 @pytest.fixture(scope="module")
 def evaluate() -> ModuleType:
-    return _load("evaluate_gnss_ins_under_test", REPO_ROOT / "evaluate.py")
+    import neuralmap.studies.cli as studies_cli  # what evaluate.py runs
+
+    return studies_cli
 
 
 def test_study_end_to_end(evaluate: ModuleType, tmp_path: Path,
@@ -54,7 +56,8 @@ def test_study_end_to_end(evaluate: ModuleType, tmp_path: Path,
     assert "Position error" in report and "SEEDS 003" in report
     claims = results["claims"]
     assert len(claims) == 3 and all(c["paper"] == "SEEDS 003" for c in claims)
-    assert all(c["verdict"] in ("holds", "partly", "does not hold") for c in claims)
+    # a handful of runs: no verdict (the old study judged every claim from them)
+    assert all(c["verdict"].startswith("not enough converged runs (") for c in claims)
 
 
 def test_bad_options_exit_2(evaluate: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:

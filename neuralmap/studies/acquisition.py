@@ -289,7 +289,6 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     curves: dict[str, Any] = {}
     off_map: dict[str, Any] = {}
     results["off_map"] = off_map
-    print(f"acquisition: seed {seed} (rerun with --seed {seed} to reproduce)", flush=True)
     for sigma in config.sigmas_m:
         scenario = scenario_at_sigma(base, float(sigma), tile.extent)
         per_sigma: dict[str, Any] = {}

@@ -206,6 +206,32 @@ def publish_dir(staging: Path, root: str | os.PathLike[str]) -> Path:
 _STAGING_PREFIX = ".tmp-version_"
 
 
+def check_experiment_name(name: str, *, option: str = "--experiment") -> str:
+    """The one rule for experiment names (trainers and studies): a plain, visible folder
+    name inside the runs folder.
+
+    Args:
+        name: The experiment name.
+        option: The option to name in the message.
+
+    Returns:
+        ``name``.
+
+    Raises:
+        NeuralMapError: Empty, ``.``/``..``, a path separator, or a leading ``.`` (hidden
+            folders are the staging folders of runs in progress).
+    """
+    text = str(name)
+    if (not text or text.startswith(".") or "/" in text or "\\" in text or os.sep in text
+            or Path(text).name != text):
+        raise NeuralMapError(
+            f"{option} {text!r} must be a plain folder name inside --runs_dir (no '/', "
+            "'\\', no leading '.', not '..'); choose the parent folder with --runs_dir "
+            "instead."
+        )
+    return text
+
+
 def _pid_alive(pid: int) -> bool:
     """Whether a process with this id runs on this machine (signal 0 probes, sends nothing)."""
     try:

@@ -47,6 +47,7 @@ from torch import nn
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies.base import StudyConfig
+from neuralmap.studies.maps import find_tile_maps
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
 __all__ = ["MapEntry", "MapSizeStudyConfig", "pareto_front", "run"]
@@ -88,7 +89,10 @@ class MapSizeStudyConfig(StudyConfig):
             filter's own 1σ horizontal bound.
     """
 
+    study: str = "map_size"
     experiment: str = "map_size"
+    threads: int | None = 1
+    progress: bool = False
     scenario: str = "jacksboro"
     n_runs: int = 500
     codecs: list[str] = field(default_factory=lambda: ["lerc", "jpegls", "jpeg2k", "zstd"])
@@ -205,26 +209,9 @@ def pareto_front(sizes: list[float], errors: list[float]) -> list[int]:
 
 
 def find_neural_maps(runs_dir: str, tile_fingerprint: str) -> list[Path]:
-    """Newest exported map of the tile in every experiment folder of ``runs_dir``."""
-    from neuralmap.terrain.export import load_map_payload
-
-    found: list[Path] = []
-    root = Path(runs_dir)
-    if not root.is_dir():
-        return found
-    for experiment in sorted(p for p in root.iterdir() if p.is_dir()):
-        candidates = sorted(experiment.glob("version_*/neural_map.pt"),
-                            key=lambda p: p.stat().st_mtime, reverse=True)
-        for path in candidates:
-            try:
-                payload = load_map_payload(path)
-            except NeuralMapError:
-                continue
-            info = payload.get("config", {}).get("tile_info", {})
-            if info.get("fingerprint") == tile_fingerprint:
-                found.append(path)
-                break
-    return found
+    """Newest exported map of the tile in every experiment folder of ``runs_dir`` (the
+    one map discovery: :func:`neuralmap.studies.maps.find_tile_maps`)."""
+    return find_tile_maps(runs_dir, tile_fingerprint)
 
 
 def build_grid_maps(tile: Any, config: MapSizeStudyConfig) -> list[MapEntry]:

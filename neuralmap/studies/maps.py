@@ -15,6 +15,7 @@ __all__ = [
     "MAP_FILENAME",
     "check_map_tile",
     "find_latest_map",
+    "find_tile_maps",
     "map_fit_variance",
     "resolve_map_path",
 ]
@@ -62,6 +63,33 @@ def find_latest_map(runs_dir: str | os.PathLike[str], *, tile_fingerprint: str =
             if _map_tile_fingerprint(path) == tile_fingerprint:
                 return path
     return ordered[0]
+
+
+def find_tile_maps(runs_dir: str | os.PathLike[str], tile_fingerprint: str) -> list[Path]:
+    """The newest map of the tile in every experiment folder of ``runs_dir`` (experiments
+    in name order), the tile read from the map file as :func:`find_latest_map` reads it.
+
+    Args:
+        runs_dir: Root of the run folders.
+        tile_fingerprint: The tile's :meth:`~neuralmap.dem.tile.DemTile.fingerprint`.
+
+    Returns:
+        One path per experiment that holds a map of the tile (may be empty).
+    """
+    root = Path(runs_dir)
+    if not root.is_dir():
+        return []
+    found: list[Path] = []
+    for experiment in sorted(p for p in root.iterdir() if p.is_dir()):
+        candidates = sorted((p for p in experiment.glob(f"version_*/{MAP_FILENAME}")
+                             if p.is_file()),
+                            key=lambda p: (p.stat().st_mtime, version_number(p.parent)),
+                            reverse=True)
+        for path in candidates:
+            if _map_tile_fingerprint(path) == tile_fingerprint:
+                found.append(path)
+                break
+    return found
 
 
 def resolve_map_path(map_path: str | None, runs_dir: str, *, tile_fingerprint: str = "") -> Path:

@@ -38,10 +38,11 @@ import warnings
 from pathlib import Path
 from typing import Any
 
+import yaml
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.training import latent_cli, noise_cli, region_cli
+from neuralmap.io import load_yaml
 from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
 from neuralmap.training.cli_base import (
     EXIT_BAD_INPUT,
@@ -50,13 +51,15 @@ from neuralmap.training.cli_base import (
     remove_orphan_run_dir,
 )
 from neuralmap.training.datamodule import DemDataModule
+from neuralmap.training.latent_cli import main_latent
 from neuralmap.training.module import TerrainFitModule
+from neuralmap.training.noise_cli import main_noise
+from neuralmap.training.region_cli import main_region
 
 __all__ = ["MODES", "default_config_path", "main", "main_map"]
 
 #: The modes of ``train.py``: its first word (default ``map``).
 MODES = ("map", "noise", "region", "latent")
-
 
 def default_config_path() -> Path | None:
     """The shipped ``configs/train.yaml`` (package data), else one in the cwd."""
@@ -84,6 +87,24 @@ def _trainer_callbacks() -> tuple[list[Any], FitReport]:
     return callbacks, report
 
 
+def config_mode(argv: list[str]) -> str:
+    """The mode a ``--config`` file names with its top-level ``learn:`` key (else ``map``).
+
+    Lets ``python train.py --config configs/latent_map.yaml`` run the mode the config is
+    written for; the file is parsed in full by that mode's LightningCLI afterwards.
+    """
+    for flag, value in zip(argv, argv[1:], strict=False):
+        if flag in ("--config", "-c"):
+            try:
+                data = load_yaml(Path(value).read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, yaml.YAMLError):
+                continue  # the mode's CLI reports an unreadable config
+            learn = data.get("learn") if isinstance(data, dict) else None
+            if learn in MODES:
+                return str(learn)
+    return "map"
+
+
 def main(args: list[str] | None = None) -> Path | None:
     """Runs ``train.py``: picks the mode from the first word, then parses, fits, exports.
 
@@ -100,7 +121,7 @@ def main(args: list[str] | None = None) -> Path | None:
             exported (see each mode).
     """
     argv = list(sys.argv[1:] if args is None else args)
-    mode = argv[0] if argv and not argv[0].startswith("-") else "map"
+    mode = argv[0] if argv and not argv[0].startswith("-") else config_mode(argv)
     if argv and not argv[0].startswith("-"):
         argv = argv[1:]
         if mode not in MODES:
@@ -108,11 +129,11 @@ def main(args: list[str] | None = None) -> Path | None:
                   f"{', '.join(MODES)} (or an option, for map).", file=sys.stderr, flush=True)
             raise SystemExit(EXIT_BAD_INPUT)
     if mode == "noise":
-        return noise_cli.main_noise(argv)
+        return main_noise(argv)
     if mode == "region":
-        return region_cli.main_region(argv)
+        return main_region(argv)
     if mode == "latent":
-        return latent_cli.main_latent(argv)
+        return main_latent(argv)
     return main_map(argv)
 
 

@@ -22,7 +22,7 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.io import check_writable_dir, next_version_dir
+from neuralmap.io import check_experiment_name, check_writable_dir, next_version_dir
 from neuralmap.training.resume import inspect_checkpoint
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_NO_MAP", "RUN_DIR_ENV", "NeuralMapCLI",
@@ -34,15 +34,6 @@ EXIT_BAD_INPUT = 2
 EXIT_NO_MAP = 1
 #: Environment variable through which DDP worker processes learn rank 0's run folder.
 RUN_DIR_ENV = "NEURALMAP_RUN_DIR"
-
-
-def check_experiment_name(name: str) -> None:
-    """Refuses experiment names that would leave ``runs_dir`` (``..``, separators)."""
-    if name in ("", ".", "..") or "/" in name or "\\" in name or os.sep in name:
-        raise NeuralMapError(
-            f"--experiment {name!r} must be a plain folder name inside --runs_dir (no '/', "
-            "'\\', '.' or '..'); choose the parent folder with --runs_dir instead."
-        )
 
 
 class NeuralMapCLI(LightningCLI):

@@ -44,6 +44,7 @@ def main_latent(args: list[str] | None = None) -> Path | None:
     Raises:
         SystemExit: 2 on bad input (message on stderr), 1 when no map was exported.
     """
+    from neuralmap.training.callbacks.epoch_lines import EpochLines
     from neuralmap.training.callbacks.latent_report import LatentMapReport
     from neuralmap.training.cli_base import EXIT_BAD_INPUT, EXIT_NO_MAP
     from neuralmap.training.latent_datamodule import LatentDataModule
@@ -60,7 +61,7 @@ def main_latent(args: list[str] | None = None) -> Path | None:
                 save_config_kwargs={"overwrite": True},
                 parser_kwargs={"description": "Fit a latent-grid neural map (entropy-coded "
                                               "latents + tiny decoder) to a DEM tile."},
-                trainer_defaults={"callbacks": [checkpoint, report]},
+                trainer_defaults={"callbacks": [checkpoint, report, EpochLines()]},
             )
         cli.trainer.fit(cli.model, datamodule=cli.datamodule,
                         ckpt_path=cli.config.get("ckpt_path"))

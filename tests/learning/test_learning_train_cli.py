@@ -14,7 +14,7 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_mode_is_the_first_word(capsys: pytest.CaptureFixture[str]) -> None:
-    """No config file is read by hand to pick the mode: the first word picks it."""
+    """The first word picks the mode; an unknown one is a clear error."""
     with pytest.raises(SystemExit) as exit_info:
         main(["weights", "--config", str(REPO_ROOT / "configs" / "learn_noise.yaml")])
     assert exit_info.value.code == 2

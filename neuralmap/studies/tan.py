@@ -388,7 +388,8 @@ def _tracker_claims(results: dict[str, Any]) -> list[Any]:
     n_on = entry.get("n_runs", 0) - entry.get("n_off_map", 0)
     if n_on < 30:
         return [ClaimCheck("toolkit target: point-mass tracker at the bound",
-                           f"{n_on} runs on the map", f"not enough data ({n_on} runs)",
+                           f"{n_on} runs on the map",
+                           f"not enough converged runs ({n_on} on the map; a verdict needs >= 30)",
                            "needs >= 30 runs on the map")]
 
     def verdict(ok: bool) -> str:

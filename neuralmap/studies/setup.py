@@ -37,7 +37,7 @@ DEFAULT_METHODS: tuple[str, ...] = (
 
 @dataclass
 class TanOptions(StudyConfig):
-    """Options every Monte Carlo TAN study shares (``tan``, ``tan_scale``): what
+    """Options every Monte Carlo TAN study shares (``tan``, ``tan_scale``, ``tan_outliers``): what
     :func:`prepare_tan` needs and the divergence rule.
 
     Attributes:

@@ -23,13 +23,12 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics
 from neuralmap.nav.monte_carlo import run_monte_carlo
 from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
-from neuralmap.studies.base import StudyConfig
+from neuralmap.nav.tracking import TRACKER_METHOD
 from neuralmap.studies.outputs import StudyOutputs
-from neuralmap.studies.setup import prepare_tan, void_exposure
+from neuralmap.studies.setup import DEFAULT_METHODS, TanOptions, prepare_tan, void_exposure
 from neuralmap.studies.tan_report import (
     build_results,
     check_claims,
@@ -46,18 +45,6 @@ from neuralmap.viz.tensorboard_nav import log_navigation
 
 __all__ = ["DEFAULT_METHODS", "TanStudyConfig", "run"]
 
-#: Methods evaluated when ``--methods`` is not given.
-DEFAULT_METHODS: tuple[str, ...] = (
-    "neural",
-    "neural_region",
-    "bilinear",
-    "nine_point",
-    "mean_point",
-    "lsq_adaptive",
-    "lsq_min",
-    "point_mass_tracker",
-)
-
 _FIGURES = {
     "error_vs_time": "Horizontal position RMSE vs time, with the PCRB",
     "trajectories": "Trajectories over the tile (truth and estimates)",
@@ -66,79 +53,42 @@ _FIGURES = {
 
 
 @dataclass
-class TanStudyConfig(StudyConfig):
-    """Options of the TAN Monte Carlo study (``study: tan``).
+class TanStudyConfig(TanOptions):
+    """Options of the TAN Monte Carlo study (``study: tan``): the shared TAN options
+    (:class:`~neuralmap.studies.setup.TanOptions`) plus the plots.
 
     Attributes:
-        map: Exported neural map (``neural_map.pt``); ``None`` = the newest
-            ``<runs_dir>/*/version_*/neural_map.pt`` of the scenario's tile.
-        scenario: Scenario name (``configs/scenarios/<name>.yaml``) or a YAML path.
-        n_runs: Monte Carlo trajectories (the same truth for every method).
-        methods: Linearisation methods to compare; ``neural`` uses the map with autograd.
-        neural_fit_variance: Extra variance (m²) the neural methods add to R for the map
-            error. ``None`` = measured: the map's mean squared error against the
-            scenario's truth terrain at seeded random points between the nodes, less the
-            scenario's ``fit_variance_m2`` that every method gets.
-        map_error_points: Random points for that measurement.
         n_plot_trajectories: Trajectories drawn over the hillshade.
-        pcrb_factor: Divergence when the final error exceeds this times the final PCRB.
-        divergence_sigma: Divergence when the final error exceeds this many times the
-            filter's own 1σ horizontal bound ``sqrt(P_xx + P_yy)`` (9 = 3 × the 3σ bound).
-        tracker_cells: Lattice cells per axis of ``point_mass_tracker`` (the point-mass
-            tracker on the bilinear DEM, :mod:`neuralmap.nav.tracking`).
+        methods: The shared linearisation methods plus ``point_mass_tracker`` (the point-mass
+            tracker on the bilinear DEM for the whole flight, :mod:`neuralmap.nav.tracking`).
+        tracker_cells: Lattice cells per axis of ``point_mass_tracker`` (cell = σ/3.1).
     """
 
     experiment: str = "evaluate"
-    map: str | None = None
-    scenario: str = "jacksboro"
-    n_runs: int = 1000
-    methods: list[str] = field(default_factory=lambda: list(DEFAULT_METHODS))
-    neural_fit_variance: float | None = None
-    map_error_points: int = 20000
     n_plot_trajectories: int = 5
-    pcrb_factor: float = 5.0
-    divergence_sigma: float = 9.0
+    methods: list[str] = field(default_factory=lambda: [*DEFAULT_METHODS, TRACKER_METHOD])
     tracker_cells: int = 32
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
-        super().validate()
-        if self.n_runs < 1:
-            raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
-        if not self.methods:
-            raise NeuralMapError(
-                f"--methods is empty; pick one or more of {', '.join(LINEARIZER_NAMES)}."
-            )
-        from neuralmap.nav.tracking import TRACKER_METHOD
-
-        unknown = [m for m in self.methods if m not in LINEARIZER_NAMES and m != TRACKER_METHOD]
-        if unknown:
-            raise NeuralMapError(
-                f"--methods: unknown method(s) {unknown}; known: {', '.join(LINEARIZER_NAMES)}, "
-                f"{TRACKER_METHOD}."
-            )
-        if len(set(self.methods)) != len(self.methods):
-            raise NeuralMapError(f"--methods lists a method twice: {self.methods}.")
-        if self.neural_fit_variance is not None and not self.neural_fit_variance >= 0:
-            raise NeuralMapError(
-                f"--neural_fit_variance must be >= 0 m^2 (or null), got {self.neural_fit_variance}."
-            )
-        if self.map_error_points < 100:
-            raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
+        methods = list(self.methods)
+        if methods.count(TRACKER_METHOD) > 1:
+            raise NeuralMapError(f"--methods lists a method twice: {methods}.")
+        linearized = [m for m in methods if m != TRACKER_METHOD]
+        # the shared checks know the linearisation methods only
+        self.methods = linearized or (["bilinear"] if TRACKER_METHOD in methods else [])
+        try:
+            super().validate()
+        finally:
+            self.methods = methods
+        if isinstance(self.tracker_cells, bool) or not isinstance(self.tracker_cells, int) or (
+                self.tracker_cells < 8):
+            raise NeuralMapError(f"--tracker_cells must be an integer >= 8, got "
+                                 f"{self.tracker_cells!r}.")
         if self.n_plot_trajectories < 0:
             raise NeuralMapError(
                 f"--n_plot_trajectories must be >= 0, got {self.n_plot_trajectories}."
             )
-        if not (self.pcrb_factor > 0 and self.divergence_sigma > 0):
-            raise NeuralMapError(
-                f"--pcrb_factor and --divergence_sigma must be > 0, got {self.pcrb_factor}, "
-                f"{self.divergence_sigma}."
-            )
-
-    @property
-    def needs_map(self) -> bool:
-        """Whether any method needs the neural map."""
-        return any(m in TERRAIN_MODEL_METHODS for m in self.methods)
 
 
 def _final_horizontal_errors(run: Any) -> np.ndarray:
@@ -204,8 +154,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     started = time.perf_counter()
     timing: dict[str, float] = {}
     device, dtype = config.torch_device, config.torch_dtype
-    from neuralmap.nav.tracking import TRACKER_METHOD
-
     linearized = [m for m in config.methods if m != TRACKER_METHOD]
     setup = prepare_tan(scenario=config.scenario, methods=linearized, map_path=config.map,
                         runs_dir=config.runs_dir, seed=config.seed,
@@ -332,7 +280,7 @@ def _run_tracker(config: Any, scenario: Any, truth: Any, dem: dict[str, Any],
     """Runs the point-mass tracker (when asked for) on the bilinear DEM, R = altimeter
     variance + the DEM's measured error variance; adds its run in ``config.methods`` order."""
     from neuralmap.nav.model import TanModel
-    from neuralmap.nav.tracking import TRACKER_METHOD, TrackerOptions, run_tracker
+    from neuralmap.nav.tracking import TrackerOptions, run_tracker
 
     if TRACKER_METHOD not in config.methods:
         return {}
@@ -379,7 +327,6 @@ def _add_map_aware_bound(results: dict[str, Any], bound: np.ndarray, dem: dict[s
 
 def _tracker_claims(results: dict[str, Any]) -> list[Any]:
     """The point-mass tracker's targets against both bounds (toolkit targets)."""
-    from neuralmap.nav.tracking import TRACKER_METHOD
     from neuralmap.studies.tan_report import ClaimCheck
 
     entry = results["methods"].get(TRACKER_METHOD)

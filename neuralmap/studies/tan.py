@@ -16,20 +16,18 @@ Examples:
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics
 from neuralmap.nav.monte_carlo import run_monte_carlo
 from neuralmap.nav.pcrb import pcrb, pcrb_position
-from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import StudyOutputs
-from neuralmap.studies.setup import prepare_tan, void_exposure
+from neuralmap.studies.setup import DEFAULT_METHODS, TanOptions, prepare_tan, void_exposure
 from neuralmap.studies.tan_report import (
     build_results,
     check_claims,
@@ -46,17 +44,6 @@ from neuralmap.viz.tensorboard_nav import log_navigation
 
 __all__ = ["DEFAULT_METHODS", "TanStudyConfig", "run"]
 
-#: Methods evaluated when ``--methods`` is not given.
-DEFAULT_METHODS: tuple[str, ...] = (
-    "neural",
-    "neural_region",
-    "bilinear",
-    "nine_point",
-    "mean_point",
-    "lsq_adaptive",
-    "lsq_min",
-)
-
 _FIGURES = {
     "error_vs_time": "Horizontal position RMSE vs time, with the PCRB",
     "trajectories": "Trajectories over the tile (truth and estimates)",
@@ -65,73 +52,24 @@ _FIGURES = {
 
 
 @dataclass
-class TanStudyConfig(StudyConfig):
-    """Options of the TAN Monte Carlo study (``study: tan``).
+class TanStudyConfig(TanOptions):
+    """Options of the TAN Monte Carlo study (``study: tan``): the shared TAN options
+    (:class:`~neuralmap.studies.setup.TanOptions`) plus the plots.
 
     Attributes:
-        map: Exported neural map (``neural_map.pt``); ``None`` = the newest
-            ``<runs_dir>/*/version_*/neural_map.pt`` of the scenario's tile.
-        scenario: Scenario name (``configs/scenarios/<name>.yaml``) or a YAML path.
-        n_runs: Monte Carlo trajectories (the same truth for every method).
-        methods: Linearisation methods to compare; ``neural`` uses the map with autograd.
-        neural_fit_variance: Extra variance (m²) the neural methods add to R for the map
-            error. ``None`` = measured: the map's mean squared error against the
-            scenario's truth terrain at seeded random points between the nodes, less the
-            scenario's ``fit_variance_m2`` that every method gets.
-        map_error_points: Random points for that measurement.
         n_plot_trajectories: Trajectories drawn over the hillshade.
-        pcrb_factor: Divergence when the final error exceeds this times the final PCRB.
-        divergence_sigma: Divergence when the final error exceeds this many times the
-            filter's own 1σ horizontal bound ``sqrt(P_xx + P_yy)`` (9 = 3 × the 3σ bound).
     """
 
     experiment: str = "evaluate"
-    map: str | None = None
-    scenario: str = "jacksboro"
-    n_runs: int = 1000
-    methods: list[str] = field(default_factory=lambda: list(DEFAULT_METHODS))
-    neural_fit_variance: float | None = None
-    map_error_points: int = 20000
     n_plot_trajectories: int = 5
-    pcrb_factor: float = 5.0
-    divergence_sigma: float = 9.0
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
         super().validate()
-        if self.n_runs < 1:
-            raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
-        if not self.methods:
-            raise NeuralMapError(
-                f"--methods is empty; pick one or more of {', '.join(LINEARIZER_NAMES)}."
-            )
-        unknown = [m for m in self.methods if m not in LINEARIZER_NAMES]
-        if unknown:
-            raise NeuralMapError(
-                f"--methods: unknown method(s) {unknown}; known: {', '.join(LINEARIZER_NAMES)}."
-            )
-        if len(set(self.methods)) != len(self.methods):
-            raise NeuralMapError(f"--methods lists a method twice: {self.methods}.")
-        if self.neural_fit_variance is not None and not self.neural_fit_variance >= 0:
-            raise NeuralMapError(
-                f"--neural_fit_variance must be >= 0 m^2 (or null), got {self.neural_fit_variance}."
-            )
-        if self.map_error_points < 100:
-            raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
         if self.n_plot_trajectories < 0:
             raise NeuralMapError(
                 f"--n_plot_trajectories must be >= 0, got {self.n_plot_trajectories}."
             )
-        if not (self.pcrb_factor > 0 and self.divergence_sigma > 0):
-            raise NeuralMapError(
-                f"--pcrb_factor and --divergence_sigma must be > 0, got {self.pcrb_factor}, "
-                f"{self.divergence_sigma}."
-            )
-
-    @property
-    def needs_map(self) -> bool:
-        """Whether any method needs the neural map."""
-        return any(m in TERRAIN_MODEL_METHODS for m in self.methods)
 
 
 def _final_horizontal_errors(run: Any) -> np.ndarray:

@@ -6,13 +6,26 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
+from statsmodels.regression.linear_model import yule_walker
+from statsmodels.tsa.arima_process import ArmaProcess
+from statsmodels.tsa.stattools import acovf
 
+from neuralmap.errors.repeat_survey import survey_recovery
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.linearize.factory import make_linearizer
+from neuralmap.nav.model import TanModel
+from neuralmap.nav.monte_carlo import run_filter
+from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.nav.simulator import simulate
 from neuralmap.studies import cli
 from neuralmap.studies.dem_errors import (
+    PAPER_TABLE1,
+    TABLE1_TOLERANCE,
     DemErrorsStudyConfig,
     _identify_along_path,
     prior_estimates,
@@ -48,13 +61,6 @@ def test_identification_along_the_paths_matches_statsmodels(n_paths: int) -> Non
     biased autocovariance: compared with statsmodels' ``acovf`` (demeaned, divided by n) per
     path, averaged, its AR(1) / AR(2) Yule–Walker closed forms, and for one path with
     ``yule_walker(method="mle")`` directly (float64, 1e-10)."""
-    from types import SimpleNamespace
-
-    import numpy as np
-    from statsmodels.regression.linear_model import yule_walker
-    from statsmodels.tsa.arima_process import ArmaProcess
-    from statsmodels.tsa.stattools import acovf
-
     rng = np.random.default_rng(7)
     process = ArmaProcess([1.0, -0.44417, -0.16430], [1.0])
     e = np.stack([process.generate_sample(400, distrvs=rng.standard_normal) + 3.0
@@ -94,12 +100,6 @@ def test_empty_survey_and_method_lists_are_refused(override: dict, match: str) -
 
 
 def test_prior_estimates_equal_the_filter_linearisation_points() -> None:
-    from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import run_filter
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
-    from neuralmap.nav.simulator import simulate
-
     scenario = dataclasses.replace(load_scenario("tiny"), duration_s=10.0)
     tile = scenario_tile(scenario)
     truth = simulate(scenario, tile, n_runs=4, seed=1)
@@ -141,9 +141,6 @@ def test_default_survey_brings_back_all_three_table1_rows() -> None:
     and an AR(1) sample cannot give the paper's AR(2) (0.444, 0.164) or ARMA(1,1)
     (0.753, 0.319) rows. The default simulation (the paper's AR(2)) brings back all three
     (independent reference: the paper's printed Table 1)."""
-    from neuralmap.errors.repeat_survey import survey_recovery
-    from neuralmap.studies.dem_errors import PAPER_TABLE1, TABLE1_TOLERANCE
-
     config = DemErrorsStudyConfig()
     out = survey_recovery(n_trials=20, phi=tuple(config.survey_phi), n_nodes=61,
                           n_passes=10, seed=0)

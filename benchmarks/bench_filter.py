@@ -166,35 +166,28 @@ def bench_tan_step(
 
 
 def policy_factories() -> dict[str, Callable[[], Any]]:
-    """The policies of benchmark (e), by report name (fresh objects: per-sample state)."""
-    from neuralmap.filters.policies import (
-        IGG3,
-        ChiSquareGate,
-        Compose,
-        Huber,
-        InnovationInflation,
-        QualityR,
-        RobustAdaptive,
-        SageHusa,
-        VariationalAdaptive,
-        YangAdaptive,
-    )
+    """The policies of benchmark (e), by report name (fresh objects: per-sample state), all
+    from the policy registry (:func:`neuralmap.filters.policies.make_policy`) with its
+    defaults: the same filters the studies run."""
+    from neuralmap.filters.policies import make_policy
 
-    return {
-        "plain EKF": lambda: None,
-        "ChiSquareGate(0.99)": lambda: ChiSquareGate(0.99),
-        "Huber(1.345)": lambda: Huber(1.345),
-        "IGG3(1.5, 4.5)": lambda: IGG3(1.5, 4.5),
-        "YangAdaptive(1, 3)": lambda: YangAdaptive(1.0, 3.0),
-        "RobustAdaptive (RAF)": lambda: RobustAdaptive(1.5, 4.5, 1.0, 3.0),
-        "InnovationInflation(1.2)": lambda: InnovationInflation(1.2),
-        "QualityR.altimeter": lambda: QualityR.altimeter(),
-        "QualityR + InnovationInflation": lambda: Compose(QualityR.altimeter(),
-                                                          InnovationInflation(1.2)),
-        "SageHusa(0.97)": lambda: SageHusa(0.97, 1.0, 1e4),
-        "SageHusa(0.97, adapt_Q)": lambda: SageHusa(0.97, 1.0, 1e4, adapt_Q=True),
-        "VariationalAdaptive(3)": lambda: VariationalAdaptive(iterations=3),
+    sage_husa = {"R_min": 1.0, "R_max": 1e4}
+    entries: dict[str, tuple[str, dict[str, Any]]] = {
+        "plain EKF": ("ekf", {}),
+        "ChiSquareGate(0.99)": ("chi2", {}),
+        "Huber(1.345)": ("huber", {}),
+        "IGG3(1.5, 4.5)": ("igg3", {}),
+        "YangAdaptive(1, 3)": ("yang", {}),
+        "RobustAdaptive (RAF)": ("raf", {}),
+        "InnovationInflation(1.2)": ("inflation", {}),
+        "QualityR.altimeter": ("quality", {}),
+        "QualityR + InnovationInflation": ("quality_inflation", {}),
+        "SageHusa(0.97)": ("sage_husa", sage_husa),
+        "SageHusa(0.97, adapt_Q)": ("sage_husa", {**sage_husa, "adapt_Q": True}),
+        "VariationalAdaptive(3)": ("variational", {}),
     }
+    return {label: (lambda n=name, a=args: make_policy(n, a))
+            for label, (name, args) in entries.items()}
 
 
 def bench_policy_steps(
@@ -213,6 +206,7 @@ def bench_policy_steps(
     time is recorded too: on a shared machine its ratio is the steadier cost measure.
     """
     from neuralmap.filters.ekf import BatchedEKF
+    from neuralmap.filters.policies import quality_members
     from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
 
     n, k_steps = truth.n_runs, truth.n_steps
@@ -235,9 +229,7 @@ def bench_policy_steps(
     def runner(make: Callable[[], Any]) -> Callable[[], None]:
         def run() -> None:
             policy = make()
-            takes_quality = "Quality" in type(policy).__name__ or any(
-                "Quality" in type(p).__name__ for p in getattr(policy, "policies", [])
-            )
+            takes_quality = bool(quality_members(policy))
             ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype), p0)
             with torch.no_grad():
                 for k in range(1, k_steps + 1):

@@ -201,17 +201,59 @@ def publish_dir(staging: Path, root: str | os.PathLike[str]) -> Path:
     return target
 
 
+_STAGING_PREFIX = ".tmp-version_"
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether a process with this id runs on this machine (signal 0 probes, sends nothing)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError):
+        return True  # exists but belongs to someone else, or cannot tell: keep its folder
+    return True
+
+
+def remove_stale_staging(root: str | os.PathLike[str]) -> list[Path]:
+    """Removes the staging folders in ``root`` left by processes that no longer run
+    (a study killed with SIGKILL cannot clean up after itself).
+
+    Staging folders are named ``.tmp-version_<pid>_<random>``; folders of a live process,
+    or without a pid in the name, are kept.
+
+    Returns:
+        The removed folders.
+    """
+    removed = []
+    for path in Path(root).glob(f"{_STAGING_PREFIX}*"):
+        pid_text = path.name[len(_STAGING_PREFIX):].split("_", 1)[0]
+        if path.is_dir() and pid_text.isdigit() and not _pid_alive(int(pid_text)):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed
+
+
+def make_staging_dir(root: str | os.PathLike[str]) -> Path:
+    """A new hidden staging folder ``root/.tmp-version_<pid>_<random>`` (``root`` created),
+    after removing the stale ones of dead processes (:func:`remove_stale_staging`)."""
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    remove_stale_staging(root)
+    path = Path(tempfile.mkdtemp(prefix=f"{_STAGING_PREFIX}{os.getpid()}_", dir=root))
+    os.chmod(path, default_mode(directory=True))
+    return path
+
+
 @contextmanager
 def staging_dir(root: str | os.PathLike[str]) -> Iterator[Path]:
     """A hidden temporary folder in ``root``, removed again unless it was published.
 
     Used as ``with staging_dir(root) as tmp: ...write...; out = publish_dir(tmp, root)``:
-    an exception or Ctrl-C inside the block leaves no ``.tmp-version_*`` folder behind.
+    an exception or Ctrl-C inside the block leaves no ``.tmp-version_*`` folder behind,
+    and a folder left by a killed process is removed by the next run into ``root``.
     """
-    root = Path(root)
-    root.mkdir(parents=True, exist_ok=True)
-    path = Path(tempfile.mkdtemp(prefix=".tmp-version_", dir=root))
-    os.chmod(path, default_mode(directory=True))
+    path = make_staging_dir(root)
     try:
         yield path
     finally:

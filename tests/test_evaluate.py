@@ -109,6 +109,9 @@ def test_evaluate_end_to_end(
         assert (folder / name).is_file(), name
     assert list(folder.glob("events.out.tfevents*")), "no TensorBoard event file"
     assert not [p for p in (runs_with_map / "e2e").iterdir() if p.name.startswith(".")]
+    tracks = (folder / "trajectories.csv").read_text().splitlines()
+    assert tracks[0] == "track,run,step,t_s,x_m,y_m,h_m"  # a synthetic tile: tile frame only
+    assert len(tracks) == 1 + (2 + len(METHODS)) * 16 * 41  # truth, ins, methods x runs x steps
 
     results = _strict_json(folder / "results.json")
     assert list(results["methods"]) == METHODS

@@ -22,7 +22,7 @@ Supported sources:
                           from the name (``N36W085.hgt``); first row north.
 ``.asc`` (ESRI ASCII)     header + rows, first row north, ``NODATA_value`` → void; units
                           from ``units``, a ``.prj`` sidecar or the value ranges.
-``.tif`` / ``.tiff``      single-band GeoTIFF via rasterio (``pip install 'neuralmap[geotiff]'``).
+``.tif`` / ``.tiff``      single-band north-up GeoTIFF or COG via rasterio (``geotiff`` extra).
 ========================  =================================================================
 """
 
@@ -925,7 +925,7 @@ def read_geotiff(
     units: str | None = None,
     geographic: bool | None = None,
 ) -> DemTile:
-    """Reads band 1 of a north-up GeoTIFF through rasterio (optional dependency).
+    """Reads a single-band, north-up GeoTIFF (COGs included) through rasterio.
 
     Pixels are areas (GDAL convention): node centres lie half a pixel inside the bounds.
     The CRS decides degrees vs metres (``crs.is_geographic``); without a CRS, ``units`` or
@@ -934,8 +934,8 @@ def read_geotiff(
     coordinates of a metric file in ``tile.projected``).
 
     Raises:
-        NeuralMapError: rasterio missing (says how to install it), rotated or sheared
-            transform, unreadable file, ambiguous units, all-void tile.
+        NeuralMapError: rasterio missing (says how to install it), more than one band,
+            rotated or sheared transform, unreadable file, ambiguous units, all-void tile.
     """
     path = Path(path)
     where = f"GeoTIFF '{path}'"
@@ -952,10 +952,17 @@ def read_geotiff(
         ) from exc
     try:
         with rasterio.open(path) as src:
+            if src.count != 1:
+                raise NeuralMapError(
+                    f"{where} has {src.count} bands; a DEM is one band of heights. Extract "
+                    "the height band first (gdal_translate -b 1 in.tif out.tif)."
+                )
             band = src.read(1, masked=True)
             transform = src.transform
             crs = src.crs
             file_nodata = src.nodata
+    except NeuralMapError:
+        raise
     except Exception as exc:  # rasterio raises its own RasterioIOError and friends
         raise NeuralMapError(f"{where} could not be read by rasterio ({exc}).") from exc
     if transform.b != 0 or transform.d != 0:

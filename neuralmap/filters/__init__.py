@@ -17,6 +17,7 @@ from neuralmap.filters.policies import (
     RobustAdaptive,
     SageHusa,
     VariationalAdaptive,
+    WindowedInflation,
     YangAdaptive,
 )
 from neuralmap.filters.policy import Adaptation, FilterPolicy, Posterior, UpdateContext
@@ -43,6 +44,7 @@ __all__ = [
     "UpdateContext",
     "UpdateDiagnostics",
     "VariationalAdaptive",
+    "WindowedInflation",
     "YangAdaptive",
     "kalman_predict",
     "kalman_update",

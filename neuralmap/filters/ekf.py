@@ -204,7 +204,8 @@ class BatchedEKF:
         #: every stored P passed a positive-definiteness check (False after assignment)
         self._p_checked = True
         self._cache: dict[str, tuple[Any, int, Any]] = {}
-        #: process noise of the last predict (for policies), and updates made so far
+        #: process noise of the last predict (for policies; cleared by the first update after
+        #: it and by assigning P, since P is then no longer Φ P Φᵀ + Q), and updates so far
         self._last_Q: torch.Tensor | None = None
         self._n_updates = 0
 
@@ -239,6 +240,7 @@ class BatchedEKF:
                               f"(N, n, n) = ({self._batch}, {self._n}, {self._n})", value.shape)
         self._Pt = value.permute(1, 2, 0).contiguous()
         self._p_checked = False
+        self._last_Q = None
 
     @property
     def healthy(self) -> torch.Tensor:
@@ -560,7 +562,11 @@ class BatchedEKF:
             mask: ``(N,)`` bool, False = skip this sample (no measurement, off the map);
                 its ``x``, ``P`` and health are left unchanged whatever its inputs hold.
             policy: Optional :class:`~neuralmap.filters.policy.FilterPolicy` (robust or
-                adaptive update); see that module for the protocol.
+                adaptive update); see that module for the protocol. The ``Q`` of the last
+                predict reaches the policy (``context.process_noise``) on the first update
+                after that predict only: a second update without a predict between sees
+                ``None``, since its ``P`` is a posterior and not ``Φ P Φᵀ + Q``
+                (inflation then scales the whole ``P``; Sage-Husa skips its Q estimate).
 
         Returns:
             :class:`UpdateDiagnostics` (innovation, S, NIS, gain, health, applied, prior
@@ -578,10 +584,13 @@ class BatchedEKF:
         if mask is not None and not bool(mask.all()):
             r, H, R = self._sanitise(r, H, R, mask)
         if policy is not None:
-            return self._update_policy(r, H, R, mask, policy)
-        if m == 1 and R.ndim <= 1 and self._small:
-            return self._update_scalar(r[:, 0], H, R, mask)
-        return self._update_vector(r, H, R, mask)
+            out = self._update_policy(r, H, R, mask, policy)
+        elif m == 1 and R.ndim <= 1 and self._small:
+            out = self._update_scalar(r[:, 0], H, R, mask)
+        else:
+            out = self._update_vector(r, H, R, mask)
+        self._last_Q = None  # P is now a posterior, no longer Φ P Φᵀ + Q
+        return out
 
     def _sanitise(
         self, r: torch.Tensor, H: torch.Tensor, R: torch.Tensor, mask: torch.Tensor

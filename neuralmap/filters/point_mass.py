@@ -60,7 +60,7 @@ import torch.nn.functional as nnf
 
 from neuralmap.exceptions import NeuralMapError
 
-__all__ = ["PointMassConfig", "PointMassFilter", "PointMassUpdate"]
+__all__ = ["PointMassConfig", "PointMassFilter", "PointMassUpdate", "convolve_axis", "gaussian_kernels"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -179,7 +179,7 @@ def _as_batch(value: object, shape: tuple[int, ...], name: str, dtype: torch.dty
         ) from exc
 
 
-def _convolve_axis(x: torch.Tensor, kernels: torch.Tensor, half_len: int,
+def convolve_axis(x: torch.Tensor, kernels: torch.Tensor, half_len: int,
                    dim: int) -> torch.Tensor:
     """Zero-padded 1-D convolution of ``x (N, C, G, G)`` along ``dim`` with per-run kernels.
 
@@ -208,6 +208,31 @@ def _convolve_axis(x: torch.Tensor, kernels: torch.Tensor, half_len: int,
         dst = out.narrow(dim, max(o, 0), length)
         dst.addcmul_(x.narrow(dim, max(-o, 0), length), kernels[:, t, None, None, None])
     return out
+
+
+def gaussian_kernels(sigma_cells: torch.Tensor, half_len: int) -> torch.Tensor:
+    """``(M, 2·half_len + 1)`` 1-D process-noise kernels of variance ``sigma_cells²`` (cells).
+
+    A sampled, normalised Gaussian for ``σ ≥ 0.7`` cells; the three-tap kernel
+    ``[σ²/2, 1 − σ², σ²/2]`` below (its variance is exactly ``σ²``, which a sampled
+    Gaussian narrower than a cell would not have).
+
+    Args:
+        sigma_cells: ``(M,)`` standard deviations in cells.
+        half_len: Kernel half-length (taps ``−half_len … half_len``, ``≥ 1``).
+    """
+    dtype, device = sigma_cells.dtype, sigma_cells.device
+    k = torch.arange(-half_len, half_len + 1, dtype=dtype, device=device)
+    s = sigma_cells.clamp_min(1e-6)[:, None]
+    gauss = torch.exp(-0.5 * (k / s) ** 2)
+    gauss = gauss / gauss.sum(1, keepdim=True)
+    var = s.squeeze(1) ** 2
+    tap = torch.zeros_like(gauss)
+    tap[:, half_len] = 1.0 - var.clamp_max(0.5)
+    if half_len >= 1:
+        tap[:, half_len - 1] = 0.5 * var.clamp_max(0.5)
+        tap[:, half_len + 1] = 0.5 * var.clamp_max(0.5)
+    return torch.where((sigma_cells >= 0.7)[:, None], gauss, tap)
 
 
 class PointMassFilter:
@@ -464,17 +489,7 @@ class PointMassFilter:
     # ------------------------------------------------------------------ predict
     def _kernels(self, sigma_cells: torch.Tensor, half_len: int) -> torch.Tensor:
         """``(M, 2·half_len + 1)`` 1-D kernels of variance ``sigma_cells²`` (see module)."""
-        k = torch.arange(-half_len, half_len + 1, dtype=self.dtype, device=self.device)
-        s = sigma_cells.clamp_min(1e-6)[:, None]
-        gauss = torch.exp(-0.5 * (k / s) ** 2)
-        gauss = gauss / gauss.sum(1, keepdim=True)
-        var = s.squeeze(1) ** 2
-        tap = torch.zeros_like(gauss)
-        tap[:, half_len] = 1.0 - var.clamp_max(0.5)
-        if half_len >= 1:
-            tap[:, half_len - 1] = 0.5 * var.clamp_max(0.5)
-            tap[:, half_len + 1] = 0.5 * var.clamp_max(0.5)
-        return torch.where((sigma_cells >= 0.7)[:, None], gauss, tap)
+        return gaussian_kernels(sigma_cells, half_len)
 
     def predict(
         self,
@@ -548,8 +563,8 @@ class PointMassFilter:
         torch.mul(w, m, out=chans[:, 1])
         kx = self._kernels(sigma_cells[:, 0], half_len)
         ky = self._kernels(sigma_cells[:, 1], half_len)
-        chans = _convolve_axis(chans, kx, half_len, dim=3)
-        chans = _convolve_axis(chans, ky, half_len, dim=2)
+        chans = convolve_axis(chans, kx, half_len, dim=3)
+        chans = convolve_axis(chans, ky, half_len, dim=2)
         w0 = chans[:, 0].clamp_(min=0.0)  # FFT round-off can dip below 0
         total = w0.sum((1, 2), keepdim=True)
         # regularised ratio: cells with mass near the round-off level get the run's mean

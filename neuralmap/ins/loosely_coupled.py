@@ -23,6 +23,7 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters import BatchedEKF
+from neuralmap.filters.policies.compose import quality_members
 from neuralmap.filters.policy import FilterPolicy
 from neuralmap.ins.error_model import (
     continuous_noise,
@@ -128,14 +129,6 @@ class LooselyCoupledResult:
     counts: dict[str, int] = field(default_factory=dict)
 
 
-def _quality_policies(policy: FilterPolicy | None) -> list[FilterPolicy]:
-    """Every policy inside ``policy`` (itself or a composition) that reads quality records."""
-    if policy is None:
-        return []
-    members = getattr(policy, "policies", None)
-    if members:
-        return [found for inner in members for found in _quality_policies(inner)]
-    return [policy] if callable(getattr(policy, "set_quality", None)) else []
 
 
 def _guard(
@@ -250,7 +243,7 @@ def run_loosely_coupled(
     nis = torch.full((n, k_epochs), math.nan, **kw)
     applied = torch.zeros(n, k_epochs, dtype=torch.bool, device=device)
     counts["skipped_epochs"] = 0
-    quality_takers = _quality_policies(policy)
+    quality_takers = quality_members(policy)
     if policy is not None:
         policy.reset()
     counts["nan_measurements"] = 0

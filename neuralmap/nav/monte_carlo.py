@@ -19,6 +19,7 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.policies.compose import quality_members
 from neuralmap.linearize.base import Linearizer
 from neuralmap.nav.model import N_STATES, TanModel
 from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
@@ -134,7 +135,8 @@ def run_filter(
         linearizer: The map linearisation method.
         scenario: Supplies the filter tuning (``P0_diag``, ``Q_diag``, ``R_m2``,
             ``fit_variance_m2``, ``dt``).
-        progress: True shows a tqdm bar over the steps; a tqdm bar object is advanced by
+        progress: True shows a progress bar over the steps (plain lines when stdout is
+            not a terminal, :mod:`neuralmap.progress`); a tqdm bar object is advanced by
             one per step instead (used by :func:`run_monte_carlo`).
         method: Method name stored in the result.
         policy: Optional robust/adaptive update policy (:mod:`neuralmap.filters.policies`),
@@ -180,12 +182,12 @@ def run_filter(
 
     bar, own_bar = None, False
     if progress is True:
-        from tqdm.auto import tqdm
+        from neuralmap.progress import progress_bar
 
-        bar, own_bar = tqdm(total=k_steps, desc=method or "filter", unit="step"), True
+        bar, own_bar = progress_bar(total=k_steps, desc=method or "filter", unit="step"), True
     elif progress is not False and progress is not None:
         bar = progress
-    quality_policies = _quality_policies(policy)
+    quality_policies = quality_members(policy)
     if policy is not None:
         policy.reset()
     if quality_policies and getattr(truth, "quality", None) is None:
@@ -230,14 +232,6 @@ def run_filter(
     )
 
 
-def _quality_policies(policy: Any) -> list[Any]:
-    """Every policy inside ``policy`` (itself or a composition) that reads quality records."""
-    if policy is None:
-        return []
-    members = getattr(policy, "policies", None)
-    if members:  # a composition: its members (it may forward set_quality itself)
-        return [found for inner in members for found in _quality_policies(inner)]
-    return [policy] if callable(getattr(policy, "set_quality", None)) else []
 
 
 def run_monte_carlo(
@@ -263,7 +257,8 @@ def run_monte_carlo(
         methods: Method name to linearizer, e.g. ``{"neural": ..., "bilinear": ...}``.
         n_runs: Number of Monte Carlo runs N.
         seed: Simulation seed; None = ``scenario.seed``.
-        progress: Show one tqdm bar over methods × steps.
+        progress: Show one progress bar over methods × steps (one line per method
+            when stdout is not a terminal).
         device: Device of the truth and the filters.
         dtype: Filter dtype (float64 default).
         tile: The scenario's tile, when already loaded (else :func:`scenario_tile`).
@@ -290,9 +285,9 @@ def run_monte_carlo(
         check_map_matches(linearizer, truth, method=name)
     bar = None
     if progress:
-        from tqdm.auto import tqdm
+        from neuralmap.progress import progress_bar
 
-        bar = tqdm(total=len(methods) * truth.n_steps, desc="Monte Carlo", unit="step")
+        bar = progress_bar(total=len(methods) * truth.n_steps, desc="Monte Carlo", unit="step")
     runs: dict[str, FilterRun] = {}
     try:
         for name, linearizer in methods.items():

@@ -237,11 +237,14 @@ class Scenario:
         scenario.validate(where=where)
         return scenario
 
-    def validate(self, *, where: str | None = None) -> Scenario:
+    def validate(self, *, where: str | None = None, options: bool = False) -> Scenario:
         """Checks types and ranges and normalises numbers to floats and lists.
 
         Args:
             where: Location used in error messages (default: ``scenario '<name>'``).
+            options: The fields were set from a study's command-line options (a study that
+                overrides scenario fields with its own options): the message names the
+                option ``--<key>`` to fix instead of the scenario YAML.
 
         Returns:
             ``self`` (normalised in place), for chaining.
@@ -252,6 +255,8 @@ class Scenario:
         where = where or f"scenario {self.name!r}"
 
         def bad(key: str, value: Any, need: str) -> NeuralMapError:
+            if options:
+                return NeuralMapError(f"{where}: --{key} must be {need}, got {value!r}.")
             return NeuralMapError(
                 f"{where}: key '{key}' must be {need}, got {value!r}. Fix it in the scenario "
                 "YAML (or the Scenario field of the same name)."

@@ -26,7 +26,7 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
 __all__ = ["AcquisitionStudyConfig", "run"]
 
@@ -314,6 +314,12 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     results["flat_leg"] = flat
     results["curves"] = curves
     results["timing_s"] = {"total": time.perf_counter() - started}
+    for key, curve in curves.items():  # TensorBoard: RMSE curves and the summary per row
+        outputs.log_curve(f"rmse_pos/{key}", curve)
+    for sigma_key, per_sigma in results["sigmas"].items():
+        for name, m in per_sigma.items():
+            for metric in ("rmse_pos_m", "pcrb_ratio_all", "acquired_fraction", "n_diverged"):
+                outputs.log_scalar(f"summary/{metric}/sigma{sigma_key}/{name}", m[metric])
     outputs.results.update(results)
     _write_report(outputs, config, rows, headers, results, notes)
 
@@ -399,20 +405,22 @@ def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: l
         for key, m in per.items():
             div_ok = (m["divergence_rate"] or 0.0) <= (0.002 if float(sigma) >= 3000 else 0.0)
             target = "none" if float(sigma) < 3000 else "<= 0.2 %"
+            runs = RunCounts(m["n_included"] - m["n_diverged"], m["n_included"]).all_runs()
             outputs.add_claim(
                 "toolkit target",
                 f"sigma0 = {sigma} m, {key}: divergences {target}",
                 f"{m['n_diverged']} of {m['n_included']}",
-                "holds" if div_ok else "does not hold",
+                verdict(div_ok), runs=runs,
             )
             ratio = m["pcrb_ratio_all"]
             outputs.add_claim(
                 "toolkit target",
                 f"sigma0 = {sigma} m, {key}: all-run RMSE over the last half <= 1.10x PCRB",
                 _fmt(ratio),
-                "holds" if ratio is not None and ratio <= 1.10 else (
-                    f"does not hold (by {100 * (ratio - 1.10) / 1.10:.0f} %)"
-                    if ratio is not None else "not enough data"),
+                verdict(None if ratio is None else ratio <= 1.10,
+                        detail=(f"by {100 * (ratio - 1.10) / 1.10:.0f} %"
+                                if ratio is not None and ratio > 1.10 else None)),
+                runs=runs,
             )
     _figure(outputs, results)
 

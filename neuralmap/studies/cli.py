@@ -8,11 +8,13 @@ report.md, results.json, PNG plots, TensorBoard events and the config.yaml used,
 only when complete; the last line printed is that folder.
 
 Exit codes: 0 success, 2 bad input (message on stderr, no traceback), 130 interrupted
-(nothing written).
+(Ctrl-C or SIGTERM; nothing written, the staging folder removed; a folder left by a
+SIGKILL is removed by the next run into the same experiment).
 """
 
 from __future__ import annotations
 
+import signal
 import sys
 from dataclasses import fields
 from pathlib import Path
@@ -115,10 +117,28 @@ def run_study(config: Any) -> Path:
     """
     _, run, spec = get_study(config.study)
     root = check_writable_dir(config.runs_dir) / config.experiment
+    print(f"{config.study}: seed "
+          + (f"{config.seed}" if config.seed is not None else "of the scenario")
+          + f" (rerun with the same --seed and config to reproduce); results into {root}",
+          flush=True)
     with StudyOutputs(root, config=config, title=spec.description,
                       tensorboard=config.tensorboard) as outputs:
         run(config, outputs)
         return outputs.finalize()
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
+def _terminate_as_interrupt() -> Any:
+    """Makes SIGTERM (``kill``) end the study like Ctrl-C, so that its staging folder is
+    removed; returns the previous handler (None off the main thread, where signals
+    cannot be handled)."""
+    try:
+        return signal.signal(signal.SIGTERM, _raise_interrupt)
+    except ValueError:  # not the main thread
+        return None
 
 
 def main(args: list[str] | None = None) -> int:
@@ -132,6 +152,7 @@ def main(args: list[str] | None = None) -> int:
         / a parse error.
     """
     previous_threads = torch.get_num_threads()
+    previous_term = _terminate_as_interrupt()
     try:
         config = parse_config(args)
         if config.threads is not None:
@@ -147,6 +168,8 @@ def main(args: list[str] | None = None) -> int:
         return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
     finally:
         torch.set_num_threads(previous_threads)
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
     print(f"results written to {out_dir}")
     return 0
 

@@ -37,7 +37,7 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
 __all__ = ["DemErrorsStudyConfig", "prior_estimates", "run"]
 
@@ -112,10 +112,20 @@ class DemErrorsStudyConfig(StudyConfig):
             )
         from neuralmap.errors.arma import check_stationary
 
+        if len(self.survey_phi) not in (1, 2):
+            raise NeuralMapError(
+                f"--survey_phi must hold 1 or 2 AR coefficients (the paper's AR(1) [0.5315] or "
+                f"AR(2) [0.444, 0.164]), got {list(self.survey_phi)}."
+            )
         check_stationary(self.survey_phi, where="--survey_phi")
         if not self.periods or any(not (t > 0) for t in self.periods):
             raise NeuralMapError(f"--periods must be a non-empty list of seconds > 0, got "
                                  f"{self.periods}.")
+        if not self.methods:
+            raise NeuralMapError(
+                f"--methods must name at least one linearisation method for Table 2, e.g. "
+                f"[{', '.join(DEFAULT_METHODS)}]."
+            )
         unknown = [m for m in [*self.methods, self.filter_method] if m not in LINEARIZER_NAMES]
         if unknown:
             raise NeuralMapError(
@@ -203,7 +213,8 @@ def _survey_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
         "SEEDS 000", "the DEM-making error sample is stationary and AR(1) or AR(2)",
         f"simulated AR({len(config.survey_phi)}) survey identified as such in "
         f"{100 * chosen_share:.0f} % of {config.survey_trials} surveys",
-        "reproduced (simulation)" if chosen_share >= 0.7 else "not reproduced",
+        verdict(chosen_share >= 0.7, detail="simulation"),
+        runs=RunCounts(config.survey_trials, config.survey_trials),
     )
     return {"one_survey": first.to_dict(), **out}
 
@@ -320,7 +331,8 @@ def _m2_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scenario: A
             f"{100 * np.mean(adaptive):.0f} %; adaptive σ first / second half of the flight: "
             + ", ".join(f"{cells[k]['first_half_std']:.2f} / {cells[k]['second_half_std']:.2f} m"
                         for k in cells if "first_half_std" in cells[k]),
-            "reproduced" if np.mean(fixed) > np.mean(adaptive) else "not reproduced",
+            verdict(bool(np.mean(fixed) > np.mean(adaptive))),
+            runs=RunCounts(config.n_runs_m2, config.n_runs_m2),
         )
     grow = [(cells.get(f"lsq_min@{t:g}"), cells.get(f"lsq_mean@{t:g}"),
              cells.get(f"lsq_max@{t:g}")) for t in config.periods]
@@ -332,7 +344,7 @@ def _m2_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scenario: A
             "(Ω_min < Ω_mean < Ω_max)",
             "; ".join(f"{a['std']:.1f} < {b['std']:.1f} < {c['std']:.1f}"  # type: ignore[index]
                       for a, b, c in grow),
-            "reproduced" if ok else "not reproduced",
+            verdict(ok), runs=RunCounts(config.n_runs_m2, config.n_runs_m2),
         )
     return {"cells": cells, "paper_table2": {k: list(v) for k, v in PAPER_TABLE2.items()}}
 
@@ -456,6 +468,8 @@ def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scen
                 "rmse_pos_converged_m": metrics.get("rmse_pos_converged_m"),
                 "final_pos_m": metrics.get("final_pos_m"),
                 "divergence_rate": metrics.get("divergence_rate"),
+                **{k: metrics.get(k) for k in ("n_included", "n_converged", "n_nonfinite",
+                                               "n_unhealthy")},
                 "model": model.describe() if hasattr(model, "describe") else {"n_states": 5},
             }
             outputs.log_scalar(f"augmented/{world_name}/{label}/rmse_pos_m",
@@ -498,12 +512,15 @@ def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scen
     paper_world = results["worlds"]["AR DEM error"]["filters"]
     g6 = paper_world["6-state (paper tuning)"]["gain_vs_5_state_percent"]
     g7 = paper_world["7-state (paper tuning)"]["gain_vs_5_state_percent"]
+    filter_runs = RunCounts.weakest(*(
+        RunCounts.from_metrics(entry) for label, entry in paper_world.items()
+        if "paper tuning" in label))
     if g6 is not None and g7 is not None:
         outputs.add_claim(
             "SEEDS 000", "6-state ≈ 5 % better than 5-state; 7-state slightly worse",
             f"6-state {g6:+.1f} %, 7-state {g7:+.1f} % (converged RMSE, paper tuning, AR DEM "
             "error)",
-            "reproduced" if g6 > 0 and g7 < g6 else "not reproduced",
+            verdict(g6 > 0 and g7 < g6), runs=filter_runs,
         )
     return results
 

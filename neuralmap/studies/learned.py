@@ -34,7 +34,7 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.learning.covariance import COVARIANCE_KINDS
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
 __all__ = ["LearnedStudyConfig", "run"]
 
@@ -133,6 +133,23 @@ class LearnedStudyConfig(StudyConfig):
 
 
 # ---------------------------------------------------------------------- helpers
+def _check_bias_box(box: list[float], tile: Any) -> None:
+    """The biased region must lie on the tile (offsets from its origin), else the
+    refinement claims would be judged on no point at all.
+
+    Raises:
+        NeuralMapError: The box leaves the tile.
+    """
+    width = float(tile.extent[1] - tile.extent[0])
+    height = float(tile.extent[3] - tile.extent[2])
+    if not (0.0 <= box[0] and box[1] <= width and 0.0 <= box[2] and box[3] <= height):
+        raise NeuralMapError(
+            f"--bias_box {list(box)} leaves the tile '{tile.name}' (offsets from its origin "
+            f"must lie in [0, {width:g}] x [0, {height:g}] m); give a box inside the tile or "
+            "--bias_m 0 to skip the map refinement."
+        )
+
+
 def _with_tuning(scenario: Any, *, Q: list[float], R: float, P0: list[float] | None = None) -> Any:
     fit = scenario.fit_variance_m2 if scenario.fit_variance_m2 < R else 0.0
     return dataclasses.replace(scenario, Q_diag=[float(q) for q in Q], R_m2=float(R) - fit,
@@ -256,6 +273,8 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
     timing: dict[str, float] = {}
     setup = prepare(config)
     scenario, tile, seed, world = setup.scenario, setup.tile, setup.seed, setup.truth_terrain
+    if config.bias_m != 0.0:
+        _check_bias_box(config.bias_box, tile)  # before minutes of learning, not after
     dtype = config.torch_dtype
     if config.map_source == "neural":
         map_model, fit_var = setup.terrain_map, setup.fit_variance
@@ -428,36 +447,42 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
                  f"{uf['max_abs_offset_m']:.3g} m).")
 
     # ---- targets
+    learned_runs = RunCounts.from_metrics(metrics["learned"])
     worst = max(v for v in param_rel.values() if v == v)
     note = (f" ({config.n_train_flights} flights, not the target's 1000)"
             if config.n_train_flights < 1000 else "")
     outputs.add_claim("toolkit target", "learned Q and R within "
                       f"{config.target_param_rel:.0%} of the truth{note}",
                       ", ".join(f"{k} {v:.1%}" for k, v in param_rel.items()),
-                      "holds" if worst <= config.target_param_rel else "does not hold")
+                      verdict(worst <= config.target_param_rel))
     nees_ok = metrics["learned"].get("nees_time_in_band")
     outputs.add_claim("toolkit target", "learned filter's time-averaged NEES in its 95 % band",
                       f"NEES {metrics['learned'].get('nees_time_avg')}, band "
                       f"{metrics['learned'].get('nees_time_band_runs')}",
-                      "holds" if nees_ok else "does not hold")
+                      verdict(None if nees_ok is None else bool(nees_ok)), runs=learned_runs)
     outputs.add_claim("toolkit target", "gradient answer = EM fixed point "
                       f"(linear-Gaussian) to {config.target_em_rel:g} relative",
                       f"max relative difference {em['max_rel_diff']:.2e}",
-                      "holds" if em["max_rel_diff"] <= config.target_em_rel else "does not hold")
+                      verdict(em["max_rel_diff"] <= config.target_em_rel))
     if refine_info:
         ratio = refine_info["corridor_test"]["ratio"]
+        n_points = refine_info["corridor_test"]["n_points"]
         outputs.add_claim("toolkit target", "map refinement halves the map error along the "
                           "flown corridors of the biased region",
                           f"RMS {refine_info['corridor_test']['original_rms_m']:.2f} → "
-                          f"{refine_info['corridor_test']['refined_rms_m']:.2f} m (×{ratio:.2f})",
-                          "holds" if ratio <= config.target_map_ratio else "does not hold")
+                          f"{refine_info['corridor_test']['refined_rms_m']:.2f} m (×{ratio:.2f}, "
+                          f"{n_points} points)",
+                          verdict(ratio <= config.target_map_ratio) if n_points and ratio == ratio
+                          else verdict(None, detail="no flown point in the biased region"))
         a = metrics["learned, biased map"]["rmse_pos_m"]
         b = metrics["learned + refined map"]["rmse_pos_m"]
         outputs.add_claim("toolkit target", "navigation on the refined map beats the original "
                           "map on draws not used for refinement",
                           f"RMSE {a:.2f} → {b:.2f} m",
-                          "holds" if b is not None and a is not None and b < a
-                          else "does not hold")
+                          verdict(None if a is None or b is None else b < a),
+                          runs=RunCounts.weakest(
+                              RunCounts.from_metrics(metrics["learned, biased map"]),
+                              RunCounts.from_metrics(metrics["learned + refined map"])).all_runs())
 
     # ---- figures
     _figures(outputs, fit.history, truth_q, truth_r, metrics, em)

@@ -63,7 +63,7 @@ from torch import nn
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.rate_distortion import bd_rate, bytes_at_error, pareto_front
 
 __all__ = ["MapEntry", "MapSizeStudyConfig", "pareto_front", "run"]
@@ -216,22 +216,35 @@ class MapEntry:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def find_neural_maps(runs_dir: str, tile_fingerprint: str) -> list[Path]:
-    """Newest exported map of the tile in every experiment folder of ``runs_dir``."""
-    from neuralmap.studies.maps import MAP_FILENAME, _map_tile_fingerprint
+#: Map files the study looks for in every ``runs_dir/<experiment>/version_*`` folder: the
+#: blockwise export and the latent-grid bitstream.
+MAP_FILES = ("neural_map.pt", "latent_map.nlat")
 
+
+def find_neural_maps(runs_dir: str, tile_fingerprint: str) -> list[Path]:
+    """Newest map file of the tile in every experiment folder of ``runs_dir``."""
     found: list[Path] = []
     root = Path(runs_dir)
     if not root.is_dir():
         return found
     for experiment in sorted(p for p in root.iterdir() if p.is_dir()):
-        candidates = sorted(experiment.glob(f"version_*/{MAP_FILENAME}"),
+        candidates = sorted((p for name in MAP_FILES for p in experiment.glob(f"version_*/{name}")),
                             key=lambda p: p.stat().st_mtime, reverse=True)
         for path in candidates:
-            if _map_tile_fingerprint(path) == tile_fingerprint:
+            if _file_fingerprint(path) == tile_fingerprint:
                 found.append(path)
                 break
     return found
+
+
+def _file_fingerprint(path: Path) -> str:
+    """The tile fingerprint a map file records ("" when it records none or is unreadable)."""
+    from neuralmap.terrain.export import load_map
+
+    try:
+        return str(getattr(load_map(path), "tile_fingerprint", "") or "")
+    except NeuralMapError:
+        return ""
 
 
 def build_grid_maps(tile: Any, config: MapSizeStudyConfig) -> list[MapEntry]:
@@ -639,19 +652,14 @@ def run(config: MapSizeStudyConfig, outputs: StudyOutputs) -> None:
                            row["bytes"])
 
 
+def _runs(row: dict[str, Any]) -> RunCounts:
+    """The runs a verdict on this map rests on (numerical failures count against it)."""
+    return RunCounts.from_metrics(row)
+
+
 def _enough(row: dict[str, Any]) -> bool:
-    """Enough converged runs for a verdict on this map (the TAN study's rule)."""
-    from neuralmap.nav.report import MIN_CONVERGED, MIN_CONVERGED_FRACTION
-
-    conv, inc = row.get("n_converged") or 0, row.get("n_included") or 0
-    return conv >= MIN_CONVERGED and conv >= MIN_CONVERGED_FRACTION * inc
-
-
-def _too_few(row: dict[str, Any]) -> str:
-    from neuralmap.nav.report import MIN_CONVERGED
-
-    return (f"not enough converged runs ({row['name']}: {row.get('n_converged') or 0} of "
-            f"{row.get('n_included') or 0}; a verdict needs >= {MIN_CONVERGED} and half)")
+    """Enough converged runs for a verdict on this map (the rule of every study)."""
+    return _runs(row).enough()
 
 
 def _smallest(rows: list[dict[str, Any]], kind: str, ok: Any) -> dict[str, Any] | None:
@@ -679,13 +687,11 @@ def _equal_accuracy(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:
             f"{key}_vs_grid_ci", "n_diverged", "n_converged")
     ratio = (neural["bytes"] / grid["bytes"]) if neural and grid else None
     if not _enough(ref):
-        verdict = _too_few(ref)
+        outcome = verdict(None, runs=_runs(ref))
     elif not has_neural:
-        verdict = "not enough data (no neural map)"
-    elif neural is None:
-        verdict = "does not hold"
+        outcome = verdict(None, detail="no neural map")
     else:
-        verdict = "holds" if grid is None or ratio <= TARGET_BYTES_RATIO else "does not hold"
+        outcome = verdict(neural is not None and (grid is None or ratio <= TARGET_BYTES_RATIO))
     return {
         "metric": key,
         "reference": ref.get(f"{key}_m"),
@@ -694,7 +700,7 @@ def _equal_accuracy(rows: list[dict[str, Any]], key: str) -> dict[str, Any]:
         "smallest_grid": grid and {k: grid.get(k) for k in pick},
         "smallest_neural": neural and {k: neural.get(k) for k in pick},
         "bytes_ratio": ratio,
-        "verdict": verdict,
+        "verdict": outcome,
     }
 
 
@@ -876,7 +882,7 @@ def _write_report(
 
     if not neural:
         compact_text = "no neural map was given (codecs only)"
-        compact_verdict = "not enough data (no neural map)"
+        compact_verdict = verdict(None, detail="no neural map")
     else:
         best = min(neural, key=lambda r: (r["fraction_of_raw"] > TARGET_FRACTION,
                                           r["node_rmse_m"]))
@@ -887,7 +893,7 @@ def _write_report(
             f"closest: {best['name']} at {100 * best['fraction_of_raw']:.1f} % of raw with "
             f"node RMSE {best['node_rmse_m']:.2f} m"
         )
-        compact_verdict = "holds" if hit else "does not hold"
+        compact_verdict = verdict(bool(hit))
     outputs.add_claim(
         "toolkit target",
         f"a neural map <= {TARGET_FRACTION:.0%} of the raw float32 grid with node RMSE "
@@ -908,7 +914,8 @@ def _write_report(
         f"{EQUAL_ACCURACY:.0%} of the full grid's) the smallest neural map <= "
         f"{TARGET_BYTES_RATIO:g} x the smallest compressed grid",
         _equal_accuracy_text(converged, "converged-run RMSE") + "; over all runs: "
-        + _equal_accuracy_text(all_runs, "all-run RMSE"), converged["verdict"])
+        + _equal_accuracy_text(all_runs, "all-run RMSE"), converged["verdict"],
+        runs=RunCounts.weakest(*(_runs(r) for r in rows if r.get("n_included") is not None)))
     storage_text, storage_verdict = _storage_claim(rows, raw_bytes)
     outputs.add_claim("SEEDS 004", "the neural map needs less storage than the grid",
                       storage_text, storage_verdict)
@@ -922,28 +929,26 @@ def _bd_claim(summary: dict[str, Any]) -> tuple[str, str]:
     """Measured text and verdict of the BD-rate target."""
     bd = summary["bd_rate_node_rmse"]
     if not bd:
-        return "no neural map measured", "not enough data (no neural map)"
+        return "no neural map measured", verdict(None, detail="no neural map")
     parts = [f"{f}: {_fmt_pct(v[f'vs_{BD_ANCHOR}'])} vs JPEG 2000, "
              f"{_fmt_pct(v['vs_best_codec'])} vs the best codec" for f, v in bd.items()]
     values = [v[f"vs_{BD_ANCHOR}"] for v in bd.values() if v[f"vs_{BD_ANCHOR}"] is not None]
     if not values:
-        return "; ".join(parts), "not enough data (no overlap with the JPEG 2000 front)"
-    met = min(values) <= TARGET_BYTES_RATIO - 1.0
-    return "; ".join(parts), "holds" if met else "does not hold"
+        return "; ".join(parts), verdict(None, detail="no overlap with the JPEG 2000 front")
+    return "; ".join(parts), verdict(min(values) <= TARGET_BYTES_RATIO - 1.0)
 
 
 def _between_claim(summary: dict[str, Any]) -> tuple[str, str]:
     between = summary["between_nodes"]
     if not between:
-        return "no neural map measured", "not enough data (no neural map)"
+        return "no neural map measured", verdict(None, detail="no neural map")
     worst = max(between, key=lambda b: b["ratio"] or 0.0)
     n_met = sum(b["met"] for b in between)
     text = (f"{n_met} of {len(between)} neural maps within the bicubic DEM's "
             f"{worst['bicubic_dem_m']:.2f} m; worst {worst['name']} {worst['truth_rmse_m']:.2f} m "
             f"({_fmt(worst['ratio'])} x; its node RMSE {worst['node_rmse_m']:.2f} m, the "
             f"bicubic of its own node values {_fmt(worst['own_nodes_bicubic_m'])} m)")
-    verdict = "holds" if n_met == len(between) else "partly" if n_met else "does not hold"
-    return text, verdict
+    return text, verdict(n_met == len(between), partly=n_met > 0)
 
 
 def _equal_accuracy_text(check: dict[str, Any], what: str) -> str:
@@ -977,7 +982,7 @@ def _storage_claim(rows: list[dict[str, Any]], raw_bytes: int) -> tuple[str, str
     """
     neural = [r for r in rows if r["kind"] == "neural"]
     if not neural:
-        return "no neural map measured", "not enough data (no neural map)"
+        return "no neural map measured", verdict(None, detail="no neural map")
     parts, beaten = [], 0
     for r in sorted(neural, key=lambda r: r["bytes"]):
         grids = [g for g in rows if g["kind"] == "grid" and g["node_max_m"] <= r["node_max_m"]]
@@ -990,8 +995,8 @@ def _storage_claim(rows: list[dict[str, Any]], raw_bytes: int) -> tuple[str, str
             + (f"{best['name']} {_fmt_bytes(best['bytes'])}" if best else "no grid as accurate")
         )
     smaller_than_raw = sum(r["bytes"] < raw_bytes for r in neural)
-    verdict = "holds" if beaten == 0 else "partly" if beaten < len(neural) else "does not hold"
+    storage_verdict = verdict(beaten == 0, partly=beaten < len(neural))
     summary = (f"{smaller_than_raw} of {len(neural)} neural maps are smaller than the raw "
                f"float32 grid; {beaten} of {len(neural)} are larger than a grid (raw or "
                "compressed) of equal or smaller maximum node error: ")
-    return summary + "; ".join(parts), verdict
+    return summary + "; ".join(parts), storage_verdict

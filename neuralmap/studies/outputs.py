@@ -8,9 +8,7 @@ leaves nothing that looks complete (and no staging folder either).
 
 from __future__ import annotations
 
-import os
 import shutil
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -21,12 +19,128 @@ from neuralmap.io import (
     atomic_write_figure,
     atomic_write_json,
     atomic_write_text,
-    default_mode,
+    make_staging_dir,
     publish_dir,
     to_jsonable,
 )
 
-__all__ = ["Claim", "StudyOutputs", "markdown_table"]
+__all__ = [
+    "DOES_NOT_HOLD",
+    "HOLDS",
+    "MIN_CONVERGED",
+    "MIN_CONVERGED_FRACTION",
+    "NOT_ENOUGH",
+    "NOT_MEASURED",
+    "PARTLY",
+    "VERDICTS",
+    "Claim",
+    "RunCounts",
+    "StudyOutputs",
+    "markdown_table",
+    "verdict",
+]
+
+# ---------------------------------------------------------------------------- verdicts
+#: The verdict vocabulary of every study's claims table. A verdict is one of these words,
+#: optionally followed by a parenthesised detail ("does not hold (by 12 %)",
+#: "not enough converged runs (6 of 8; a verdict needs ≥ 30 and half)",
+#: "not measured (no neural map)").
+HOLDS = "holds"
+PARTLY = "partly"
+DOES_NOT_HOLD = "does not hold"
+NOT_ENOUGH = "not enough converged runs"
+NOT_MEASURED = "not measured"
+VERDICTS: tuple[str, ...] = (HOLDS, PARTLY, DOES_NOT_HOLD, NOT_ENOUGH, NOT_MEASURED)
+
+#: Converged runs a claim needs before it gets a verdict: at least this many, and at
+#: least this fraction of the runs the claim is about.
+MIN_CONVERGED = 30
+MIN_CONVERGED_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class RunCounts:
+    """How many Monte Carlo runs a claim rests on.
+
+    Attributes:
+        good: Runs that count for the claim: finished, finite, numerically healthy and
+            not diverged ("converged").
+        total: Runs the claim is about (e.g. the on-map runs), numerical failures
+            included.
+        failed: Numerical failures among ``total`` (non-finite or unhealthy filter):
+            they count against every accuracy claim, never silently dropped.
+    """
+
+    good: int
+    total: int
+    failed: int = 0
+
+    @classmethod
+    def from_metrics(cls, m: Any) -> RunCounts:
+        """From a :func:`~neuralmap.nav.metrics.navigation_metrics` dict: total = runs
+        not excluded as off the map (non-finite runs included), failed = non-finite +
+        unhealthy, good = converged."""
+        failed = int(m.get("n_nonfinite") or 0) + int(m.get("n_unhealthy") or 0)
+        total = int(m.get("n_included") or 0) + int(m.get("n_nonfinite") or 0)
+        return cls(good=int(m.get("n_converged") or 0), total=total, failed=failed)
+
+    def enough(self, min_converged: int = MIN_CONVERGED) -> bool:
+        """At least ``min_converged`` good runs and at least half of ``total``."""
+        return self.good >= min_converged and self.good >= MIN_CONVERGED_FRACTION * self.total
+
+    @staticmethod
+    def weakest(*counts: RunCounts) -> RunCounts:
+        """Of the counts a comparison rests on, the one with the fewest good runs (most
+        numerical failures on ties): the comparison is only as sound as that one."""
+        return min(counts, key=lambda c: (c.good, -c.failed))
+
+    def all_runs(self) -> RunCounts:
+        """The counts of a claim over all runs (divergence rate, all-run RMSE): every run
+        of ``total`` is part of the measurement, so the verdict needs ``total`` runs."""
+        return RunCounts(good=self.total, total=self.total, failed=self.failed)
+
+    @property
+    def bad_rate(self) -> float | None:
+        """Share of ``total`` that diverged or failed numerically (None when empty)."""
+        return (self.total - self.good) / self.total if self.total else None
+
+    def too_few(self, min_converged: int = MIN_CONVERGED) -> str:
+        """The verdict when :meth:`enough` is False: "not enough converged runs (n of N)"."""
+        failed = f", {self.failed} failed numerically" if self.failed else ""
+        return (f"{NOT_ENOUGH} ({self.good} of {self.total}{failed}; a verdict needs "
+                f"≥ {min_converged} and half)")
+
+
+def verdict(holds: bool | None, *, partly: bool = False, runs: RunCounts | None = None,
+            min_converged: int = MIN_CONVERGED, detail: str | None = None) -> str:
+    """The one verdict rule of every study.
+
+    Args:
+        holds: The measured comparison (None or NaN-based: nothing measured).
+        partly: When ``holds`` is False, whether the weaker bound is met.
+        runs: The runs the claim rests on; too few converged runs give "not enough
+            converged runs (n of N)" whatever ``holds`` says.
+        min_converged: Converged runs a verdict needs.
+        detail: Text appended in parentheses (e.g. "by 12 %", or why nothing was measured).
+
+    Returns:
+        A verdict of the :data:`VERDICTS` vocabulary.
+    """
+    if runs is not None and not runs.enough(min_converged):
+        return runs.too_few(min_converged)
+    if holds is None:
+        word = NOT_MEASURED
+    else:
+        word = HOLDS if holds else (PARTLY if partly else DOES_NOT_HOLD)
+    return f"{word} ({detail})" if detail else word
+
+
+def check_verdict(text: str) -> str:
+    """Returns ``text`` if it is a verdict of the vocabulary; raises ValueError otherwise
+    (a study bug, not a user error)."""
+    if not any(text == v or text.startswith(v + " (") for v in VERDICTS):
+        raise ValueError(f"verdict {text!r} is not in the vocabulary {VERDICTS}")
+    return text
 
 
 @dataclass
@@ -34,10 +148,10 @@ class Claim:
     """A paper's claim beside the measured number.
 
     Attributes:
-        paper: Which paper (e.g. ``"SEEDS 004"``).
+        paper: Which paper (e.g. ``"SEEDS 004"``) or ``"toolkit target"``.
         claim: The claim in words.
         measured: What this run measured, in words and numbers.
-        verdict: ``holds``, ``does not hold``, ``partly`` or ``not enough data (...)``.
+        verdict: A verdict of :data:`VERDICTS` (see :func:`verdict`).
     """
 
     paper: str
@@ -104,9 +218,7 @@ class StudyOutputs:
         """The staging folder (created on first use, so a study that fails early writes
         nothing at all)."""
         if self._staging is None:
-            self.root.mkdir(parents=True, exist_ok=True)
-            self._staging = Path(tempfile.mkdtemp(prefix=".tmp-version_", dir=self.root))
-            os.chmod(self._staging, default_mode(directory=True))
+            self._staging = make_staging_dir(self.root)
         return self._staging
 
     # ------------------------------------------------------------------ content
@@ -133,8 +245,29 @@ class StudyOutputs:
             writer.add_figure(f"figures/{name}", fig)
         return path
 
-    def add_claim(self, paper: str, claim: str, measured: str, verdict: str) -> Claim:
-        """Records a paper's claim beside the measured number (report and results.json)."""
+    def add_claim(self, paper: str, claim: str, measured: str, verdict: str, *,
+                  runs: RunCounts | None = None, min_converged: int = MIN_CONVERGED) -> Claim:
+        """Records a paper's claim beside the measured number (report and results.json).
+
+        Args:
+            paper: Source (``"SEEDS 002"``, ``"toolkit target"``).
+            claim: The claim in words.
+            measured: What was measured.
+            verdict: A verdict of :data:`VERDICTS` (build it with :func:`verdict`).
+            runs: The Monte Carlo runs the claim rests on: too few converged runs replace
+                the verdict by "not enough converged runs (n of N)", and numerical
+                failures are named in ``measured``.
+            min_converged: Converged runs a verdict needs.
+
+        Raises:
+            ValueError: ``verdict`` is not of the vocabulary.
+        """
+        check_verdict(verdict)
+        if runs is not None:
+            if not runs.enough(min_converged):
+                verdict = runs.too_few(min_converged)
+            if runs.failed:
+                measured = f"{measured}; {runs.failed} of {runs.total} runs failed numerically"
         item = Claim(paper, claim, measured, verdict)
         self.claims.append(item)
         if self.echo:

@@ -28,6 +28,7 @@ from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.maps import check_map_tile, resolve_map_path
 from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.trajectories import write_trajectories
 
 __all__ = ["DEFAULT_METHODS", "TanStudyConfig", "build_methods", "run"]
 
@@ -322,7 +323,12 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     from neuralmap.nav.metrics import divergence_rule, navigation_metrics
     from neuralmap.nav.monte_carlo import run_monte_carlo
     from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.report import build_results, check_claims, format_table, render_report
+    from neuralmap.studies.tan_report import (
+        build_results,
+        check_claims,
+        format_table,
+        render_report,
+    )
 
     started = time.perf_counter()
     timing: dict[str, float] = {}
@@ -404,6 +410,10 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     results["timing_s"]["total"] = time.perf_counter() - started
     figures = _write_figures(outputs, config=config, results=results, truth=truth, runs=runs,
                              tile=tile, pcrb_pos=pcrb_pos)
+    tracks = {"truth": truth.pos, "ins": truth.ins_pos,
+              **{name: truth.pos + r.err[..., :3] for name, r in runs.items()}}
+    write_trajectories(outputs.dir, tile, truth.t.cpu().numpy(),
+                       {name: v.detach().cpu().numpy() for name, v in tracks.items()})
     outputs.results.update(results)
     outputs.set_report(render_report(results, claims=claims, figures=figures))
 

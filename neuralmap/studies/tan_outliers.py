@@ -25,59 +25,33 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.policies.registry import POLICY_NAMES, make_policy, policy_label
+from neuralmap.filters.policy import FilterPolicy
 from neuralmap.linearize.factory import LINEARIZER_NAMES, method_label
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
-__all__ = ["POLICIES", "TanOutliersConfig", "make_policy", "run"]
+__all__ = ["POLICIES", "TanOutliersConfig", "run", "study_policy"]
 
-#: Policy names of the study, with their labels (paper defaults for the parameters).
+#: The study's default policies (registry names of :mod:`neuralmap.filters.policies`, in
+#: report order) with their labels; ``--policies`` takes any registry name.
 POLICIES: dict[str, str] = {
-    "ekf": "plain EKF",
-    "chi2": "χ² gate (p = 0.99)",
-    "huber": "Huber (k = 1.345)",
-    "sage_husa": "Sage-Husa (b = 0.97)",
-    "igg3": "IGG-III (k0 = 1.5, k1 = 4.5)",
-    "raf": "RAF: IGG-III + Yang (c0 = 1.5, c1 = 8.5)",
-    "raf_quality": "quality R, then RAF",
-    "quality_inflation": "quality R, then innovation inflation (paper 003's tuning)",
-    "variational": "variational Bayes (3 iterations)",
+    name: policy_label(name)
+    for name in ("ekf", "chi2", "huber", "sage_husa", "igg3", "raf", "raf_quality",
+                 "quality_inflation", "variational")
 }
 
 
-def make_policy(name: str, *, R: float) -> Any:
-    """A fresh policy by name (None for the plain EKF).
+def study_policy(name: str, *, R: float) -> FilterPolicy | None:
+    """A fresh policy of the registry (None for the plain EKF), Sage-Husa clamped to the
+    filter's nominal measurement variance: ``R/4 … 100 R``.
 
     Args:
-        name: One of :data:`POLICIES`.
-        R: The filter's nominal measurement variance (Sage-Husa's clamps: R/4 … 100 R).
+        name: A registry name (:data:`~neuralmap.filters.policies.POLICY_NAMES`).
+        R: The filter's nominal measurement variance, m².
     """
-    from neuralmap.filters.policies import (
-        IGG3,
-        ChiSquareGate,
-        Compose,
-        Huber,
-        InnovationInflation,
-        QualityR,
-        RobustAdaptive,
-        SageHusa,
-        VariationalAdaptive,
-    )
-
-    builders = {
-        "ekf": lambda: None,
-        "chi2": lambda: ChiSquareGate(0.99),
-        "huber": lambda: Huber(1.345),
-        "sage_husa": lambda: SageHusa(0.97, R_min=R / 4.0, R_max=100.0 * R),
-        "igg3": lambda: IGG3(1.5, 4.5),
-        "raf": lambda: RobustAdaptive(1.5, 4.5, 1.5, 8.5),
-        "raf_quality": lambda: Compose(QualityR.altimeter(), RobustAdaptive(1.5, 4.5, 1.5, 8.5)),
-        "quality_inflation": lambda: Compose(QualityR.altimeter(), InnovationInflation(1.2)),
-        "variational": lambda: VariationalAdaptive(3),
-    }
-    if name not in builders:
-        raise NeuralMapError(f"--policies: unknown policy {name!r}; known: {', '.join(POLICIES)}.")
-    return builders[name]()
+    args = {"R_min": R / 4.0, "R_max": 100.0 * R} if name == "sage_husa" else {}
+    return make_policy(name, args, where="--policies")
 
 
 @dataclass
@@ -89,7 +63,8 @@ class TanOutliersConfig(StudyConfig):
         scenario: Base scenario (its own fault settings are replaced by the ones below).
         n_runs: Monte Carlo runs (the same draws for every policy).
         methods: Linearisation methods.
-        policies: Update policies (:data:`POLICIES`); ``ekf`` is the plain filter.
+        policies: Update policies, registry names (default :data:`POLICIES`); ``ekf`` is the
+            plain filter.
         spike_prob: Probability per epoch of an isolated spike.
         spike_min_m: Smallest spike, m.
         spike_max_m: Largest spike, m.
@@ -139,10 +114,10 @@ class TanOutliersConfig(StudyConfig):
             raise NeuralMapError(
                 f"--methods: give one or more of {', '.join(LINEARIZER_NAMES)}; unknown {unknown}."
             )
-        bad = [p for p in self.policies if p not in POLICIES]
+        bad = [p for p in self.policies if p not in POLICY_NAMES]
         if not self.policies or bad:
             raise NeuralMapError(
-                f"--policies: give one or more of {', '.join(POLICIES)}; unknown {bad}."
+                f"--policies: give one or more of {', '.join(POLICY_NAMES)}; unknown {bad}."
             )
         for key in ("spike_prob", "patch_prob", "lock_loss_prob"):
             if not 0.0 <= getattr(self, key) <= 1.0:
@@ -199,7 +174,8 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
     base = load_scenario(config.scenario)
     clean_scenario = dataclasses.replace(base, spike_prob=0.0, patch_prob=0.0,
                                          lock_loss_prob=0.0, outlier_prob=0.0).validate()
-    faulty_scenario = dataclasses.replace(clean_scenario, **config.faults()).validate()
+    faulty_scenario = dataclasses.replace(clean_scenario, **config.faults()).validate(
+        where="tan_outliers", options=True)
     setup = prepare(config, scenario=clean_scenario)
     device, dtype = config.torch_device, config.torch_dtype
     sim = {"n_runs": config.n_runs, "seed": setup.seed, "dtype": dtype, "device": device,
@@ -228,11 +204,13 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
     total = len(config.methods) * (len(config.policies) + 1)
     bar = None
     if config.progress:
-        from tqdm.auto import tqdm
+        from neuralmap.progress import progress_bar
 
-        bar = tqdm(total=total, desc="tan_outliers", unit="filter")
+        bar = progress_bar(total=total, desc="tan_outliers", unit="filter")
     try:
         for method in config.methods:
+            if bar is not None:
+                bar.set_description(f"tan_outliers [{method}]")
             linearizer = setup.methods[method]
             check_map_matches(linearizer, clean, method=method)
             reference = run_filter(clean, linearizer, clean_scenario, method=method)
@@ -247,14 +225,14 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
             for name in config.policies:
                 tick = time.perf_counter()
                 filtered = run_filter(faulty, linearizer, faulty_scenario, method=method,
-                                      policy=make_policy(name, R=R))
+                                      policy=study_policy(name, R=R))
                 m = navigation_metrics(filtered, pcrb_pos, pcrb_factor=config.pcrb_factor,
                                        divergence_sigma=config.divergence_sigma)
                 summary = _summary(m, filtered, faulty_epochs)
                 summary["wall_s"] = time.perf_counter() - tick
                 entry[name] = summary
-                curves[method][POLICIES[name]] = m["rmse_pos_curve"]
-                rows.append([method_label(method), POLICIES[name],
+                curves[method][policy_label(name)] = m["rmse_pos_curve"]
+                rows.append([method_label(method), policy_label(name),
                              *_row(summary, ref_m["rmse_pos_m"])])
                 for k, value in enumerate(m["rmse_pos_curve"]):
                     if value is not None:
@@ -302,7 +280,9 @@ def _summary(m: dict[str, Any], run: Any, faulty_epochs: torch.Tensor) -> dict[s
         "rmse_pos_m": m["rmse_pos_m"], "rmse_pos_converged_m": m["rmse_pos_converged_m"],
         "pcrb_ratio_all": m["pcrb_ratio_all"], "divergence_rate": m["divergence_rate"],
         "numerical_failure_rate": m["numerical_failure_rate"], "n_diverged": m["n_diverged"],
-        "n_included": m["n_included"], "nees_time_avg": m["nees_time_avg"],
+        "n_included": m["n_included"], "n_converged": m["n_converged"],
+        "n_nonfinite": m["n_nonfinite"], "n_unhealthy": m["n_unhealthy"],
+        "nees_time_avg": m["nees_time_avg"],
         "rmse_near_faults_m": _fault_error(run, faulty_epochs), "mean_max_jump_m": _max_jump(run),
     }
 
@@ -339,8 +319,18 @@ def _targets(config: TanOutliersConfig, results: dict[str, Any]) -> dict[str, An
 
 
 def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str, Any]) -> None:
+    """Paper 002's / 003's claims and the toolkit target, per method. Every claim is over
+    all runs of the policies it compares (:meth:`RunCounts.all_runs`); numerical failures
+    count as failed runs in the divergence figures."""
     def fmt(v: Any, spec: str = "{:.1f}") -> str:
         return "n/a" if v is None else spec.format(v)
+
+    def runs(*names: str) -> RunCounts:
+        return RunCounts.weakest(*(RunCounts.from_metrics(entry[n]) for n in names)).all_runs()
+
+    def bad(name: str) -> float:
+        rate = RunCounts.from_metrics(entry[name]).bad_rate
+        return 0.0 if rate is None else rate
 
     for method, entry in results.items():
         label = method_label(method)
@@ -348,14 +338,14 @@ def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str,
         clean = entry["clean"]
         if best is not None and clean["rmse_pos_m"]:
             ratio = entry[best]["rmse_pos_m"] / clean["rmse_pos_m"]
-            div = entry[best]["divergence_rate"] or 0.0
+            div = bad(best)
             ok = ratio <= config.target_rmse_ratio and div <= config.target_divergence
             outputs.add_claim(
                 "toolkit target",
                 f"{label}: best robust policy diverges ≤ {config.target_divergence:.0%} with "
                 f"all-run RMSE ≤ {config.target_rmse_ratio:g}× clean",
-                f"{POLICIES[best]}: {fmt(ratio, '{:.2f}')}× clean, divergence {div:.1%}",
-                "holds" if ok else "does not hold")
+                f"{policy_label(best)}: {fmt(ratio, '{:.2f}')}× clean, divergence {div:.1%}",
+                verdict(ok), runs=runs("clean", best))
         if "ekf" in entry:
             ekf = entry["ekf"]
             outputs.add_claim(
@@ -363,23 +353,22 @@ def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str,
                 f"plain EKF divergence {fmt(ekf['divergence_rate'], '{:.1%}')} with faults vs "
                 f"{fmt(clean['divergence_rate'], '{:.1%}')} clean; RMSE {fmt(ekf['rmse_pos_m'])} m"
                 f" vs {fmt(clean['rmse_pos_m'])} m",
-                "holds" if (ekf["divergence_rate"] or 0) > max(2 * (clean["divergence_rate"] or 0),
-                                                               0.01) else "does not hold")
+                verdict(bad("ekf") > max(2 * bad("clean"), 0.01)), runs=runs("clean", "ekf"))
         if {"sage_husa", "raf"} <= set(entry):
             sh, raf = entry["sage_husa"], entry["raf"]
             outputs.add_claim(
                 "SEEDS 002", f"{label}: Sage-Husa jumps at outliers, RAF stays smooth",
                 f"mean max jump Sage-Husa {fmt(sh['mean_max_jump_m'])} m, RAF "
                 f"{fmt(raf['mean_max_jump_m'])} m",
-                "holds" if (sh["mean_max_jump_m"] or 0) > (raf["mean_max_jump_m"] or 0)
-                else "does not hold")
+                verdict((sh["mean_max_jump_m"] or 0) > (raf["mean_max_jump_m"] or 0)),
+                runs=runs("sage_husa", "raf"))
             policies = [p for p in config.policies if p != "ekf" and entry[p]["rmse_pos_m"]]
             best_rmse = min(policies, key=lambda p: entry[p]["rmse_pos_m"]) if policies else None
             outputs.add_claim(
                 "SEEDS 002", f"{label}: RAF (alone or after the quality-based R) is the most accurate",
-                f"RAF {fmt(raf['rmse_pos_m'])} m; best {POLICIES.get(best_rmse, 'n/a')} "
+                f"RAF {fmt(raf['rmse_pos_m'])} m; best {policy_label(best_rmse) if best_rmse else 'n/a'} "
                 f"{fmt(entry[best_rmse]['rmse_pos_m'] if best_rmse else None)} m",
-                "holds" if best_rmse in ("raf", "raf_quality") else "does not hold")
+                verdict(best_rmse in ("raf", "raf_quality")), runs=runs(*policies or ["raf"]))
         if {"ekf", "quality_inflation"} <= set(entry):
             ekf, tuned = entry["ekf"], entry["quality_inflation"]
             if ekf["rmse_near_faults_m"] and tuned["rmse_near_faults_m"]:
@@ -388,7 +377,7 @@ def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str,
                     "SEEDS 003", f"{label}: the tuned filter cuts error spikes by about two thirds",
                     f"RMSE near faults {fmt(ekf['rmse_near_faults_m'])} → "
                     f"{fmt(tuned['rmse_near_faults_m'])} m ({cut:.0%} lower)",
-                    "holds" if cut >= 0.5 else ("partly" if cut >= 0.25 else "does not hold"))
+                    verdict(cut >= 0.5, partly=cut >= 0.25), runs=runs("ekf", "quality_inflation"))
 
 
 def _figures(outputs: StudyOutputs, config: TanOutliersConfig,

@@ -71,6 +71,10 @@ def run(config: TanScaleConfig, outputs: StudyOutputs) -> None:
                       ["method", "runs kept", "RMSE pos (m, last half)", "final RMSE (m)",
                        "divergence rate (9 sigma)"], rows)
     runs_per_s = config.n_runs * len(metrics) / wall
+    for name, m in metrics.items():  # TensorBoard summary scalars
+        for key in ("rmse_pos_m", "final_pos_m", "divergence_rate"):
+            outputs.log_scalar(f"summary/{key}/{name}", m[key])
+    outputs.log_scalar("throughput/run_methods_per_s", runs_per_s)
     outputs.add_table(
         "Throughput", ["runs", "methods", "chunks", "workers", "wall (s)", "run-methods/s",
                        "peak RSS (MiB, this process)"],

@@ -12,6 +12,7 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import atomic_write_torch
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet
 from neuralmap.terrain.quantize import check_scheme, dequantize_state, quantize_state
+from neuralmap.terrain.sharded import ShardedTerrainMap, is_sharded_index
 
 FORMAT = "neuralmap-terrain-map"
 #: Version 2 adds the optional ``quantization`` entry; unquantised files stay version 1.
@@ -128,9 +129,11 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
 
     Args:
-        path: A file written by :func:`save_map`, or the ``map_index.json`` (or its
+        path: A file written by :func:`save_map`, the ``map_index.json`` (or its
             folder) of a sharded region map: then a
-            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily.
+            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily,
+            or a latent-grid map bitstream (recognised by its magic bytes): then a
+            :class:`~neuralmap.terrain.latent.LatentTerrainMap`.
 
     Returns:
         The terrain model; ``.tile_name``, ``.tile_fingerprint``, ``.extent`` and
@@ -138,14 +141,26 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
 
     Raises:
         NeuralMapError: If the file is missing, not a neuralmap export, its stored config
-            or weights do not build the model (a damaged or hand-edited file), or a
-            quantised file lacks values or scales.
+            or weights do not build the model (a damaged or hand-edited file), a
+            quantised file lacks values or scales, or a weight or scale is not finite.
     """
-    from neuralmap.terrain.sharded import ShardedTerrainMap, is_sharded_index
-
     if isinstance(path, (str, os.PathLike)) and is_sharded_index(path):
         index = Path(path)
-        return ShardedTerrainMap(index / "map_index.json" if index.is_dir() else index)  # type: ignore[return-value]
+        return ShardedTerrainMap(  # type: ignore[return-value]
+            index / "map_index.json" if index.is_dir() else index, load_shard=load_map_file)
+    from neuralmap.terrain.latent.bitstream import is_latent_file, read_latent_map
+
+    if isinstance(path, (str, os.PathLike)) and is_latent_file(path):  # magic b"NMLATENT"
+        return read_latent_map(path)  # type: ignore[return-value]
+    return load_map_file(path)
+
+
+def load_map_file(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
+    """Loads one map file written by :func:`save_map` (no sharded-index dispatch).
+
+    Raises:
+        NeuralMapError: As :func:`load_map`.
+    """
     payload = load_map_payload(path)
     state = payload.get("state_dict")
     state = dict(state) if isinstance(state, dict) else state
@@ -168,6 +183,24 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
         model.load_state_dict(state)  # type: ignore[arg-type]
     except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as exc:
         raise _damaged(path, payload, exc) from None
+    _check_finite(path, model)
     model.metrics = payload.get("metrics", {})  # type: ignore[assignment]
     model.eval()
     return model
+
+
+def _check_finite(path: str | os.PathLike[str], model: torch.nn.Module) -> None:
+    """Refuses a map whose weights, scales or buffers hold NaN or infinity.
+
+    Such a map would make every filter run fail numerically, which a study would otherwise
+    count as "no divergence".
+    """
+    bad = [name for name, value in model.state_dict().items()
+           if value.is_floating_point() and not bool(torch.isfinite(value).all())]
+    if bad:
+        shown = ", ".join(bad[:4]) + (f" and {len(bad) - 4} more" if len(bad) > 4 else "")
+        raise NeuralMapError(
+            f"{path}: the map holds non-finite values (NaN or infinity) in {shown}; the fit "
+            "diverged or the file was damaged. Train the map again (a lower --model.lr "
+            "usually helps) and export it anew."
+        )

@@ -18,12 +18,14 @@ from __future__ import annotations
 import json
 import os
 from collections import OrderedDict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import atomic_write_json
 from neuralmap.terrain.base import TerrainModel
 from neuralmap.terrain.block_layout import BlockLayout
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet
@@ -66,8 +68,6 @@ def write_shard_index(
         files: Shard file names relative to the index, in :func:`shard_block_ranges` order.
         info: Region description, training settings, metrics.
     """
-    from neuralmap.io import atomic_write_json
-
     ranges = shard_block_ranges(layout.num_blocks, shard_blocks)
     if len(files) != len(ranges):
         raise NeuralMapError(
@@ -92,15 +92,25 @@ class ShardedTerrainMap(TerrainModel):
 
     Args:
         index_path: The ``map_index.json`` written by :func:`write_shard_index`.
+        load_shard: Reads one shard file (``neuralmap.terrain.export.load_map_file``;
+            :func:`~neuralmap.terrain.export.load_map` passes it, which keeps this module
+            free of an import of the export module).
         max_loaded: Most shards kept in memory (least recently used ones are dropped).
 
     Raises:
         NeuralMapError: Missing or malformed index, missing shard file.
     """
 
-    def __init__(self, index_path: str | os.PathLike[str], *, max_loaded: int = 16) -> None:
+    def __init__(
+        self,
+        index_path: str | os.PathLike[str],
+        *,
+        load_shard: Callable[[Path], BlockwiseTerrainNet],
+        max_loaded: int = 16,
+    ) -> None:
         super().__init__()
         self.index_path = Path(index_path)
+        self._load_shard = load_shard
         try:
             index = json.loads(self.index_path.read_text())
         except (OSError, ValueError) as exc:
@@ -146,12 +156,10 @@ class ShardedTerrainMap(TerrainModel):
 
     def shard(self, shard_id: int) -> BlockwiseTerrainNet:
         """The network of one shard (loaded on first use, least recently used dropped)."""
-        from neuralmap.terrain.export import load_map
-
         if shard_id in self._loaded:
             self._loaded.move_to_end(shard_id)
             return self._loaded[shard_id]
-        net = load_map(self.index_path.parent / self.shards[shard_id]["file"])
+        net = self._load_shard(self.index_path.parent / self.shards[shard_id]["file"])
         self.loads += 1
         self._loaded[shard_id] = net
         while len(self._loaded) > self.max_loaded:

@@ -35,7 +35,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import check_writable_dir, next_version_dir
-from neuralmap.training.callbacks import DashboardLayout, FitReport, ResumeHint
+from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
 from neuralmap.training.datamodule import DemDataModule
 from neuralmap.training.module import TerrainFitModule
 from neuralmap.training.resume import inspect_checkpoint
@@ -123,28 +123,28 @@ class NeuralMapCLI(LightningCLI):
         return str(name) if name else self.datamodule.experiment_name
 
     def instantiate_trainer(self, **kwargs: Any) -> Any:
-        """Trainer with a run folder of its own: TensorBoard's ``version_N``, or, without a
-        logger, a ``version_N`` reserved here (never the experiment folder itself)."""
+        """Trainer with a run folder of its own, reserved here with an atomic ``mkdir``
+        (:func:`neuralmap.io.next_version_dir`): TensorBoard's ``version_N`` is that folder,
+        and without a logger it is the trainer's root (never the experiment folder itself).
+        Two runs started at once into one experiment therefore never share a folder."""
         trainer_config = self._get(self.config_init, "trainer", default={})
         runs_dir = Path(self.config_init.get("runs_dir") or "runs")
         experiment = self.experiment_name()
         logger = trainer_config.get("logger")
         self.reserved_dir: Path | None = None
+        own_root = trainer_config.get("default_root_dir") is None
+        # fast_dev_run replaces every logger by a dummy one and writes no run folder
+        reserve = not trainer_config.get("fast_dev_run") and (
+            logger in (None, True) or (logger is False and own_root))
+        run_dir = self._run_dir(runs_dir / experiment) if reserve else None
         if logger in (None, True):
             kwargs["logger"] = TensorBoardLogger(
-                save_dir=str(runs_dir), name=experiment, default_hp_metric=False
+                save_dir=str(runs_dir), name=experiment, default_hp_metric=False,
+                version=None if run_dir is None else run_dir.name,
             )
-        if trainer_config.get("default_root_dir") is None:
-            kwargs["default_root_dir"] = str(runs_dir / experiment)
-            if logger is False and not trainer_config.get("fast_dev_run"):
-                worker = os.environ.get("LOCAL_RANK", "0") != "0"
-                if worker and os.environ.get(RUN_DIR_ENV):
-                    run_dir = Path(os.environ[RUN_DIR_ENV])
-                else:
-                    run_dir = next_version_dir(runs_dir / experiment)
-                    self.reserved_dir = run_dir
-                    os.environ[RUN_DIR_ENV] = str(run_dir)
-                kwargs["default_root_dir"] = str(run_dir)
+        if own_root:
+            kwargs["default_root_dir"] = str(
+                run_dir if logger is False and run_dir is not None else runs_dir / experiment)
         try:
             return super().instantiate_trainer(**kwargs)
         except MisconfigurationException as exc:
@@ -154,6 +154,16 @@ class NeuralMapCLI(LightningCLI):
                 "--trainer.devices and --trainer.strategy (e.g. --trainer.accelerator cpu; "
                 "'gpu' needs a CUDA or MPS device)."
             ) from None
+
+    def _run_dir(self, experiment_dir: Path) -> Path:
+        """The run folder: reserved here on rank 0, rank 0's one on DDP worker processes."""
+        worker = os.environ.get("LOCAL_RANK", "0") != "0"
+        if worker and os.environ.get(RUN_DIR_ENV):
+            return Path(os.environ[RUN_DIR_ENV])
+        run_dir = next_version_dir(experiment_dir)
+        self.reserved_dir = run_dir
+        os.environ[RUN_DIR_ENV] = str(run_dir)
+        return run_dir
 
     def remove_reserved_dir(self) -> None:
         """Removes the version folder reserved for this run if it holds no checkpoint or map."""
@@ -179,6 +189,7 @@ def _trainer_callbacks() -> tuple[list[Any], FitReport]:
         DashboardLayout(),
         report,
         ResumeHint(),
+        EpochLines(),
     ]
     return callbacks, report
 
@@ -207,6 +218,10 @@ def main(args: list[str] | None = None) -> Path | None:
         raise SystemExit(EXIT_BAD_INPUT) from None
     if mode == "noise":
         return main_noise(args)
+    if mode == "latent":
+        from neuralmap.training.latent_cli import main_latent
+
+        return main_latent(args)
     default_config = default_config_path()
     parser_kwargs: dict[str, Any] = {
         "description": "Fit a neural terrain map (blockwise MLPs) to a DEM tile.",

@@ -20,15 +20,16 @@ from lightning.pytorch.cli import LightningArgumentParser
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import load_yaml
+from neuralmap.training.callbacks.epoch_lines import EpochLines
 
 __all__ = ["learn_mode", "main_noise"]
 
 #: Values of the ``learn:`` switch.
-LEARN_MODES = ("map", "noise")
+LEARN_MODES = ("map", "noise", "latent")
 
 
 def learn_mode(args: list[str] | None) -> str:
-    """``"noise"`` when ``--learn noise`` or a ``--config`` file with ``learn: noise``."""
+    """``"noise"`` / ``"latent"`` when ``--learn X`` or a ``--config`` file with ``learn: X``."""
     argv = list(sys.argv[1:] if args is None else args)
     mode = "map"
     for i, arg in enumerate(argv):
@@ -71,12 +72,13 @@ def main_noise(args: list[str] | None = None) -> Path | None:
     Raises:
         SystemExit: 2 on bad input (message on stderr), 1 when nothing was learned.
     """
-    from neuralmap.training.cli import EXIT_BAD_INPUT, EXIT_NO_MAP
+    from neuralmap.training.cli import EXIT_BAD_INPUT, EXIT_NO_MAP, remove_orphan_run_dir
     from neuralmap.training.flight_datamodule import FlightDataModule
     from neuralmap.training.noise_module import NoiseLearningModule
 
     checkpoint = ModelCheckpoint(monitor="val/nll", mode="min", save_last=True, save_top_k=1,
                                  filename="best-epoch{epoch:04d}", auto_insert_metric_name=False)
+    cli = None
     try:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="LightningCLI's args parameter")
@@ -85,11 +87,13 @@ def main_noise(args: list[str] | None = None) -> Path | None:
                 seed_everything_default=0, auto_configure_optimizers=False,
                 save_config_kwargs={"overwrite": True},
                 parser_kwargs={"description": "Learn the TAN filter's Q and R from flights."},
-                trainer_defaults={"callbacks": [checkpoint]},
+                trainer_defaults={"callbacks": [checkpoint, EpochLines()]},
             )
         cli.trainer.fit(cli.model, datamodule=cli.datamodule,
                         ckpt_path=cli.config.get("ckpt_path"))
     except NeuralMapError as error:
+        if cli is not None:  # no run folder holding only an event file
+            remove_orphan_run_dir(cli.reserved_dir)
         sys.stdout.flush()
         print(f"error: {error}", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_BAD_INPUT) from None

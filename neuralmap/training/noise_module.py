@@ -98,10 +98,23 @@ class NoiseLearningModule(pl.LightningModule):
         self.noise = NoiseModel(q0, r_scale * self.tan.base_R, q_kind=q_kind)
         self.linearizer: Any = None
         self.learned_path: Path | None = None
+        #: filter updates the training made (a fit of zero updates exports nothing)
+        self.n_updates_seen = 0
 
     # ------------------------------------------------------------------ setup
     def setup(self, stage: str) -> None:
-        """Builds the linearizer on the scenario's tile (and map)."""
+        """Checks the flights' world against the filter's; builds the linearizer on the
+        scenario's tile (and map).
+
+        Raises:
+            NeuralMapError: The data module's scenario has another tile or time step
+                (:func:`~neuralmap.training.flight_datamodule.check_same_world`).
+        """
+        data_scenario = getattr(getattr(self.trainer, "datamodule", None), "scenario", None)
+        if data_scenario is not None:
+            from neuralmap.training.flight_datamodule import check_same_world
+
+            check_same_world(self.scenario, data_scenario)
         if self.linearizer is not None:
             return
         from neuralmap.linearize.factory import TERRAIN_MODEL_METHODS, make_linearizer
@@ -150,6 +163,7 @@ class NoiseLearningModule(pl.LightningModule):
                 opt.step()
                 total += float(loss.detach()) * n_upd
                 count += n_upd
+                self.n_updates_seen += n_upd
             state = run.state.detach()
         self.log("train/nll", total / max(count, 1), on_step=False, on_epoch=True,
                  prog_bar=True, batch_size=flights.n_flights)
@@ -185,6 +199,11 @@ class NoiseLearningModule(pl.LightningModule):
 
         if not self.trainer.is_global_zero:
             return
+        if self.n_updates_seen == 0:
+            raise NeuralMapError(
+                "the fit made no filter update (every altimeter reading was missing or off "
+                "the map), so Q and R are still the starting guess; nothing was exported. "
+                "Check the flights' radar column and that ins_x / ins_y lie on the tile.")
         log_dir = getattr(self.trainer.logger, "log_dir", None) if self.trainer.logger else None
         folder = Path(log_dir or self.trainer.default_root_dir)
         folder.mkdir(parents=True, exist_ok=True)

@@ -3,21 +3,21 @@
 A :class:`WindFilterSpec` names one estimator: the wind model (``"tvar"``, the paper's
 time-varying AR model with differenced measurements and the correlated-noise EKF, or
 ``"lti"``, the first-order Markov model on raw measurements) and an optional
-robust/adaptive policy from :mod:`neuralmap.filters.policies`, looked up by class name
-(``"SageHusa"``, ``"RobustAdaptive"``, ``"VariationalAdaptive"``) and built with
-``policy_args``. :func:`run_filters` runs every spec on the same measurements.
+robust/adaptive policy of the registry in :mod:`neuralmap.filters.policies`, looked up by
+name (``"sage_husa"``, ``"raf"``, ``"variational"``) and built with ``policy_args`` over
+the registry's defaults. :func:`run_filters` runs every spec on the same measurements.
 """
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters import FilterPolicy
+from neuralmap.filters.policies.registry import make_policy as registry_make_policy
+from neuralmap.filters.policy import FilterPolicy
 from neuralmap.wind.filtering import WindEstimate, estimate_wind
 from neuralmap.wind.lti_model import LTIWindModel
 from neuralmap.wind.tvar_model import TVARWindModel
@@ -25,7 +25,6 @@ from neuralmap.wind.tvar_model import TVARWindModel
 __all__ = ["WindFilterSpec", "make_policy", "run_filters"]
 
 _MODELS = ("tvar", "lti")
-_POLICY_MODULE = "neuralmap.filters.policies"
 
 
 @dataclass
@@ -35,8 +34,8 @@ class WindFilterSpec:
     Attributes:
         name: Label in tables and plots ("KF", "Sage-Husa", "RAF", "VB", "LTI").
         model: ``"tvar"`` or ``"lti"``.
-        policy: Class name of a policy in :mod:`neuralmap.filters.policies`; None = the
-            classic Kalman filter.
+        policy: Registry name of a policy (:data:`neuralmap.filters.policies.POLICIES`);
+            None = the classic Kalman filter.
         policy_args: Keyword arguments of the policy.
         correlated: TVAR only: handle the differencing cross-covariance (default).
     """
@@ -67,36 +66,16 @@ class WindFilterSpec:
 
 
 def make_policy(spec: WindFilterSpec) -> FilterPolicy | None:
-    """Builds the policy of ``spec`` (None for the classic Kalman filter).
+    """Builds the policy of ``spec`` from the policy registry (None for the classic Kalman
+    filter).
 
     Raises:
-        NeuralMapError: The policy module or class is missing, or its arguments are bad.
+        NeuralMapError: Unknown policy name, or bad arguments.
     """
     if spec.policy is None:
         return None
-    try:
-        module = importlib.import_module(_POLICY_MODULE)
-    except ImportError as exc:
-        raise NeuralMapError(
-            f"WindFilterSpec '{spec.name}': policy {spec.policy!r} needs "
-            f"{_POLICY_MODULE}, which this installation lacks; drop the policy or update "
-            "the toolkit."
-        ) from exc
-    cls = getattr(module, spec.policy, None)
-    if cls is None or not (isinstance(cls, type) and issubclass(cls, FilterPolicy)):
-        names = sorted(n for n, v in vars(module).items()
-                       if isinstance(v, type) and issubclass(v, FilterPolicy)
-                       and v is not FilterPolicy)
-        raise NeuralMapError(
-            f"WindFilterSpec '{spec.name}': no policy {spec.policy!r} in {_POLICY_MODULE}; "
-            f"available: {names}."
-        )
-    try:
-        return cls(**spec.policy_args)
-    except TypeError as exc:
-        raise NeuralMapError(
-            f"WindFilterSpec '{spec.name}': bad 'policy_args' for {spec.policy}: {exc}."
-        ) from exc
+    return registry_make_policy(spec.policy, spec.policy_args,
+                                where=f"filters '{spec.name}'")
 
 
 def run_filters(

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -149,8 +149,37 @@ def test_corrupt_npz_and_npy(tmp_path: Path) -> None:
     _raises("could not be read", tmp_path / "c.npy", spacing=1.0)
 
 
-@pytest.mark.skipif(importlib.util.find_spec("rasterio") is not None, reason="rasterio present")
-def test_geotiff_without_rasterio(tmp_path: Path) -> None:
+def test_geotiff_without_rasterio(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "rasterio", None)  # import rasterio -> ImportError
     (tmp_path / "t.TIF").write_bytes(b"II*\x00")
     msg = _raises("needs rasterio", tmp_path / "t.TIF")
     assert "pip install 'neuralmap[geotiff]'" in msg
+
+
+def _write_tif(path: Path, data: np.ndarray, transform) -> None:  # noqa: ANN001
+    import rasterio
+
+    with rasterio.open(
+        path, "w", driver="GTiff", height=data.shape[-2], width=data.shape[-1],
+        count=data.shape[0], dtype="float32", crs="EPSG:32616", transform=transform,
+    ) as dst:
+        dst.write(data.astype(np.float32))
+
+
+def test_geotiff_with_several_bands_is_refused(tmp_path: Path) -> None:
+    from rasterio.transform import from_origin
+
+    path = tmp_path / "rgb.tif"
+    _write_tif(path, np.ones((3, 4, 5)), from_origin(500000.0, 4000000.0, 30.0, 30.0))
+    msg = _raises("has 3 bands", path)
+    assert "rgb.tif" in msg and "gdal_translate -b 1" in msg
+
+
+def test_rotated_geotiff_is_refused(tmp_path: Path) -> None:
+    from rasterio.transform import Affine
+
+    path = tmp_path / "rot.tif"
+    rotated = Affine(30.0, 5.0, 500000.0, 5.0, -30.0, 4000000.0)
+    _write_tif(path, np.ones((1, 4, 5)), rotated)
+    msg = _raises("rotated or sheared", path)
+    assert "rot.tif" in msg and "gdalwarp" in msg

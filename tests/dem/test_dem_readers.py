@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import rasterio
+from rasterio.transform import from_origin
 
 from neuralmap.dem import load_tile
 from neuralmap.dem.geo import metres_per_degree
@@ -168,9 +170,6 @@ def test_matplotlib_style_npz_node_bounds(tmp_path: Path) -> None:
 
 
 def test_geotiff_roundtrip(tmp_path: Path) -> None:
-    rasterio = pytest.importorskip("rasterio")
-    from rasterio.transform import from_origin
-
     data = np.array([[3, 4, 5], [0, 1, -9999]], dtype=np.float32)  # first row north
     path = tmp_path / "t.tif"
     with rasterio.open(
@@ -193,3 +192,25 @@ def test_geotiff_roundtrip(tmp_path: Path) -> None:
     tile = load_tile(geo_path)
     assert tile.geo is not None
     assert tile.geo.to_geographic(0.0, 0.0) == pytest.approx((-84.9995, 36.0005), abs=1e-12)
+
+
+def test_cloud_optimized_geotiff(tmp_path: Path) -> None:
+    """A COG (tiled, with overviews) reads as its full-resolution band; no-data in a mask."""
+    rng = np.random.default_rng(3)
+    data = (200.0 + rng.normal(0.0, 20.0, size=(300, 260))).astype(np.float32)
+    data[10:20, 30:45] = -32768.0
+    path = tmp_path / "cog.tif"
+    with rasterio.open(
+        path, "w", driver="COG", height=300, width=260, count=1, dtype="float32",
+        crs="EPSG:32633", transform=from_origin(400000.0, 5200000.0, 10.0, 10.0),
+        nodata=-32768.0, blocksize=128, overview_resampling="average",
+    ) as dst:
+        dst.write(data, 1)
+    with rasterio.open(path) as src:
+        assert src.overviews(1)  # really a COG with internal overviews
+    tile = load_tile(path)
+    expected = np.flipud(np.where(data == -32768.0, np.nan, data.astype(np.float64)))
+    np.testing.assert_array_equal(tile.heights, expected)
+    assert tile.n_void == 150 and tile.spacing == (10.0, 10.0)
+    assert (tile.projected.x_offset, tile.projected.y_offset) == (400005.0, 5197005.0)
+    assert tile.projected.crs == "EPSG:32633"

@@ -283,3 +283,49 @@ def test_cuda_matches_cpu() -> None:  # pragma: no cover - only on GPU machines
         e.update(r, H, 2.0)
     assert gpu.P.device.type == "cuda"
     torch.testing.assert_close(gpu.P.cpu(), cpu.P, rtol=1e-12, atol=1e-12)
+
+
+def test_second_update_after_one_predict_does_not_reuse_q() -> None:
+    """After one update P is a posterior, not Φ P Φᵀ + Q: a second update offers no Q.
+
+    Constructed case: P⁻ = 101 I (Q = 100 I), a first update with r = 0 (λ = 0, α = 1), then
+    a second with r = 30 (α ≈ 377). Reusing Q would give α P⁺ − (α − 1) Q with a negative
+    variance; without Q the policy inflates the whole P (α P⁺). Reference: NumPy float64
+    Joseph form on α P⁺.
+    """
+    from neuralmap.filters.policies import InnovationInflation
+
+    seen: list[object] = []
+
+    class Recording(InnovationInflation):
+        def adapt(self, context):  # type: ignore[no-untyped-def]
+            seen.append(context.process_noise)
+            return super().adapt(context)
+
+    policy = Recording(c0=1.2)
+    ekf = BatchedEKF(torch.zeros(1, 2, dtype=F64), torch.eye(2, dtype=F64))
+    ekf.predict(torch.eye(2, dtype=F64), 100.0 * torch.eye(2, dtype=F64))
+    H = torch.tensor([[1.0, 0.0]], dtype=F64)
+    ekf.update(torch.zeros(1, 1, dtype=F64), H, 1.0, policy=policy)
+    p1 = ekf.P[0].numpy().copy()
+    x1 = ekf.x[0].numpy().copy()
+    diag = ekf.update(torch.full((1, 1), 30.0, dtype=F64), H, 1.0, policy=policy)
+    assert seen[0] is not None and seen[1] is None
+    lam = 900.0 / (p1[0, 0] + 1.0)
+    alpha = lam / 1.2
+    torch.testing.assert_close(diag.policy_info["alpha"], torch.tensor([alpha], dtype=F64))
+    p_use = alpha * p1
+    h = np.array([[1.0, 0.0]])
+    s = h @ p_use @ h.T + 1.0
+    k = p_use @ h.T / s
+    i_kh = np.eye(2) - k @ h
+    p_ref = i_kh @ p_use @ i_kh.T + k @ k.T
+    x_ref = x1 + (k * 30.0)[:, 0]
+    assert bool(ekf.healthy.all()) and bool(diag.applied.all())
+    np.testing.assert_allclose(ekf.P[0].numpy(), p_ref, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(ekf.x[0].numpy(), x_ref, rtol=1e-12, atol=1e-12)
+    # a new predict offers its Q again; assigning P withdraws it
+    ekf.predict(torch.eye(2, dtype=F64), 100.0 * torch.eye(2, dtype=F64))
+    ekf.P = ekf.P.clone()
+    ekf.update(torch.zeros(1, 1, dtype=F64), H, 1.0, policy=policy)
+    assert seen[2] is None

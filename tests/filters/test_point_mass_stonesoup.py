@@ -1,18 +1,14 @@
 """Anchor: the batched point-mass filter against Stone Soup's point-mass predictor plus a
-plain NumPy Bayes update (one run, 2-D grid). Skipped when ``stonesoup`` is missing
-(optional extra ``anchors``)."""
+plain NumPy Bayes update (one run, 2-D grid). ``stonesoup`` is in the test extra."""
 
 from __future__ import annotations
 
 from datetime import datetime, timedelta
 
 import numpy as np
-import pytest
 import torch
 
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter
-
-stonesoup = pytest.importorskip("stonesoup")
 
 
 def test_predict_and_update_agree_with_stone_soup() -> None:

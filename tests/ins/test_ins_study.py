@@ -54,7 +54,8 @@ def test_study_end_to_end(evaluate: ModuleType, tmp_path: Path,
     assert "Position error" in report and "SEEDS 003" in report
     claims = results["claims"]
     assert len(claims) == 3 and all(c["paper"] == "SEEDS 003" for c in claims)
-    assert all(c["verdict"] in ("holds", "partly", "does not hold") for c in claims)
+    # a handful of runs: no verdict (the old study judged every claim from them)
+    assert all(c["verdict"].startswith("not enough converged runs (") for c in claims)
 
 
 def test_bad_options_exit_2(evaluate: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:

@@ -177,6 +177,15 @@ def test_acquisition_study_end_to_end(tmp_path) -> None:  # noqa: ANN001
     assert results["flat_leg"]["final_posterior_sigma_median_m"] > 40.0  # stays wide
     report = (folder / "report.md").read_text()
     assert "Flat-terrain leg" in report and "Hand-off test" in report
+    # 4 runs: no divergence or PCRB verdict (the old study judged them)
+    assert results["claims"]
+    assert all(c["verdict"].startswith("not enough converged runs (") for c in results["claims"])
+    events = list(folder.glob("events.out.tfevents*"))
+    assert events, "no TensorBoard event file"
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    tags = EventAccumulator(str(folder)).Reload().Tags()["scalars"]
+    assert "summary/rmse_pos_m/sigma80/grid/ekf" in tags and "rmse_pos/80/grid/ekf" in tags
 
 
 def test_study_config_rejects_bad_values() -> None:

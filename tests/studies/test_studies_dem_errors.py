@@ -35,6 +35,22 @@ def test_end_to_end_tiny(tmp_path: Path) -> None:
         assert section in report
     assert (out / "m2_sequences.png").stat().st_size > 0
     assert len(results["claims"]) >= 2
+    # a few surveys / runs: no claim gets a verdict (the old study judged them)
+    assert all(c["verdict"].startswith("not enough converged runs (") for c in results["claims"])
+
+
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        ({"survey_phi": []}, r"--survey_phi must hold 1 or 2 AR coefficients"),
+        ({"survey_phi": [0.3, 0.2, 0.1]}, r"--survey_phi must hold 1 or 2"),
+        ({"methods": []}, r"--methods must name at least one linearisation method"),
+    ],
+)
+def test_empty_survey_and_method_lists_are_refused(override: dict, match: str) -> None:
+    """An empty --survey_phi reported "0 % identified"; an empty --methods an empty Table 2."""
+    with pytest.raises(NeuralMapError, match=match):
+        DemErrorsStudyConfig(**override).validate()
 
 
 def test_prior_estimates_equal_the_filter_linearisation_points() -> None:

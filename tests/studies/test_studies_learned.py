@@ -42,6 +42,27 @@ def test_learned_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) 
     assert len(results["em"]["em_R_path"]) == 50
     report = (folder / "report.md").read_text()
     assert "Shumway" in report and "toolkit target" in report
+    # 12 test draws: the NEES and navigation claims get no verdict; the learning and EM
+    # claims do not rest on Monte Carlo runs
+    verdicts = {c["claim"]: c["verdict"] for c in results["claims"]}
+    for claim, text in verdicts.items():
+        if "NEES" in claim or "navigation on the refined map" in claim:
+            assert text.startswith("not enough converged runs (12 of 12"), (claim, text)
+        else:
+            assert text.split(" (")[0] in ("holds", "partly", "does not hold"), (claim, text)
     for name in ("learning", "error_vs_time", "em_vs_gradient"):
         assert (folder / f"{name}.png").is_file()
     assert list(folder.glob("events.out.tfevents*"))
+
+
+def test_bias_box_off_the_tile_is_refused_before_learning(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """A bias box off the tile used to judge the refinement claims on 0 points
+    ("nan → nan → does not hold"); now one clear error, exit 2, nothing written."""
+    code = cli.main(["--config", str(REPO_ROOT / "configs" / "learned_tiny.yaml"),
+                     "--runs_dir", str(tmp_path / "runs"),
+                     "--bias_box", "[50000.0, 51000.0, 50000.0, 51000.0]"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "--bias_box [50000.0, 51000.0, 50000.0, 51000.0] leaves the tile" in err
+    assert "Traceback" not in err and not list((tmp_path / "runs").rglob("results.json"))

@@ -124,6 +124,8 @@ def test_map_size_end_to_end(tiny_map: Path, tmp_path: Path) -> None:
     # 8 runs cannot decide equal navigation accuracy (the TAN study's minimum)
     assert 8 < MIN_CONVERGED
     assert summary["equal_accuracy_converged"]["verdict"].startswith("not enough converged")
+    nav_claims = [c for c in results["claims"] if "navigation accuracy" in c["claim"]]
+    assert nav_claims and nav_claims[0]["verdict"].startswith("not enough converged runs (8 of 8")
     between = {b["name"]: b for b in summary["between_nodes"]}
     assert between["small none"]["met"] == (float_map["truth_rmse_m"] <= raw["truth_rmse_m"])
     report = (out / "report.md").read_text()

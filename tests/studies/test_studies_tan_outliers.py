@@ -10,17 +10,17 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies import cli
-from neuralmap.studies.tan_outliers import POLICIES, make_policy
+from neuralmap.studies.tan_outliers import POLICIES, study_policy
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_policy_builds_fresh_and_unknown_is_refused() -> None:
-    built = {name: make_policy(name, R=106.0) for name in POLICIES}
+    built = {name: study_policy(name, R=106.0) for name in POLICIES}
     assert built["ekf"] is None and all(p is not None for n, p in built.items() if n != "ekf")
-    assert make_policy("raf", R=1.0) is not make_policy("raf", R=1.0)
+    assert study_policy("raf", R=1.0) is not study_policy("raf", R=1.0)
     with pytest.raises(NeuralMapError, match="unknown policy"):
-        make_policy("kalman", R=1.0)
+        study_policy("kalman", R=1.0)
 
 
 def test_tan_outliers_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -48,7 +48,22 @@ def test_tan_outliers_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixt
     nine = results["methods"]["nine_point"]
     assert nine["chi2"]["rmse_pos_m"] < nine["ekf"]["rmse_pos_m"]
     assert results["fault_share"]["spike"] > 0 and results["fault_share"]["patch"] > 0
+    # 12 runs: no claim gets holds / does not hold (the old study judged them all)
+    assert results["claims"]
+    assert all(c["verdict"].startswith("not enough converged runs (") for c in results["claims"])
     report = (folder / "report.md").read_text()
     assert "SEEDS 002" in report and "toolkit target" in report and "divergence.png" in report
     assert (folder / "rmse_vs_time_nine_point.png").is_file()
     assert list(folder.glob("events.out.tfevents*"))
+
+
+def test_fault_options_are_named_as_options(tmp_path: Path, tiny_map: Path,
+                                            capsys: pytest.CaptureFixture) -> None:
+    """A bad fault option was reported as a scenario-YAML key to fix."""
+    code = cli.main(["--config", str(REPO_ROOT / "configs" / "tan_outliers_tiny.yaml"),
+                     "--map", str(tiny_map), "--runs_dir", str(tmp_path / "runs"),
+                     "--patch_min_s", "30", "--patch_max_s", "20"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "tan_outliers: --patch_min_s must be in (0, patch_max_s = 20.0], got 30.0." in err
+    assert "scenario YAML" not in err

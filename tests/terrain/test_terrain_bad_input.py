@@ -63,3 +63,35 @@ def test_map_with_valid_header_but_bad_config(tile, tmp_path: Path) -> None:
     torch.save(payload, tmp_path / "edited3.pt")
     with pytest.raises(NeuralMapError, match="edited3.pt"):
         load_map(tmp_path / "edited3.pt")
+
+
+@pytest.mark.parametrize("where", ["weight", "quantised scale", "sharded shard"])
+def test_map_with_non_finite_parameters_is_refused(tile, tmp_path: Path, where: str) -> None:
+    """A NaN weight or scale makes every run fail numerically: refuse it at load time."""
+    net = BlockwiseTerrainNet.from_tile(tile, block_nodes=16, hidden=8, n_frequencies=4)
+    if where == "quantised scale":
+        path = save_map(net, tmp_path / "neural_map.pt", quantization="int8_tensor")
+        payload = torch.load(path, weights_only=True)
+        name, entry = next((k, v) for k, v in payload["quantization"]["tensors"].items()
+                           if "scale" in v)
+        entry["scale"] = torch.full_like(torch.as_tensor(entry["scale"]), float("nan"))
+        torch.save(payload, path)
+        expected = name
+    else:
+        name = next(k for k, v in net.state_dict().items() if v.is_floating_point()
+                    and v.numel() > 1 and "weight" in k)
+        with torch.no_grad():
+            net.state_dict()[name].view(-1)[0] = float("nan")
+        path = save_map(net, tmp_path / "neural_map.pt")
+        expected = name
+    if where == "sharded shard":
+        from neuralmap.terrain.sharded import write_shard_index
+
+        index = write_shard_index(tmp_path / "map_index.json", layout=net.layout,
+                                  shard_blocks=net.layout.num_blocks, files=[path.name])
+        with pytest.raises(NeuralMapError, match="non-finite") as info:
+            load_map(index)(torch.tensor([[100.0, 200.0]]))
+    else:
+        with pytest.raises(NeuralMapError, match="non-finite") as info:
+            load_map(path)
+    assert expected in str(info.value) and "Train the map again" in str(info.value)

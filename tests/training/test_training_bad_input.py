@@ -140,6 +140,24 @@ def test_nodata_and_units_options(tmp_path: Path, heights: np.ndarray,
     assert data.tile.spacing == (0.5, 0.5) and "caller" in data.tile.meta["units_reason"]
 
 
+def test_runs_started_at_once_with_the_default_logger_get_their_own_folders(
+    tile_path: Path, tmp_path: Path
+) -> None:
+    """Two trainers set up before either fits (two processes started together) used to pick
+    the same lazily chosen TensorBoard ``version_0``; the folder is now reserved at setup."""
+    from neuralmap.training.cli import _build_cli, _trainer_callbacks
+
+    clis = []
+    for _ in range(2):
+        callbacks, _report = _trainer_callbacks()
+        with redirect_stdout(io.StringIO()):
+            clis.append(_build_cli(_args(tile_path, tmp_path, "--trainer.max_epochs", "1"),
+                                   {}, callbacks))
+    dirs = [Path(cli.trainer.logger.log_dir) for cli in clis]
+    assert dirs == [tmp_path / "small" / "version_0", tmp_path / "small" / "version_1"]
+    assert all(d.is_dir() for d in dirs)
+
+
 # --------------------------------------------------------------------------- clear errors
 
 

@@ -5,10 +5,15 @@ policy=...)`` for the ones adapting Q). Families (one module each):
 
 * robust weights: :class:`IGG3` (SEEDS 002), :class:`Huber`, :class:`ChiSquareGate`;
 * adaptive factors on ``P⁻``: :class:`YangAdaptive` (SEEDS 002),
-  :class:`InnovationInflation` (SEEDS 003);
+  :class:`InnovationInflation` (SEEDS 003, the literal single-epoch form) and
+  :class:`WindowedInflation` (SEEDS 003 with a window of innovations, on a state block);
 * their composition :class:`RobustAdaptive` (SEEDS 002's RAF) and :class:`Compose`;
 * noise estimation: :class:`SageHusa` (SEEDS 002), :class:`QualityR` (SEEDS 003),
   :class:`VariationalAdaptive` (Huang et al., IEEE TAC 2018).
+
+Configs, studies and benchmarks build policies by name through :func:`make_policy`
+(:data:`POLICIES`: name → label, builder and the papers' defaults), e.g.
+``make_policy("raf")`` or ``make_policy("sage_husa", {"R_min": 1.0, "R_max": 1e4})``.
 
 The pure weight/factor functions (batched tensors in, tensors out) are exported too.
 
@@ -18,7 +23,7 @@ variational filter) belongs to one filter: call ``reset()`` before a new batch.
 
 Example::
 
-    raf = RobustAdaptive(k0=1.5, k1=4.5, c0=1.0, c1=3.0)
+    raf = RobustAdaptive(k0=1.5, k1=4.5, c0=1.5, c1=8.5)    # = make_policy("raf")
     diag = ekf.update(residual, H, R, policy=raf)       # diag.policy_info["yang.alpha"]
 
     quality = QualityR.altimeter()
@@ -31,7 +36,7 @@ Example::
     ekf.update(residual, H, R, policy=sh)
 """
 
-from neuralmap.filters.policies.compose import Compose
+from neuralmap.filters.policies.compose import Compose, quality_members
 from neuralmap.filters.policies.gate import ChiSquareGate, chi_square_threshold
 from neuralmap.filters.policies.huber import Huber, huber_weights
 from neuralmap.filters.policies.igg3 import IGG3, igg3_weights
@@ -42,13 +47,27 @@ from neuralmap.filters.policies.quality import (
     quality_factor,
     quality_membership,
 )
+from neuralmap.filters.policies.registry import (
+    POLICIES,
+    POLICY_NAMES,
+    PolicyInfo,
+    make_policy,
+    policy_label,
+)
 from neuralmap.filters.policies.robust_adaptive import RobustAdaptive
 from neuralmap.filters.policies.sage_husa import SageHusa, sage_husa_weight
 from neuralmap.filters.policies.variational import VariationalAdaptive
+from neuralmap.filters.policies.windowed_inflation import (
+    WindowedInflation,
+    windowed_inflation_factor,
+)
 from neuralmap.filters.policies.yang import YangAdaptive, yang_factor
 
 __all__ = [
     "IGG3",
+    "POLICIES",
+    "POLICY_NAMES",
+    "PolicyInfo",
     "ChiSquareGate",
     "Compose",
     "Huber",
@@ -58,13 +77,18 @@ __all__ = [
     "RobustAdaptive",
     "SageHusa",
     "VariationalAdaptive",
+    "WindowedInflation",
     "YangAdaptive",
     "chi_square_threshold",
     "huber_weights",
     "igg3_weights",
     "innovation_inflation_factor",
+    "make_policy",
+    "policy_label",
     "quality_factor",
+    "quality_members",
     "quality_membership",
     "sage_husa_weight",
+    "windowed_inflation_factor",
     "yang_factor",
 ]

@@ -26,7 +26,7 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies._common import and_keep
 from neuralmap.filters.policy import Adaptation, FilterPolicy, Posterior, UpdateContext
 
-__all__ = ["Compose"]
+__all__ = ["Compose", "quality_members"]
 
 
 def _sym(A: torch.Tensor) -> torch.Tensor:
@@ -78,10 +78,14 @@ class Compose(FilterPolicy):
             p.reset()
 
     def set_quality(self, values: object) -> None:
-        """Forwards quality indicators to the members that take them (:class:`QualityR`)."""
-        takers = [p for p in self.policies if hasattr(p, "set_quality")]
+        """Forwards quality indicators to the members that take them (:class:`QualityR`),
+        at any depth (a composition inside a composition, e.g. :class:`RobustAdaptive`)."""
+        takers = quality_members(self)
         if not takers:
-            raise NeuralMapError("Compose.set_quality: no member takes quality indicators.")
+            raise NeuralMapError(
+                "Compose.set_quality: no member takes quality indicators (add a QualityR, "
+                "e.g. QualityR.altimeter(), to the composition)."
+            )
         for p in takers:
             p.set_quality(values)  # type: ignore[attr-defined]
 
@@ -172,3 +176,20 @@ class Compose(FilterPolicy):
             if q is not None:
                 out = q
         return out
+
+
+def quality_members(policy: FilterPolicy | None) -> list[FilterPolicy]:
+    """Every policy inside ``policy`` (itself, or the members of a composition at any depth)
+    that reads quality indicators through ``set_quality``.
+
+    Args:
+        policy: A policy, a composition, or None.
+
+    Returns:
+        The leaf policies with a ``set_quality`` method, in application order.
+    """
+    if policy is None:
+        return []
+    if isinstance(policy, Compose):
+        return [found for inner in policy.policies for found in quality_members(inner)]
+    return [policy] if callable(getattr(policy, "set_quality", None)) else []

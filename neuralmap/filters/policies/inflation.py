@@ -9,6 +9,13 @@ Predicted-residual statistic and factor (SEEDS 003, reconstructed)::
 The filter's ``P⁻ = Φ P Φᵀ + Q`` is given, so ``α Φ P Φᵀ + Q = α P⁻ − (α − 1) Q`` with the
 Q of the last predict (``context.process_noise``); without a known Q the policy inflates
 the whole ``P⁻`` (``α P⁻``). α ≥ 1 keeps ``P⁻`` positive definite.
+
+Float32 caution: used alone (without a robust R policy), this factor inflates ``P⁻`` in
+every direction, including directions no measurement sees; their variances then grow
+epoch after epoch until, in float32, samples lose positive definiteness and the filter
+freezes them (``healthy`` False). Run it in float64 (the default), or restrict it to the observed block with
+:class:`~neuralmap.filters.policies.WindowedInflation`, and count the frozen samples
+(``(~ekf.healthy).sum()``).
 """
 
 from __future__ import annotations

@@ -14,6 +14,13 @@ and the two-segment form ``α = 1`` (Δ ≤ c0), ``c0 / Δ`` (Δ > c0). The gain
 ``K = (1/α) Σ_x̄ Aᵀ ((1/α) A Σ_x̄ Aᵀ + Σ̄)⁻¹`` is the Kalman gain with ``P⁻ / α``:
 the policy sets ``p_scale = 1/α`` (the prediction is trusted less when the residuals are
 too large for it). Typical constants: c0 = 1.0–1.5, c1 = 3.0–8.5.
+
+Float32 caution: used alone (without a robust R policy), this factor inflates ``P⁻`` in
+every direction, including directions no measurement sees; their variances then grow
+epoch after epoch until, in float32, samples lose positive definiteness and the filter
+freezes them (``healthy`` False). Run it in float64 (the default), or restrict it to the observed block with
+:class:`~neuralmap.filters.policies.WindowedInflation`, and count the frozen samples
+(``(~ekf.healthy).sum()``).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Monte Carlo navigation results: ``results.json``, ``report.md``, console table, claims check.
+"""The TAN study's results: ``results.json``, ``report.md``, console table, claims check.
 
 The evaluation front end (``evaluate.py``) collects one metrics dict per linearisation
 method (:func:`neuralmap.nav.metrics.navigation_metrics`), the posterior Cramér-Rao bound
@@ -9,8 +9,10 @@ The claims check compares the measured numbers with paper 004's statements (SEED
 "Claims"): position error < 50 m (1σ), velocity error < 5 m/s (1σ), the neural map about
 25 m (1σ) better than the classical linearisations; and with the toolkit's accuracy targets
 (neural RMSE over all runs within 1.5× the PCRB, divergence ≤ 2 %). A verdict needs a
-minimum number of converged runs per method (:data:`MIN_CONVERGED`); below it the claim
-reads "not enough converged runs (n of N)".
+minimum number of converged runs per method (the shared rule of
+:func:`neuralmap.studies.outputs.verdict`); below it the claim reads "not enough converged
+runs (n of N)". Numerical failures count against every claim (as not converged, and as
+failed runs in the divergence target).
 """
 
 from __future__ import annotations
@@ -24,6 +26,12 @@ import numpy as np
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import method_label
+from neuralmap.studies.outputs import (
+    MIN_CONVERGED,
+    NOT_MEASURED,
+    RunCounts,
+    verdict,
+)
 
 #: Per-method keys that every results.json carries.
 METHOD_KEYS: tuple[str, ...] = (
@@ -38,11 +46,6 @@ METHOD_KEYS: tuple[str, ...] = (
     "pcrb_ratio_all",
     "pcrb_ratio_converged",
 )
-
-#: Converged runs a method needs before a claim about it gets a verdict: at least this
-#: many, and at least this fraction of its on-map runs.
-MIN_CONVERGED = 30
-MIN_CONVERGED_FRACTION = 0.5
 
 #: Per-method count keys (integers).
 COUNT_KEYS: tuple[str, ...] = ("n_runs", "n_off_map", "n_diverged")
@@ -86,7 +89,7 @@ class ClaimCheck:
     Attributes:
         claim: The statement being checked (with its source).
         measured: The measured value(s), as text with units.
-        verdict: ``"holds"``, ``"partly"``, ``"does not hold"`` or ``"not checked"``.
+        verdict: A verdict of :data:`neuralmap.studies.outputs.VERDICTS`.
         detail: How the verdict was reached (the rule), and caveats.
     """
 
@@ -275,17 +278,16 @@ def check_claims(
             f"RMSE (all runs) ≤ {pcrb_ratio_target:g}× PCRB [toolkit target]",
             f"divergence ≤ {divergence_target:.0%} [toolkit target]",
         ]
-        return [ClaimCheck(c, "n/a", "not checked", reason) for c in claims]
+        return [ClaimCheck(c, "n/a", NOT_MEASURED, reason) for c in claims]
 
     checks: list[ClaimCheck] = []
 
     def enough(entry: Mapping[str, Any]) -> bool:
-        conv, incl = entry.get("n_converged") or 0, entry.get("n_included") or 0
-        return conv >= min_converged and conv >= MIN_CONVERGED_FRACTION * incl
+        return RunCounts.from_metrics(entry).enough(min_converged)
 
     def too_few(name: str, entry: Mapping[str, Any]) -> str:
-        return (f"not enough converged runs ({name}: {entry.get('n_converged', 0)} of "
-                f"{entry.get('n_included', 0)}; a verdict needs ≥ {min_converged} and half)")
+        text = RunCounts.from_metrics(entry).too_few(min_converged)
+        return text.replace("(", f"({name}: ", 1)
 
     sigma = neural.get("sigma_pos_m")
     if not enough(neural):
@@ -295,16 +297,13 @@ def check_claims(
                       f"velocity error < {vel_limit_mps:g} m/s (1σ) [SEEDS 004]",
                       f"neural map ≈ {improvement_m:g} m (1σ) better than classical [SEEDS 004]"):
             checks.append(ClaimCheck(claim, "n/a", few, "1σ over the converged runs only"))
-        return checks + _target_checks(neural, pcrb_ratio_target, divergence_target)
+        return checks + _target_checks(neural, pcrb_ratio_target, divergence_target,
+                                       min_converged)
     checks.append(
         ClaimCheck(
             claim=f"position error < {pos_limit_m:g} m (1σ) [SEEDS 004]",
             measured=f"1σ = {_fmt(sigma, '{:.1f}')} m",
-            verdict=(
-                "not checked"
-                if not _finite(sigma)
-                else ("holds" if sigma < pos_limit_m else "does not hold")
-            ),
+            verdict=verdict(sigma < pos_limit_m if _finite(sigma) else None),
             detail="1σ of the horizontal error of the non-diverged runs "
             f"({neural.get('n_converged', 'n/a')} of {neural.get('n_included', 'n/a')} on-map "
             "runs), last half of the flight"
@@ -320,11 +319,7 @@ def check_claims(
         ClaimCheck(
             claim=f"velocity error < {vel_limit_mps:g} m/s (1σ) [SEEDS 004]",
             measured=f"{_fmt(vel, '{:.2f}')} m/s",
-            verdict=(
-                "not checked"
-                if not _finite(vel)
-                else ("holds" if vel < vel_limit_mps else "does not hold")
-            ),
+            verdict=verdict(vel < vel_limit_mps if _finite(vel) else None),
             detail=vel_what,
         )
     )
@@ -346,62 +341,61 @@ def check_claims(
             ClaimCheck(
                 claim,
                 "n/a",
-                "not checked",
+                NOT_MEASURED,
                 "needs the neural method and at least one classical method with a finite 1σ",
             )
         )
     else:
         deltas = {name: value - sigma for name, value in classical.items()}
         mean_delta = float(np.mean(list(deltas.values())))
-        if min(deltas.values()) > 0 and mean_delta >= 0.5 * improvement_m:
-            verdict = "holds"
-        elif mean_delta >= 0.2 * improvement_m:
-            verdict = "partly"
-        else:
-            verdict = "does not hold"
+        improved = verdict(min(deltas.values()) > 0 and mean_delta >= 0.5 * improvement_m,
+                           partly=mean_delta >= 0.2 * improvement_m)
         per_method = ", ".join(f"{name} {delta:+.1f} m" for name, delta in deltas.items())
         checks.append(
             ClaimCheck(
                 claim,
                 f"mean Δ = {mean_delta:+.1f} m ({per_method})",
-                verdict,
+                improved,
                 "Δ = 1σ(classical) − 1σ(neural); holds when the neural map beats every "
                 f"classical method and mean Δ ≥ {0.5 * improvement_m:g} m, partly when "
                 f"mean Δ ≥ {0.2 * improvement_m:g} m",
             )
         )
 
-    return checks + _target_checks(neural, pcrb_ratio_target, divergence_target)
+    return checks + _target_checks(neural, pcrb_ratio_target, divergence_target,
+                                   min_converged)
 
 
 def _target_checks(neural: Mapping[str, Any], pcrb_ratio_target: float,
-                   divergence_target: float) -> list[ClaimCheck]:
-    """The toolkit's accuracy targets on the neural method (all runs count)."""
+                   divergence_target: float, min_converged: int) -> list[ClaimCheck]:
+    """The toolkit's accuracy targets on the neural method (all runs count; a numerical
+    failure counts as a failed run, and the RMSE of a method with numerical failures or
+    too few converged runs gets no verdict)."""
     ratio = neural.get("pcrb_ratio_all")
-    rate = neural.get("divergence_rate")
+    runs = RunCounts.from_metrics(neural)
+    rate = runs.bad_rate
+    if runs.failed:  # a numerically failed run has no error to average: it fails the target
+        ratio_verdict = verdict(False, runs=runs.all_runs(), min_converged=min_converged,
+                                detail=f"{runs.failed} of {runs.total} runs failed numerically")
+    else:
+        ratio_verdict = verdict(ratio <= pcrb_ratio_target if _finite(ratio) else None,
+                                runs=runs.all_runs(), min_converged=min_converged)
     return [
         ClaimCheck(
             claim=f"RMSE (all runs) ≤ {pcrb_ratio_target:g}× PCRB [toolkit target]",
             measured=f"all runs {_fmt(ratio, '{:.2f}')}, converged "
             f"{_fmt(neural.get('pcrb_ratio_converged'), '{:.2f}')}",
-            verdict=(
-                "not checked"
-                if not _finite(ratio)
-                else ("holds" if ratio <= pcrb_ratio_target else "does not hold")
-            ),
+            verdict=ratio_verdict,
             detail="horizontal RMSE over every on-map run / PCRB, both time-averaged over "
             "the last half (the converged-run ratio beside it)",
         ),
         ClaimCheck(
             claim=f"divergence ≤ {divergence_target:.0%} [toolkit target]",
-            measured=f"{_fmt(rate, '{:.1%}')} ({neural.get('n_diverged', 'n/a')} runs; "
-            f"{neural.get('n_unhealthy', 0)} numerical failures)",
-            verdict=(
-                "not checked"
-                if not _finite(rate)
-                else ("holds" if rate <= divergence_target else "does not hold")
-            ),
-            detail="fraction of on-map runs that diverged (rule below)",
+            measured=f"{_fmt(rate, '{:.1%}')} ({neural.get('n_diverged', 'n/a')} diverged + "
+            f"{runs.failed} numerical failures of {runs.total} on-map runs)",
+            verdict=verdict(rate <= divergence_target if _finite(rate) else None,
+                            runs=runs.all_runs(), min_converged=min_converged),
+            detail="fraction of on-map runs that diverged or failed numerically (rule below)",
         ),
     ]
 

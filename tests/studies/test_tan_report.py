@@ -13,7 +13,7 @@ import torch
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import atomic_write_json, to_jsonable
-from neuralmap.nav.report import (
+from neuralmap.studies.tan_report import (
     METHOD_KEYS,
     build_results,
     check_claims,
@@ -175,11 +175,11 @@ def test_claims_limits_and_targets() -> None:
 def test_claims_without_neural_or_with_missing_values() -> None:
     results = _results()
     results["methods"].pop("neural")
-    assert {c.verdict for c in check_claims(results)} == {"not checked"}
+    assert {c.verdict for c in check_claims(results)} == {"not measured"}
     results = _results()
     results["methods"]["neural"]["sigma_pos_m"] = None
     checks = check_claims(results)
-    assert checks[0].verdict == "not checked" and checks[2].verdict == "not checked"
+    assert checks[0].verdict == "not measured" and checks[2].verdict == "not measured"
 
 
 def test_claims_need_enough_converged_runs() -> None:
@@ -265,3 +265,24 @@ def test_plots_and_tensorboard(tmp_path: Path) -> None:
     assert [e.step for e in acc.Scalars("rmse_pos/neural")] == list(range(K1))
     assert set(tags["histograms"]) == {"final_pos_error/neural", "final_pos_error/bilinear"}
     assert tags["images"] == ["figures/err"]
+
+
+def test_numerical_failures_count_against_the_claims() -> None:
+    """A map with NaN parameters: every run fails numerically. The old rule read the
+    divergence rate over the finite runs only (``divergence_rate`` None → "holds" via
+    ``or 0``, or 0 of 2 finite runs) and called the divergence target held."""
+    results = _results(20.0, (60.0, 70.0))
+    results["methods"]["neural"].update(
+        n_included=0, n_nonfinite=98, n_converged=0, n_diverged=0, divergence_rate=None,
+        pcrb_ratio_all=None, sigma_pos_m=None)
+    checks = check_claims(results)
+    assert all(c.verdict.startswith("not enough converged runs (neural: 0 of 98, 98 failed")
+               for c in checks[:3])
+    assert checks[4].verdict == "does not hold" and "98 numerical failures" in checks[4].measured
+    # 40 of 98 unhealthy filters: not diverged by the rule, but failed runs
+    results = _results(20.0, (60.0, 70.0))
+    results["methods"]["neural"].update(n_unhealthy=40, n_converged=58, divergence_rate=0.0)
+    checks = check_claims(results)
+    assert checks[0].verdict == "holds"  # 58 converged runs still give the 1σ claims
+    assert checks[3].verdict.startswith("does not hold (40 of 98 runs failed numerically")
+    assert checks[4].verdict == "does not hold" and "40.8%" in checks[4].measured

@@ -1,0 +1,776 @@
+"""Batched point-mass tracker: a grid that follows the posterior, a Kalman part per cell.
+
+The point-mass filter of Bergman, Ljung and Gustafsson run for the whole flight, for N
+independent runs at once (no Python loop over runs or cells). The state splits into
+
+* ``s`` (2-D, the nonlinear part: in terrain navigation the horizontal INS error), carried
+  by masses ``w (N, G, G)`` on an affine lattice: cell ``(i, j)`` (row ``i``, column ``j``)
+  sits at ``centre + A · (j − h, i − h)``, ``h = (G − 1)/2``, ``A (N, 2, 2)`` the two cell
+  steps as columns (axis-aligned or along the posterior's principal axes);
+* ``z`` (``nz``-D, the conditionally linear part: altitude and velocity errors), a Gaussian
+  per cell (Rao-Blackwellised): ``z | cell ~ N(μ_cell, P)`` with ``μ (N, nz, G, G)`` and a
+  conditional covariance ``P (N, nz, nz)`` common to the run's cells (exact for the linear
+  Gaussian model, where the conditional covariance does not depend on ``s``).
+
+Model::
+
+    s_{k+1} = s_k + E z_k + u_k + w_s,   w_s ~ N(0, Q_s)
+    z_{k+1} = F z_k + w_z,               w_z ~ N(0, Q_z)
+    y_k     = g(s_k) + c·z_k + e_k,      e_k ~ N(0, R)
+
+with ``g`` given per cell by the caller (a callable on the cell coordinates, e.g. a
+:class:`~neuralmap.terrain.base.TerrainModel` lookup — a grid or a neural map).
+
+**Update** (per cell, a Kalman update of ``z``): ``ν = y − g − c·μ``, ``S = cᵀPc + R`` (the
+same in every cell), ``log w += −½ ν²/S``, ``μ += K ν``, ``P ← P − K S Kᵀ`` with
+``K = P c / S``. A run whose likelihood vanishes in every cell keeps its prior masses
+(counted in :attr:`PointMassTracker.recoveries`; never NaN).
+
+**Prediction** (exact in its first two moments). The shift ``E μ_cell`` of each cell is
+split by weighted least squares into an affine part ``D̄ + B (s − s̄)`` and a residual δ;
+the affine part moves the lattice itself (``A ← (I + B) A``, no interpolation), the
+residual and the transition noise ``E P Eᵀ + Q_s + Cov_w(δ)`` are convolved into the
+masses (separable kernels along the lattice axes, :func:`~neuralmap.filters.point_mass.
+gaussian_kernels`), and the per-cell ``z`` is carried by convolving ``w · (Fμ − L s)``
+with ``L = F P Eᵀ Σ_η⁻¹`` (the Gaussian conditional of ``z'`` on ``s'``). The exact
+predicted moments of the whole state — ``s̄ + D̄ + u``, ``Cov(s + E z) + Q_s``, ``F z̄``,
+``F Cov(z) Fᵀ + Q_z`` and ``Cov(s + E z, F z)`` — are then imposed by a moment
+correction (below), so the part of the kernel the separable convolution leaves out
+(its cross-axis covariance) and the residual-as-noise approximation change only the
+shape beyond the covariance, never the mean or covariance.
+
+**Grid following the posterior** (:meth:`PointMassTracker.regrid`): after each update a
+run moves to a new lattice centred on its mean, with cell steps ``span_sigma · σ_k / h``
+along each axis ``k`` (the principal axes of its covariance when ``principal_axes``,
+else x and y) — i.e. the spacing is ``1 / spacing_per_sigma`` of σ — when its mean left
+the central ``recentre_fraction`` of the lattice, its ``± span_sigma σ`` box pokes out,
+or it needs less than ``1 / resize_ratio`` of the lattice. Masses and ``w μ`` are
+resampled bilinearly (density interpolation), then the moment correction restores the
+pre-regrid moments. Guard against collapse: the half-width is never below
+``span_sigma · sqrt(σ² + q)`` (q: the next step's process noise) nor ``min_half_width``.
+
+**Moment correction** (:meth:`PointMassTracker.match_moments`): the lattice is moved by
+the affine map ``s ↦ m_t + T (s − m)`` with ``T = C^{-1/2}(C^{1/2} C_t C^{1/2})^{1/2}C^{-1/2}``
+(the symmetric map closest to the identity taking covariance C to C_t), which gives the
+masses mean ``m_t`` and covariance ``C_t`` exactly (an affine image of a discrete
+distribution); the per-cell means get ``μ ← μ + Δz̄ + G (s − m_t)`` so that ``z̄`` and
+``Cov(z, s)`` match, and ``P ← Cov_t(z) − Cov_w(μ)``. Mean and covariance are conserved to
+round-off (float64: ≤ 1e-9 of σ; tested against a fine fixed-grid reference).
+
+**Lost track**: the mean NIS over the last ``lost_window`` updates above
+``χ²_{lost_prob}(W) / W`` widens the run's grid (a Gaussian around its mean with the
+covariance times ``widen_factor²``, at least ``widen_min_sigma`` per axis); a run widened
+more than ``max_widenings`` times, or whose covariance stops being finite, is flagged
+``lost`` (counted and reported; its estimate is held, never NaN).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as nnf
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.point_mass import convolve_axis, gaussian_kernels
+
+__all__ = ["PointMassTracker", "TrackerConfig", "TrackerUpdate"]
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+#: Transition noise below this many cells (1σ, every run and axis) is left to the moment
+#: correction alone (an affine stretch of the lattice) instead of a blur.
+BLUR_MIN_CELLS = 1e-3
+
+#: Smallest variance (cells², along any direction) of masses the moment correction may
+#: stretch; a narrower posterior is replaced by its Gaussian fit on a fresh lattice.
+MIN_CELL_VARIANCE = 0.25
+
+#: Floor of the log ratio posterior / Gaussian fit in a regrid (relative to its peak).
+_LOG_R_FLOOR = -60.0
+
+
+@dataclass
+class TrackerConfig:
+    """Options of :class:`PointMassTracker`.
+
+    Attributes:
+        cells: Lattice cells per axis ``G`` (≥ 8).
+        span_sigma: Lattice half-width in posterior standard deviations per axis; the cell
+            step is ``span_sigma · σ / h`` (``h = (G−1)/2``): with the defaults (32 cells,
+            5 σ) a cell is σ / 3.1.
+        principal_axes: Align the lattice with the posterior's principal axes.
+        recentre_fraction: Regrid when the mean is farther from the centre than this
+            fraction of the half-width along a lattice axis.
+        resize_ratio: Regrid when the posterior needs less than ``1/resize_ratio`` of the
+            lattice's half-width along an axis (keeps the cells a fixed fraction of σ).
+        min_half_width: Smallest half-width (state units) of a lattice axis.
+        max_spacing: Largest cell step allowed (state units; None = unbounded): a prior
+            whose grid would need coarser cells raises (use more cells).
+        weight_floor: Masses below ``weight_floor × max`` are raised to it after an update.
+        lost_window: Updates in the lost-track NIS window (0 disables widening).
+        lost_prob: χ² probability of the lost-track threshold.
+        widen_factor: Standard-deviation factor of a widened grid.
+        widen_min_sigma: Smallest per-axis σ of a widened grid (state units).
+        max_widenings: Widenings after which a run counts as lost beyond recovery.
+    """
+
+    cells: int = 32
+    span_sigma: float = 5.0
+    principal_axes: bool = True
+    recentre_fraction: float = 0.1
+    resize_ratio: float = 1.5
+    min_half_width: float = 0.0
+    max_spacing: float | None = None
+    weight_floor: float = 0.0
+    lost_window: int = 10
+    lost_prob: float = 0.9999
+    widen_factor: float = 3.0
+    widen_min_sigma: float = 50.0
+    max_widenings: int = 3
+
+    def validate(self) -> TrackerConfig:
+        """Checks ranges; raises :class:`NeuralMapError` naming the bad option."""
+
+        def bad(key: str, need: str) -> NeuralMapError:
+            return NeuralMapError(f"TrackerConfig: '{key}' must be {need}, got {getattr(self, key)!r}.")
+
+        if isinstance(self.cells, bool) or not isinstance(self.cells, int) or self.cells < 8:
+            raise bad("cells", "an integer >= 8")
+        h = 0.5 * (self.cells - 1)
+        if not 1.0 <= self.span_sigma <= h:
+            raise bad("span_sigma", f"in [1, (cells-1)/2 = {h:g}] (a cell at most 1 σ wide)")
+        if not 0.0 < self.recentre_fraction < 1.0:
+            raise bad("recentre_fraction", "in (0, 1)")
+        if not self.resize_ratio > 1.0:
+            raise bad("resize_ratio", "> 1")
+        if not self.min_half_width >= 0.0:
+            raise bad("min_half_width", ">= 0")
+        if self.max_spacing is not None and not self.max_spacing > 0.0:
+            raise bad("max_spacing", "None or > 0")
+        if not 0.0 <= self.weight_floor < 1e-3:
+            raise bad("weight_floor", "in [0, 1e-3)")
+        for key in ("lost_window", "max_widenings"):
+            v = getattr(self, key)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise bad(key, "an integer >= 0")
+        if not 0.0 < self.lost_prob < 1.0:
+            raise bad("lost_prob", "in (0, 1)")
+        if not self.widen_factor >= 1.0:
+            raise bad("widen_factor", ">= 1")
+        if not self.widen_min_sigma >= 0.0:
+            raise bad("widen_min_sigma", ">= 0")
+        return self
+
+
+@dataclass
+class TrackerUpdate:
+    """Per-run results of one :meth:`PointMassTracker.update`.
+
+    Attributes:
+        nis: ``(N,)`` NIS of the mixture's predictive measurement ``(y − ŷ)² / S_y``.
+        innovation: ``(N,)`` ``y − ŷ``.
+        log_likelihood: ``(N,)`` log predictive density of ``y`` (−inf where it vanished).
+        recovered: ``(N,)`` bool, the likelihood vanished everywhere; prior masses kept.
+        applied: ``(N,)`` bool, the update changed the run.
+        widened: ``(N,)`` bool, the lost-track test widened the run's grid.
+    """
+
+    nis: torch.Tensor
+    innovation: torch.Tensor
+    log_likelihood: torch.Tensor
+    recovered: torch.Tensor
+    applied: torch.Tensor
+    widened: torch.Tensor
+
+
+@functools.lru_cache(maxsize=32)
+def _chi2_mean_threshold(prob: float, window: int) -> float:
+    """``χ²_prob(W) / W``: the mean NIS of W consistent updates exceeds it with 1 − prob."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(prob, window)) / window
+
+
+def _sym(m: torch.Tensor) -> torch.Tensor:
+    return 0.5 * (m + m.transpose(-1, -2))
+
+
+def _sqrtm2(c: torch.Tensor, inverse: bool = False) -> torch.Tensor:
+    """Symmetric square root (or inverse root) of SPD ``(..., n, n)`` via eigh."""
+    lam, v = torch.linalg.eigh(_sym(c))
+    lam = lam.clamp_min(torch.finfo(c.dtype).tiny)
+    r = lam.rsqrt() if inverse else lam.sqrt()
+    return (v * r[..., None, :]) @ v.transpose(-1, -2)
+
+
+def _cholesky_ok(c: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` bool: finite, symmetric and positive definite."""
+    finite = torch.isfinite(c).flatten(1).all(1)
+    safe = torch.where(finite[:, None, None], c, torch.eye(c.shape[-1], dtype=c.dtype,
+                                                          device=c.device))
+    sym = (safe - safe.transpose(1, 2)).abs().flatten(1).amax(1) <= (
+        1e-9 * safe.abs().flatten(1).amax(1) + 1e-300)
+    return finite & sym & (torch.linalg.cholesky_ex(safe.double()).info == 0)
+
+
+class _Moments:
+    """Moments of a lattice state in lattice coordinates (cheap separable sums).
+
+    Attributes: ``u (N, 2)`` mean cell coordinate, ``cu (N, 2, 2)`` its covariance (cells²),
+    ``mz (N, nz)``, ``czu (N, nz, 2)`` ``Cov_w(μ, o)``, ``czz_b (N, nz, nz)`` ``Cov_w(μ)``.
+    """
+
+    def __init__(self, w: torch.Tensor, mu: torch.Tensor, off: torch.Tensor) -> None:
+        n, nz = mu.shape[0], mu.shape[1]
+        wx, wy = w.sum(1), w.sum(2)  # along columns (x) and rows (y)
+        ux, uy = wx @ off, wy @ off
+        cxx = wx @ (off * off) - ux * ux
+        cyy = wy @ (off * off) - uy * uy
+        cxy = (w @ off) @ off - ux * uy
+        self.u = torch.stack([ux, uy], 1)
+        self.cu = torch.stack([torch.stack([cxx, cxy], 1), torch.stack([cxy, cyy], 1)], 1)
+        wmu = mu * w[:, None]
+        self.mz = wmu.sum((2, 3))
+        czx = wmu.sum(2) @ off - self.mz * ux[:, None]
+        czy = wmu.sum(3) @ off - self.mz * uy[:, None]
+        self.czu = torch.stack([czx, czy], 2)
+        second = torch.bmm(wmu.reshape(n, nz, -1), mu.reshape(n, nz, -1).transpose(1, 2))
+        self.czz_b = _sym(second - self.mz[:, :, None] * self.mz[:, None, :])
+
+
+class PointMassTracker:
+    """N Rao-Blackwellised point-mass trackers in lock-step (model: module docstring).
+
+    Args:
+        mean: ``(N, 2 + nz)`` prior mean ``[s, z]``.
+        cov: ``(2+nz, 2+nz)`` or ``(N, 2+nz, 2+nz)`` prior covariance (positive definite).
+        E: ``(2, nz)`` effect of ``z`` on the next ``s`` (e.g. ``T`` on the velocities).
+        F: ``(nz, nz)`` transition of ``z``.
+        c: ``(nz,)`` measurement row of ``z``.
+        config: :class:`TrackerConfig`.
+        dtype: float32 or float64 (default float64).
+
+    Attributes:
+        weights: ``(N, G, G)`` normalised cell masses.
+        lin_mean: ``(N, nz, G, G)`` per-cell mean of ``z``.
+        lin_cov: ``(N, nz, nz)`` conditional covariance of ``z`` (common to the cells).
+        centre: ``(N, 2)`` lattice centres; ``axes``: ``(N, 2, 2)`` cell steps (columns).
+        recoveries, regrids, widenings: ``(N,)`` int64 counters.
+        lost: ``(N,)`` bool, lost beyond recovery (module docstring).
+
+    Raises:
+        NeuralMapError: Bad shapes, a prior covariance that is not positive definite (names
+            the run), or a prior the lattice cannot hold at ``max_spacing``.
+    """
+
+    def __init__(self, mean: torch.Tensor, cov: torch.Tensor, *, E: torch.Tensor,
+                 F: torch.Tensor, c: torch.Tensor, config: TrackerConfig | None = None,
+                 dtype: torch.dtype = torch.float64) -> None:
+        self.config = (config or TrackerConfig()).validate()
+        if dtype not in (torch.float32, torch.float64):
+            raise NeuralMapError(f"PointMassTracker: dtype must be float32 or float64, got {dtype}.")
+        mean = torch.as_tensor(mean)
+        if mean.ndim != 2 or mean.shape[1] < 3 or mean.shape[0] < 1:
+            raise NeuralMapError(
+                f"PointMassTracker: mean must have shape (N, 2 + nz) with nz >= 1, got "
+                f"{tuple(mean.shape)}.")
+        self.dtype, self.device = dtype, mean.device
+        n, d = mean.shape
+        nz = d - 2
+        self.n_runs, self.nz, self.cells = n, nz, self.config.cells
+        self.half = 0.5 * (self.cells - 1)
+        kw = {"dtype": dtype, "device": self.device}
+        self.E = torch.as_tensor(E, **kw)
+        self.F = torch.as_tensor(F, **kw)
+        self.c = torch.as_tensor(c, **kw)
+        if tuple(self.E.shape) != (2, nz) or tuple(self.F.shape) != (nz, nz) or tuple(
+                self.c.shape) != (nz,):
+            raise NeuralMapError(
+                f"PointMassTracker: E, F, c must have shapes (2, {nz}), ({nz}, {nz}), ({nz},); "
+                f"got {tuple(self.E.shape)}, {tuple(self.F.shape)}, {tuple(self.c.shape)}.")
+        self._off = torch.arange(self.cells, **kw) - self.half
+        self.recoveries = torch.zeros(n, dtype=torch.int64, device=self.device)
+        self.regrids = torch.zeros_like(self.recoveries)
+        self.widenings = torch.zeros_like(self.recoveries)
+        self.lost = torch.zeros(n, dtype=torch.bool, device=self.device)
+        self._nis_win = torch.zeros(n, self.config.lost_window or 1, **kw)
+        self._nis_count = torch.zeros(n, dtype=torch.int64, device=self.device)
+        self._step = 0
+        self._q_next = torch.zeros(n, 2, **kw)
+        self.reset(mean, cov)
+
+    # ------------------------------------------------------------------ set-up
+    def reset(self, mean: torch.Tensor, cov: torch.Tensor, mask: torch.Tensor | None = None) -> None:
+        """(Re-)initialises runs from a Gaussian prior ``N(mean, cov)`` over ``[s, z]``.
+
+        Args:
+            mean: ``(N, 2 + nz)``.
+            cov: ``(2+nz, 2+nz)`` or ``(N, 2+nz, 2+nz)``, symmetric positive definite.
+            mask: ``(N,)`` bool, runs to reset (None = all).
+
+        Raises:
+            NeuralMapError: ``cov`` not positive definite (names the first bad run); a prior
+                that needs cells coarser than ``max_spacing``.
+        """
+        n, d, kw = self.n_runs, 2 + self.nz, {"dtype": self.dtype, "device": self.device}
+        mean = torch.as_tensor(mean, **kw).expand(n, d)
+        cov = torch.as_tensor(cov, **kw)
+        if tuple(cov.shape) not in ((d, d), (n, d, d)):
+            raise NeuralMapError(
+                f"PointMassTracker: cov must have shape ({d}, {d}) or ({n}, {d}, {d}), got "
+                f"{tuple(cov.shape)}.")
+        cov = cov.expand(n, d, d)
+        if not bool(torch.isfinite(mean).all()):
+            raise NeuralMapError("PointMassTracker: the prior mean has non-finite entries.")
+        ok = _cholesky_ok(cov)
+        if not bool(ok.all()):
+            first = int((~ok).nonzero()[0])
+            raise NeuralMapError(
+                f"PointMassTracker: the prior covariance of run {first} is not symmetric "
+                f"positive definite (diagonal {cov[first].diagonal().tolist()}). Pass variances "
+                "> 0 and correlations inside (-1, 1).")
+        full = self._gaussian_state(mean, cov)
+        if mask is None:
+            self._set(*full)
+        else:
+            self._set_rows(mask, *full)
+
+    def _gaussian_state(self, mean: torch.Tensor, cov: torch.Tensor,
+                        q: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        """Lattice, masses and linear part of ``N(mean, cov)`` (moments matched exactly)."""
+        ms, mz = mean[:, :2], mean[:, 2:]
+        css, czs, czz = cov[:, :2, :2], cov[:, 2:, :2], cov[:, 2:, 2:]
+        centre, axes = self._lattice_for(ms, css, torch.zeros_like(ms) if q is None else q)
+        inv_a = torch.linalg.inv(axes)
+        cu = _sym(inv_a @ css @ inv_a.transpose(1, 2))
+        w = self._normalised(self._log_gauss(torch.zeros_like(ms), cu))
+        gu = czs @ torch.linalg.solve(css, axes)  # (N, nz, 2): z-gain per cell step
+        mu = mz[:, :, None, None] + self._affine(gu, torch.zeros_like(ms))
+        P = _sym(czz - czs @ torch.linalg.solve(css, czs.transpose(1, 2)))
+        return self._matched((w, mu, P, centre, axes), ms, css, mz, czz, czs, fallback=False)
+
+    def _lattice_for(self, mean: torch.Tensor, cov: torch.Tensor,
+                     q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Centre ``(N, 2)`` and cell steps ``(N, 2, 2)`` of a lattice for ``N(mean, cov)``;
+        ``q (N, 2)``: process noise of the next step (collapse guard)."""
+        cfg = self.config
+        if cfg.principal_axes:
+            lam, vec = torch.linalg.eigh(_sym(cov))
+            qa = torch.einsum("nki,nk->ni", vec * vec, q)  # q projected on the axes
+        else:
+            lam = torch.diagonal(cov, dim1=1, dim2=2)
+            vec = torch.eye(2, dtype=cov.dtype, device=cov.device).expand_as(cov)
+            qa = q
+        halfw = (cfg.span_sigma * (lam.clamp_min(0.0) + qa).sqrt()).clamp_min(cfg.min_half_width)
+        step = halfw / self.half
+        if cfg.max_spacing is not None and bool((step > cfg.max_spacing * (1 + 1e-9)).any()):
+            bad = int((step > cfg.max_spacing * (1 + 1e-9)).any(1).nonzero()[0])
+            raise NeuralMapError(
+                f"PointMassTracker: run {bad} needs cells of {step[bad].max().item():.4g} to hold "
+                f"± {cfg.span_sigma:g} σ on {self.cells} cells, above max_spacing "
+                f"{cfg.max_spacing:g}. Increase 'cells' (or max_spacing).")
+        if not bool(torch.isfinite(step).all()) or not bool((step > 0).all()):
+            raise NeuralMapError("PointMassTracker: a lattice with zero or non-finite cells; the "
+                                 "covariance must be finite and positive definite.")
+        return mean.clone(), vec * step[:, None, :]
+
+    # ------------------------------------------------------------------ lattice helpers
+    def _log_gauss(self, u: torch.Tensor, cu: torch.Tensor) -> torch.Tensor:
+        """``(N, G, G)`` ``log N(o; u, cu)`` (cell coordinates) up to a per-run constant."""
+        inv = torch.linalg.inv(cu)
+        dx = (self._off[None, :] - u[:, 0:1])[:, None, :]  # (N, 1, G) along columns
+        dy = (self._off[None, :] - u[:, 1:2])[:, :, None]  # (N, G, 1) along rows
+        a, b, c = (inv[:, i, j, None, None] for i, j in ((0, 0), (0, 1), (1, 1)))
+        return -0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+
+    def _affine(self, g: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """``(N, nz, G, G)`` ``g · (o − u)`` for ``g (N, nz, 2)`` (cell coordinates)."""
+        dx = (self._off[None, :] - u[:, 0:1])[:, None, None, :]
+        dy = (self._off[None, :] - u[:, 1:2])[:, None, :, None]
+        return g[:, :, 0, None, None] * dx + g[:, :, 1, None, None] * dy
+
+    @staticmethod
+    def _normalised(logw: torch.Tensor) -> torch.Tensor:
+        w = (logw - logw.amax((1, 2), keepdim=True)).exp()
+        return w / w.sum((1, 2), keepdim=True)
+
+    def _points(self, centre: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
+        """``(N, G, G, 2)`` cell coordinates of lattices ``(centre, axes)``."""
+        o = self._off
+        col = axes[:, None, None, :, 0] * o[None, None, :, None]
+        row = axes[:, None, None, :, 1] * o[None, :, None, None]
+        return centre[:, None, None, :] + col + row
+
+    def _set(self, w, mu, P, centre, axes) -> None:
+        self.weights, self.lin_mean, self.lin_cov, self.centre, self.axes = w, mu, P, centre, axes
+
+    def _set_rows(self, mask, w, mu, P, centre, axes) -> None:
+        m1, m2, m3 = (mask.view(-1, *([1] * k)) for k in (1, 2, 3))
+        self.weights = torch.where(m2, w, self.weights)
+        self.lin_mean = torch.where(m3, mu, self.lin_mean)
+        self.lin_cov = torch.where(m2, P, self.lin_cov)
+        self.centre = torch.where(m1, centre, self.centre)
+        self.axes = torch.where(m2, axes, self.axes)
+
+    def _state(self) -> tuple[torch.Tensor, ...]:
+        return self.weights, self.lin_mean, self.lin_cov, self.centre, self.axes
+
+    @staticmethod
+    def _state_moments(lm: _Moments, P: torch.Tensor, centre: torch.Tensor, axes: torch.Tensor
+                       ) -> tuple[torch.Tensor, ...]:
+        """``ms, css, mz, czz, czs`` in state units from lattice moments."""
+        ms = centre + (axes @ lm.u[:, :, None]).squeeze(-1)
+        css = _sym(axes @ lm.cu @ axes.transpose(1, 2))
+        czs = lm.czu @ axes.transpose(1, 2)
+        return ms, css, lm.mz, _sym(P + lm.czz_b), czs
+
+    # ------------------------------------------------------------------ moments
+    def points(self) -> torch.Tensor:
+        """``(N, G, G, 2)`` cell coordinates in the state space."""
+        return self._points(self.centre, self.axes)
+
+    def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean ``(N, 2+nz)`` and covariance ``(N, 2+nz, 2+nz)`` of the whole state."""
+        lm = _Moments(self.weights, self.lin_mean, self._off)
+        ms, css, mz, czz, czs = self._state_moments(lm, self.lin_cov, self.centre, self.axes)
+        mean = torch.cat([ms, mz], 1)
+        top = torch.cat([css, czs.transpose(1, 2)], 2)
+        bottom = torch.cat([czs, czz], 2)
+        return mean, _sym(torch.cat([top, bottom], 1))
+
+    def _matched(self, state: tuple[torch.Tensor, ...], ms_t, css_t, mz_t, czz_t, czs_t,
+                 fallback: bool = True) -> tuple[torch.Tensor, ...]:
+        """``state`` with its moments set to the targets exactly (module docstring).
+
+        A run whose masses sit in fewer cells than an affine map can stretch (covariance
+        below ``MIN_CELL_VARIANCE`` cells² along an axis: a posterior narrower than the
+        cells) gets the Gaussian with the target moments on a fresh lattice instead.
+        """
+        w, mu, P, centre, axes = state
+        lm = _Moments(w, mu, self._off)
+        thin = torch.linalg.eigvalsh(lm.cu)[:, 0] < MIN_CELL_VARIANCE
+        if fallback and bool(thin.any()):
+            idx = thin.nonzero().reshape(-1)
+            mean_t = torch.cat([ms_t, mz_t], 1).index_select(0, idx)
+            cov_t = torch.cat([torch.cat([css_t, czs_t.transpose(1, 2)], 2),
+                               torch.cat([czs_t, czz_t], 2)], 1).index_select(0, idx)
+            gauss = self._gaussian_state(mean_t, _sym(cov_t))
+            state = tuple(t.index_copy(0, idx, g) for t, g in zip(state, gauss, strict=True))
+            w, mu, P, centre, axes = state
+            lm = _Moments(w, mu, self._off)
+        css = _sym(axes @ lm.cu @ axes.transpose(1, 2))
+        root = _sqrtm2(css)
+        iroot = _sqrtm2(css, inverse=True)
+        T = iroot @ _sqrtm2(root @ css_t @ root) @ iroot
+        ok = torch.isfinite(T).flatten(1).all(1) & _cholesky_ok(css) & _cholesky_ok(_sym(css_t))
+        eye = torch.eye(2, dtype=w.dtype, device=w.device).expand_as(T)
+        T = torch.where(ok[:, None, None], T, eye)
+        axes = T @ axes
+        centre = ms_t - (axes @ lm.u[:, :, None]).squeeze(-1)
+        # z: mean shift and a per-cell-step gain gu so that Cov(z, s) hits its target
+        want = torch.linalg.solve(axes, czs_t.transpose(1, 2)).transpose(1, 2)  # czs_t A^-T
+        gu = torch.linalg.solve(lm.cu, (want - lm.czu).transpose(1, 2)).transpose(1, 2)
+        mu = mu + (mz_t - lm.mz)[:, :, None, None] + self._affine(gu, lm.u)
+        czz_b = (lm.czz_b + gu @ lm.czu.transpose(1, 2) + lm.czu @ gu.transpose(1, 2)
+                 + gu @ lm.cu @ gu.transpose(1, 2))
+        P = _sym(czz_t - czz_b)
+        lam, vec = torch.linalg.eigh(P)
+        floor = 1e-12 * lam.abs().amax(-1, keepdim=True).clamp_min(1e-300)
+        if bool((lam < floor).any()):  # round-off: keep the Kalman part positive definite
+            P = _sym((vec * lam.clamp_min(floor)[:, None, :]) @ vec.transpose(1, 2))
+        return w, mu, P, centre, axes
+
+    def match_moments(self, mean: torch.Tensor, cov: torch.Tensor) -> None:
+        """Imposes mean ``(N, 2+nz)`` and covariance ``(N, 2+nz, 2+nz)`` exactly (affine
+        lattice map + per-cell linear-part shift; module docstring)."""
+        self._set(*self._matched(self._state(), mean[:, :2], cov[:, :2, :2], mean[:, 2:],
+                                 cov[:, 2:, 2:], cov[:, 2:, :2]))
+
+    def _refit_thin(self) -> None:
+        """Runs whose masses sit in too few cells (``MIN_CELL_VARIANCE``): their Gaussian
+        fit, with the cells' own spread ``A Aᵀ / 12`` added, on a fresh lattice."""
+        lm = _Moments(self.weights, self.lin_mean, self._off)
+        thin = torch.linalg.eigvalsh(lm.cu)[:, 0] < MIN_CELL_VARIANCE
+        if not bool(thin.any()):
+            return
+        idx = thin.nonzero().reshape(-1)
+        axes = self.axes.index_select(0, idx)
+        cu = lm.cu.index_select(0, idx) + torch.eye(2, dtype=self.dtype,
+                                                    device=self.device) / 12.0
+        ms = self.centre.index_select(0, idx) + (axes @ lm.u[idx, :, None]).squeeze(-1)
+        css = _sym(axes @ cu @ axes.transpose(1, 2))
+        czs = lm.czu.index_select(0, idx) @ axes.transpose(1, 2)
+        czz = _sym(self.lin_cov.index_select(0, idx) + lm.czz_b.index_select(0, idx))
+        mean = torch.cat([ms, lm.mz.index_select(0, idx)], 1)
+        cov = torch.cat([torch.cat([css, czs.transpose(1, 2)], 2), torch.cat([czs, czz], 2)], 1)
+        gauss = self._gaussian_state(mean, _sym(cov))
+        for name, value in zip(("weights", "lin_mean", "lin_cov", "centre", "axes"), gauss,
+                               strict=True):
+            getattr(self, name).index_copy_(0, idx, value)
+        self.regrids += thin.long()
+
+    # ------------------------------------------------------------------ predict
+    def predict(self, *, Q_s: torch.Tensor, Q_z: torch.Tensor,
+                shift: torch.Tensor | None = None) -> None:
+        """Time update of the model in the module docstring.
+
+        Args:
+            Q_s: ``(2, 2)`` or ``(N, 2, 2)`` process noise of ``s``.
+            Q_z: ``(nz, nz)`` or ``(N, nz, nz)`` process noise of ``z``.
+            shift: ``(N, 2)`` known displacement ``u`` of ``s`` (None = 0).
+        """
+        n, nz = self.n_runs, self.nz
+        kw = {"dtype": self.dtype, "device": self.device}
+        qs = torch.as_tensor(Q_s, **kw).expand(n, 2, 2)
+        qz = torch.as_tensor(Q_z, **kw).expand(n, nz, nz)
+        self._refit_thin()
+        w, mu, P, centre, axes = self._state()
+        lm = _Moments(w, mu, self._off)
+        ms, css, mz, czz, czs = self._state_moments(lm, P, centre, axes)
+        E, F = self.E, self.F
+        # exact predicted moments
+        u = torch.zeros(n, 2, **kw) if shift is None else torch.as_tensor(shift, **kw).expand(n, 2)
+        ms_t = ms + mz @ E.T + u
+        csz = czs.transpose(1, 2)
+        css_t = _sym(css + E @ czs + csz @ E.T + E @ czz @ E.T + qs)
+        mz_t = mz @ F.T
+        czz_t = _sym(F @ czz @ F.T + qz)
+        czs_t = F @ (czs + czz @ E.T)
+        # the per-cell z mean = its affine fit in the cell coordinates + a residual; the
+        # affine part of the shift E μ moves the lattice (exact), the residual's spread is
+        # transition noise
+        gzu = torch.linalg.solve(lm.cu, lm.czu.transpose(1, 2)).transpose(1, 2)  # (N, nz, 2)
+        cz_res = _sym(lm.czz_b - gzu @ lm.czu.transpose(1, 2))
+        B_u = E @ gzu  # shift per cell step (N, 2, 2)
+        axes_new = axes + B_u
+        centre_new = ms_t - (axes_new @ lm.u[:, :, None]).squeeze(-1)
+        sig_eta = _sym(E @ P @ E.T + qs + E @ cz_res @ E.T)
+        # blur by separable kernels of exact variance along the lattice axes; the cross-axis
+        # part and any remainder are carried by the moment correction (an affine stretch)
+        inv_a = torch.linalg.inv(axes_new)
+        k_cells = inv_a @ sig_eta @ inv_a.transpose(1, 2)
+        var_c = torch.diagonal(k_cells, dim1=1, dim2=2).clamp_min(0.0)  # (N, 2) x, y
+        w_new, mu_new = w, mu
+        if float(var_c.max()) >= BLUR_MIN_CELLS**2:
+            sig_c = var_c.sqrt()
+            half_len = min(max(1, int(math.ceil(4.0 * float(sig_c.max())))), self.cells - 1)
+            affine = mz[:, :, None, None] + self._affine(gzu, lm.u)
+            chans = torch.cat([w[:, None], w[:, None] * (mu - affine)], 1)
+            chans = convolve_axis(chans, gaussian_kernels(sig_c[:, 0], half_len), half_len, dim=3)
+            chans = convolve_axis(chans, gaussian_kernels(sig_c[:, 1], half_len), half_len, dim=2)
+            w_new = chans[:, 0].clamp_min(0.0)
+            w_new = w_new / w_new.sum((1, 2), keepdim=True).clamp_min(torch.finfo(self.dtype).tiny)
+            eps = (1e-13 * chans[:, :1].amax((2, 3), keepdim=True)).clamp_min(
+                torch.finfo(self.dtype).tiny)
+            mu_new = chans[:, 1:] / (chans[:, :1].clamp_min(0.0) + eps) + affine
+        mu_new = torch.einsum("yz,nzij->nyij", F, mu_new) if nz > 1 or bool(
+            (F != 1).any()) else mu_new
+        state = self._matched((w_new, mu_new, P, centre_new, axes_new), ms_t, css_t, mz_t,
+                              czz_t, czs_t)
+        self._set(*state)
+        self._guard()
+        self._q_next = torch.diagonal(qs + E @ P @ E.T, dim1=1, dim2=2)
+
+    # ------------------------------------------------------------------ update
+    def update(self, measurement: torch.Tensor,
+               predicted: torch.Tensor | Callable[[torch.Tensor], torch.Tensor], *,
+               R: float | torch.Tensor, mask: torch.Tensor | None = None,
+               cell_variance: torch.Tensor | None = None, regrid: bool = True) -> TrackerUpdate:
+        """Measurement update ``y = g(s) + c·z + e`` in every cell, then the regrid.
+
+        Args:
+            measurement: ``(N,)`` ``y`` (NaN = no measurement for that run).
+            predicted: ``(N, G, G)`` ``g`` at the cells, or a callable on the cell
+                coordinates ``(N, G, G, 2)``; non-finite cells get zero likelihood.
+            R: Measurement variance (> 0), float or ``(N,)``.
+            mask: ``(N,)`` bool, runs to update (None = all).
+            cell_variance: ``(N, G, G)`` spread of ``g`` over each cell, added to ``S`` in
+                the likelihood only (a coarse lattice cannot step over a narrow peak).
+            regrid: Move runs whose posterior no longer fits their lattice.
+
+        Returns:
+            :class:`TrackerUpdate`.
+        """
+        n, g, kw = self.n_runs, self.cells, {"dtype": self.dtype, "device": self.device}
+        y = torch.as_tensor(measurement, **kw).expand(n)
+        gval = predicted(self.points()) if callable(predicted) else predicted
+        gval = torch.as_tensor(gval).to(**kw)
+        if tuple(gval.shape) != (n, g, g):
+            raise NeuralMapError(
+                f"PointMassTracker.update: predicted must have shape ({n}, {g}, {g}), got "
+                f"{tuple(gval.shape)}.")
+        r = torch.as_tensor(R, **kw).expand(n)
+        if not bool((r > 0).all()) or not bool(torch.isfinite(r).all()):
+            raise NeuralMapError("PointMassTracker.update: R must be finite and > 0 for every run.")
+        w, mu, P = self.weights, self.lin_mean, self.lin_cov
+        c = self.c
+        pc = P @ c  # (N, nz)
+        s_run = (pc @ c) + r  # (N,)
+        yhat_cell = gval + torch.einsum("z,nzij->nij", c, mu)
+        nu = y[:, None, None] - yhat_cell
+        finite_cell = torch.isfinite(nu)
+        yhat_c = torch.where(finite_cell, yhat_cell, 0.0)
+        w_ok = torch.where(finite_cell, w, 0.0)
+        mass_ok = w_ok.sum((1, 2)).clamp_min(torch.finfo(self.dtype).tiny)
+        yhat = (w_ok * yhat_c).sum((1, 2)) / mass_ok
+        s_y = (w_ok * (yhat_c - yhat[:, None, None]) ** 2).sum((1, 2)) / mass_ok + s_run
+        innov = y - yhat
+        nis = innov * innov / s_y
+        if cell_variance is None:
+            s_cell = s_run[:, None, None].expand_as(nu)
+        else:
+            s_cell = torch.as_tensor(cell_variance).to(**kw).clamp_min(0.0) + s_run[:, None, None]
+        loglik = -0.5 * (nu * nu / s_cell + torch.log(s_cell / s_run[:, None, None]))
+        loglik = torch.where(finite_cell, loglik, -math.inf)
+        logw = w.clamp_min(0.0).log() + loglik
+        peak = logw.amax((1, 2), keepdim=True)
+        fin = torch.isfinite(peak).reshape(n)
+        wn = (logw - torch.where(torch.isfinite(peak), peak, 0.0)).exp()
+        total = wn.sum((1, 2))
+        log_lik = torch.where(fin, -0.5 * (_LOG_2PI + s_run.log()) + peak.reshape(n)
+                              + total.log(), -math.inf)
+        use = fin & (total > 0) & torch.isfinite(total) & torch.isfinite(y)
+        active = use if mask is None else use & mask
+        recovered = ~use & torch.isfinite(y)
+        if mask is not None:
+            recovered = recovered & mask
+        self.recoveries += recovered.long()
+        wn = wn / torch.where(use, total, 1.0)[:, None, None]
+        if self.config.weight_floor > 0:
+            wn = wn.clamp_min(self.config.weight_floor * wn.amax((1, 2), keepdim=True))
+            wn = wn / wn.sum((1, 2), keepdim=True)
+        gain = pc / s_run[:, None]  # (N, nz)
+        nu0 = torch.where(finite_cell, nu, 0.0)
+        mu_new = mu + gain[:, :, None, None] * nu0[:, None]
+        P_new = _sym(P - gain[:, :, None] * gain[:, None, :] * s_run[:, None, None])
+        a3, a4 = active[:, None, None], active[:, None, None, None]
+        self.weights = torch.where(a3, wn, w)
+        self.lin_mean = torch.where(a4, mu_new, mu)
+        self.lin_cov = torch.where(a3, P_new, P)
+        widened = self._lost_test(nis, active)
+        if regrid:
+            self.regrid()
+        return TrackerUpdate(nis=torch.where(active, nis, math.nan), innovation=innov,
+                             log_likelihood=log_lik, recovered=recovered, applied=active,
+                             widened=widened)
+
+    def _lost_test(self, nis: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
+        """Widens runs whose mean NIS over the window says the track is lost."""
+        cfg = self.config
+        widened = torch.zeros_like(active)
+        if cfg.lost_window <= 0:
+            return widened
+        slot = self._step % cfg.lost_window
+        self._step += 1
+        self._nis_win[:, slot] = torch.where(active, nis, self._nis_win[:, slot])
+        self._nis_count += active.long()
+        full = self._nis_count >= cfg.lost_window
+        thr = _chi2_mean_threshold(cfg.lost_prob, cfg.lost_window)
+        widened = full & (self._nis_win.mean(1) > thr) & ~self.lost
+        if bool(widened.any()):
+            mean, cov = self.moments()
+            d = cov.shape[-1]
+            infl = cov.clone()
+            infl[:, :2, :2] = cov[:, :2, :2] * cfg.widen_factor**2 + torch.eye(
+                2, dtype=cov.dtype, device=cov.device) * cfg.widen_min_sigma**2
+            infl = _sym(infl + 1e-9 * torch.eye(d, dtype=cov.dtype, device=cov.device))
+            ok = _cholesky_ok(infl)
+            infl = torch.where(ok[:, None, None], infl, torch.eye(d, dtype=cov.dtype,
+                                                                  device=cov.device))
+            self._set_rows(widened, *self._gaussian_state(mean, infl))
+            self.widenings += widened.long()
+            self._nis_count = torch.where(widened, 0, self._nis_count)
+            self.lost |= self.widenings > cfg.max_widenings
+        return widened
+
+    # ------------------------------------------------------------------ regrid
+    def regrid(self, force: torch.Tensor | None = None) -> torch.Tensor:
+        """Moves runs whose posterior no longer fits their lattice (module docstring).
+
+        Args:
+            force: ``(N,)`` bool, runs to move regardless of the rule.
+
+        Returns:
+            ``(N,)`` bool, runs moved.
+        """
+        cfg = self.config
+        self._refit_thin()
+        w, mu, P, centre, axes = self._state()
+        lm = _Moments(w, mu, self._off)
+        inv_a = torch.linalg.inv(axes)
+        u, k = lm.u, lm.cu  # mean and covariance in cells
+        sig = torch.diagonal(k, dim1=1, dim2=2).clamp_min(0.0).sqrt()
+        qc = torch.diagonal(inv_a @ torch.diag_embed(self._q_next) @ inv_a.transpose(1, 2),
+                            dim1=1, dim2=2)
+        need = cfg.span_sigma * (sig**2 + qc).sqrt()
+        h = self.half
+        rho = k[:, 0, 1] / (sig[:, 0] * sig[:, 1]).clamp_min(1e-300)
+        off_centre = (u.abs() > cfg.recentre_fraction * h).any(1)
+        pokes_out = (u.abs() + need > h * (1 + 1e-6)).any(1)
+        too_coarse = (need * cfg.resize_ratio < h).any(1)
+        if cfg.min_half_width > 0:  # a guarded lattice at its floor is not "too coarse"
+            floor_cells = cfg.min_half_width / torch.linalg.norm(axes, dim=1)
+            too_coarse = too_coarse & ~(floor_cells >= h * (1 - 1e-6)).all(1)
+        move = off_centre | pokes_out | too_coarse | ~torch.isfinite(need).all(1)
+        if cfg.principal_axes:
+            move = move | (rho.abs() > 0.5)
+        if force is not None:
+            move = move | force
+        move = move & _cholesky_ok(lm.cu)
+        if not bool(move.any()):
+            return move
+        idx = move.nonzero().reshape(-1)
+        w_o, mu_o, P_o, c_o, a_o = (t.index_select(0, idx) for t in (w, mu, P, centre, axes))
+        u_o, cu_o = u.index_select(0, idx), k.index_select(0, idx)
+        czu_o, mz_o = lm.czu.index_select(0, idx), lm.mz.index_select(0, idx)
+        ms = c_o + (a_o @ u_o[:, :, None]).squeeze(-1)
+        css = _sym(a_o @ cu_o @ a_o.transpose(1, 2))
+        czs = czu_o @ a_o.transpose(1, 2)
+        czz = _sym(P_o + lm.czz_b.index_select(0, idx))
+        c_n, a_n = self._lattice_for(ms, css, self._q_next.index_select(0, idx))
+        # old cell coordinates of the new cells: o_old = A_o⁻¹ (c_n − c_o) + A_o⁻¹ A_n o
+        ia_o = torch.linalg.inv(a_o)
+        base = (ia_o @ (c_n - c_o)[:, :, None]).squeeze(-1)
+        lin = ia_o @ a_n
+        o = self._off
+        uv = (base[:, None, None, :] + lin[:, None, None, :, 0] * o[None, None, :, None]
+              + lin[:, None, None, :, 1] * o[None, :, None, None]) / h
+        # Gaussian-factored resampling: w = N(o; u, C_u) · r(o); the Gaussian factor is
+        # evaluated exactly at the new cells, only log r (0 for a Gaussian posterior) and
+        # the residual of the per-cell means from their affine fit (0 for a linear-Gaussian
+        # model) are interpolated bilinearly: a Gaussian posterior moves without error
+        tiny = torch.finfo(self.dtype).tiny
+        log_r = w_o.clamp_min(tiny).log() - self._log_gauss(u_o, cu_o)
+        log_r = (log_r - log_r.amax((1, 2), keepdim=True)).clamp_min(_LOG_R_FLOOR)
+        gzu = torch.linalg.solve(cu_o, czu_o.transpose(1, 2)).transpose(1, 2)
+        resid = mu_o - mz_o[:, :, None, None] - self._affine(gzu, u_o)
+        chans = torch.cat([log_r[:, None], resid], 1)
+        out = nnf.grid_sample(chans, uv.to(chans.dtype), mode="bilinear", padding_mode="border",
+                              align_corners=True)
+        cu_n = _sym(torch.linalg.inv(a_n) @ css @ torch.linalg.inv(a_n).transpose(1, 2))
+        zero = torch.zeros_like(ms)
+        w_n = self._normalised(out[:, 0] + self._log_gauss(zero, cu_n))
+        g_n = czs @ torch.linalg.solve(css, a_n)  # z-gain per new cell step
+        mu_n = out[:, 1:] + mz_o[:, :, None, None] + self._affine(g_n, zero)
+        new = self._matched((w_n, mu_n, P_o, c_n, a_n), ms, css, mz_o, czz, czs)
+        for name, value in zip(("weights", "lin_mean", "lin_cov", "centre", "axes"), new,
+                               strict=True):
+            getattr(self, name).index_copy_(0, idx, value)
+        self.regrids += move.long()
+        return move
+
+    def _guard(self) -> None:
+        """Runs whose moments stopped being finite are lost: reset to a wide Gaussian."""
+        mean, cov = self.moments()
+        bad = ~(torch.isfinite(mean).all(1) & _cholesky_ok(cov)) & ~self.lost
+        if bool(bad.any()):
+            d = cov.shape[-1]
+            eye = torch.eye(d, dtype=cov.dtype, device=cov.device)
+            safe_mean = torch.where(torch.isfinite(mean), mean, 0.0)
+            wide = eye.expand_as(cov) * max(self.config.widen_min_sigma, 1.0) ** 2
+            self._set_rows(bad, *self._gaussian_state(safe_mean, wide))
+            self.lost |= bad

@@ -1,0 +1,135 @@
+"""``neuralmap-gins``: the 15-state GNSS/INS filter on a log in the KF-GINS formats.
+
+::
+
+    neuralmap-gins kf-gins.yaml                       # as KF-GINS: one run, results at IMU rate
+    neuralmap-gins kf-gins.yaml --truthpath truth.nav # + errors against a reference
+    neuralmap-gins kf-gins.yaml --n_runs 50 --output_every 200   # + 49 runs with noise draws
+
+The config is KF-GINS's own ``kf-gins.yaml`` (:func:`neuralmap.ins.kfgins.read_config`).
+Written to ``outputpath``: ``KF_GINS_Navresult.nav``, ``KF_GINS_IMU_ERR.txt`` and
+``KF_GINS_STD.txt`` of run 0 (KF-GINS's names and columns), and with a reference
+``comparison.json`` (position, velocity and attitude errors of every run). Bad input
+prints one ``error:`` line and exits 2.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from jsonargparse import ArgumentParser
+
+from neuralmap.exceptions import NeuralMapError
+
+__all__ = ["main"]
+
+PROG = "neuralmap-gins"
+EXIT_BAD_INPUT = 2
+NAV_FILE = "KF_GINS_Navresult.nav"
+IMU_ERROR_FILE = "KF_GINS_IMU_ERR.txt"
+STD_FILE = "KF_GINS_STD.txt"
+COMPARISON_FILE = "comparison.json"
+
+
+def _parser() -> ArgumentParser:
+    parser = ArgumentParser(prog=PROG, description="Run the 15-state loosely coupled GNSS/INS "
+                            "filter on a KF-GINS-format log.")
+    parser.add_argument("config", type=str, help="KF-GINS configuration YAML (kf-gins.yaml).")
+    parser.add_argument("--truthpath", type=str | None, default=None,
+                        help="Reference trajectory (KF-GINS navigation format); overrides the "
+                             "config's truthpath.")
+    parser.add_argument("--outputpath", type=str | None, default=None,
+                        help="Output folder; overrides the config's outputpath.")
+    parser.add_argument("--n_runs", type=int, default=1,
+                        help="Runs: 1 = the log; more add runs with noise draws.")
+    parser.add_argument("--output_every", type=int, default=1,
+                        help="Record every this many IMU epochs.")
+    parser.add_argument("--propagate_every", type=int, default=10,
+                        help="IMU samples per covariance propagation.")
+    parser.add_argument("--r_scale", type=float, default=1.0, help="Factor on the GNSS σ.")
+    parser.add_argument("--use_velocity", type=bool | None, default=None,
+                        help="Update with the GNSS velocity (13-column files); default: when "
+                             "present.")
+    parser.add_argument("--seed", type=int, default=0, help="Seed of the noise draws.")
+    return parser
+
+
+def run(args: object) -> dict[str, object]:
+    """Reads, filters, writes; returns the summary (paths and, with a reference, errors)."""
+    from neuralmap.ins.kfgins import (
+        read_config,
+        read_gnss,
+        read_imu,
+        read_nav,
+        write_imu_error,
+        write_nav,
+        write_std,
+    )
+    from neuralmap.ins.log_run import compare_with_reference, run_on_log
+    from neuralmap.ins.loosely_coupled import LooselyCoupledConfig
+    from neuralmap.io import atomic_write_json, check_writable_dir
+
+    cfg = read_config(args.config)
+    out_dir = Path(args.outputpath) if args.outputpath else cfg.outputpath
+    check_writable_dir(out_dir, option="outputpath")
+    truth = Path(args.truthpath) if args.truthpath else cfg.reference
+    imu = read_imu(cfg.imupath, rate_hz=cfg.imudatarate, columns=cfg.imudatalen)
+    gnss = read_gnss(cfg.gnsspath)
+    reference = read_nav(truth) if truth is not None else None
+    filter_config = LooselyCoupledConfig(
+        propagate_every=args.propagate_every, r_scale=args.r_scale,
+        init_pos_sigma=cfg.init_pos_sigma, init_vel_sigma=cfg.init_vel_sigma,
+        init_att_sigma_deg=cfg.init_att_sigma_deg)
+    print(f"{PROG}: {imu.n_samples} IMU records ({1.0 / imu.dt:.4g} Hz, {imu.time[0]:.3f}–"
+          f"{imu.time[-1]:.3f} s), {gnss.n_epochs} GNSS epochs"
+          f"{' with velocity' if gnss.velocity is not None else ''}, {args.n_runs} run(s)",
+          flush=True)
+    solution = run_on_log(
+        imu, gnss, grade=cfg.imu_grade(), initial_position=cfg.init_position,
+        initial_velocity=cfg.init_velocity, initial_euler=cfg.init_euler,
+        lever_arm=cfg.lever_arm, filter_config=filter_config,
+        initial_gyro_bias=cfg.init_gyro_bias, initial_accel_bias=cfg.init_accel_bias,
+        start=cfg.starttime, end=cfg.endtime, n_runs=args.n_runs,
+        output_every=args.output_every, seed=args.seed, use_velocity=args.use_velocity)
+    time = solution.time.numpy()
+    paths = {
+        "navigation": write_nav(out_dir / NAV_FILE, solution.nav_log(0)),
+        "imu_error": write_imu_error(out_dir / IMU_ERROR_FILE, time,
+                                     solution.gyro_bias[0].numpy(),
+                                     solution.accel_bias[0].numpy()),
+        "std": write_std(out_dir / STD_FILE, time, solution.std[0].numpy()),
+    }
+    summary: dict[str, object] = {"files": {k: str(v) for k, v in paths.items()},
+                                  "counts": solution.counts}
+    if reference is not None:
+        comparison = compare_with_reference(solution, reference)
+        comparison["reference"] = str(truth)
+        paths["comparison"] = atomic_write_json(out_dir / COMPARISON_FILE, comparison)
+        summary["comparison"] = comparison
+        e = comparison["all_runs"]
+        print(f"{PROG}: against {truth}: RMSE horizontal {e['rmse_horizontal_m']:.3f} m, "
+              f"vertical {e['rmse_vertical_m']:.3f} m, velocity {e['rmse_velocity_mps']:.3f} m/s, "
+              f"roll/pitch/heading {e['rmse_roll_deg']:.3f}/{e['rmse_pitch_deg']:.3f}/"
+              f"{e['rmse_heading_deg']:.3f} deg", flush=True)
+    print(f"{PROG}: results written to {out_dir}", flush=True)
+    return summary
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point; exit code 2 with one ``error:`` line on bad input."""
+    args = _parser().parse_args(argv)
+    try:
+        run(args)
+    except NeuralMapError as exc:
+        sys.stdout.flush()
+        print(f"{PROG}: error: {exc}", file=sys.stderr, flush=True)
+        raise SystemExit(EXIT_BAD_INPUT) from None
+    except PermissionError as exc:
+        print(f"{PROG}: error: cannot write the results ({exc}); pick a writable outputpath.",
+              file=sys.stderr, flush=True)
+        raise SystemExit(EXIT_BAD_INPUT) from None
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

@@ -1,0 +1,161 @@
+"""Progress that reads well in a terminal and in a log file.
+
+On a terminal (``sys.stdout.isatty()``) progress is a tqdm bar. Redirected to a file
+(``python evaluate.py > log``, ``nohup``, CI) a bar's carriage-return updates turn into
+megabytes of unreadable text, so :func:`progress_bar` returns a :class:`ProgressLines`
+instead: the same small tqdm interface, printing one plain line per stage (when the
+description changes and at the end) with the rate and the time left, and a heartbeat line
+at most every ``interval_s`` seconds inside a long stage.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from typing import IO, Any
+
+__all__ = ["ProgressLines", "format_duration", "is_terminal", "progress_bar", "progress_line"]
+
+#: Seconds between two heartbeat lines inside one stage.
+HEARTBEAT_S = 60.0
+
+
+def is_terminal(stream: IO[str] | None = None) -> bool:
+    """Whether ``stream`` (default ``sys.stdout``) is an interactive terminal."""
+    stream = sys.stdout if stream is None else stream
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # closed or replaced by an object without isatty
+        return False
+
+
+def format_duration(seconds: float | None) -> str:
+    """``"12.3s"``, ``"4m05s"``, ``"2h03m"``; ``"?"`` when unknown or not finite."""
+    if seconds is None or not math.isfinite(seconds) or seconds < 0:
+        return "?"
+    if seconds < 60:
+        return f"{seconds:.1f}s"
+    minutes, secs = divmod(int(round(seconds)), 60)
+    if minutes < 60:
+        return f"{minutes}m{secs:02d}s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours}h{minutes:02d}m"
+
+
+def progress_line(
+    desc: str,
+    done: float,
+    total: float | None,
+    elapsed_s: float,
+    unit: str,
+    extra: str = "",
+    *,
+    done_in_elapsed: float | None = None,
+) -> str:
+    """One progress line: ``desc: done/total unit (p%), rate unit/s, elapsed, time left``.
+
+    Args:
+        desc: What is running.
+        done: Units done so far.
+        total: Units in all (None = unknown: no percentage, no time left).
+        elapsed_s: Seconds since the start.
+        unit: Name of one unit (``"step"``, ``"epoch"``).
+        extra: Appended after a ``" | "`` when not empty (metrics).
+        done_in_elapsed: Units done within ``elapsed_s`` when fewer than ``done`` (a fit
+            resumed from a checkpoint); default ``done``. Rate and time left use it.
+
+    Returns:
+        The line, without a newline.
+    """
+    here = done if done_in_elapsed is None else done_in_elapsed
+    rate = here / elapsed_s if elapsed_s > 0 else float("nan")
+    count = f"{done:g}/{total:g} {unit}" if total else f"{done:g} {unit}"
+    if total:
+        count += f" ({100.0 * done / total:.0f}%)"
+    left = (total - done) / rate if total and rate > 0 else None
+    rate_text = f"{rate:.3g} {unit}/s" if math.isfinite(rate) else f"? {unit}/s"
+    line = (f"{desc}: {count}, {rate_text}, {format_duration(elapsed_s)} elapsed, "
+            f"{format_duration(left)} left")
+    return f"{line} | {extra}" if extra else line
+
+
+class ProgressLines:
+    """A tqdm stand-in for logs: one line per stage, no carriage returns.
+
+    Supports the part of tqdm's interface the toolkit uses: ``update(n)``,
+    ``set_description(desc)``, ``close()``, ``n``, ``total`` and use as a context manager.
+    A line is printed when the description changes (the stage that ended), at
+    :meth:`close` (the last stage and the total) and at most every ``interval_s`` seconds
+    within a stage. Rate and time left are over the whole bar.
+
+    Args:
+        total: Units in all (None = unknown).
+        desc: Description of the first stage.
+        unit: Name of one unit.
+        stream: Where lines go (default ``sys.stdout`` at each print).
+        interval_s: Seconds between heartbeat lines inside one stage.
+    """
+
+    def __init__(self, total: float | None = None, desc: str = "", unit: str = "it", *,
+                 stream: IO[str] | None = None, interval_s: float = HEARTBEAT_S) -> None:
+        self.total = total
+        self.desc = desc
+        self.unit = unit
+        self.n = 0
+        self.stream = stream
+        self.interval_s = float(interval_s)
+        self._start = time.perf_counter()
+        self._last_line = self._start
+        self._stage_start_n = 0
+        self._closed = False
+
+    def _emit(self, desc: str) -> None:
+        now = time.perf_counter()
+        stream = sys.stdout if self.stream is None else self.stream
+        print(progress_line(desc or "progress", self.n, self.total, now - self._start,
+                            self.unit), file=stream, flush=True)
+        self._last_line = now
+
+    def update(self, n: float = 1) -> None:
+        """Advances by ``n`` units; prints a heartbeat line when one is due."""
+        self.n += n
+        if time.perf_counter() - self._last_line >= self.interval_s:
+            self._emit(self.desc)
+
+    def set_description(self, desc: str, refresh: bool = True) -> None:  # noqa: ARG002
+        """Starts a new stage; the line of the stage that ended is printed first."""
+        if desc != self.desc and self.n > self._stage_start_n:
+            self._emit(self.desc)
+        self.desc = desc
+        self._stage_start_n = self.n
+
+    def close(self) -> None:
+        """Prints the last line (once)."""
+        if not self._closed:
+            self._closed = True
+            self._emit(self.desc)
+
+    def __enter__(self) -> ProgressLines:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def progress_bar(total: float | None = None, desc: str = "", unit: str = "it") -> Any:
+    """A tqdm bar on a terminal, :class:`ProgressLines` when stdout is not one.
+
+    Args:
+        total: Units in all.
+        desc: Description.
+        unit: Name of one unit.
+
+    Returns:
+        An object with tqdm's ``update``, ``set_description`` and ``close``.
+    """
+    if is_terminal():
+        from tqdm.auto import tqdm
+
+        return tqdm(total=total, desc=desc, unit=unit)
+    return ProgressLines(total=total, desc=desc, unit=unit)

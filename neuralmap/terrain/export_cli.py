@@ -1,0 +1,86 @@
+"""``neuralmap-export``: a fitted map's height, residual and slope as GeoTIFF on its DEM's grid.
+
+::
+
+    neuralmap-export runs/jacksboro/version_0/neural_map.pt            # DEM from the map file
+    neuralmap-export neural_map.pt --dem N36W085.hgt --out qgis/ --layers [height,residual]
+
+Writes ``<out>/neural_map_<layer>.tif`` (default ``out``: a ``geotiff`` folder next to the
+map) in the source DEM's CRS, grid and no-data (:mod:`neuralmap.terrain.geotiff`). Bad input
+prints one ``error:`` line and exits 2.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from jsonargparse import ArgumentParser
+
+from neuralmap.exceptions import NeuralMapError
+
+__all__ = ["main"]
+
+PROG = "neuralmap-export"
+EXIT_BAD_INPUT = 2
+
+
+def _parser() -> ArgumentParser:
+    from neuralmap.terrain.geotiff import LAYERS
+
+    parser = ArgumentParser(prog=PROG, description="Write a fitted map's height, residual and "
+                            "slope as GeoTIFF on the source DEM's grid.")
+    parser.add_argument("map", type=str, help="The exported map (neural_map.pt).")
+    parser.add_argument("--dem", type=str | None, default=None,
+                        help="The DEM the map was fitted to; default: the source the map records.")
+    parser.add_argument("--spacing", type=float | None, default=None,
+                        help="Grid spacing (m) of a plain .npy DEM; default: the map's record.")
+    parser.add_argument("--units", type=str | None, default=None,
+                        help="Units of an .asc/GeoTIFF without CRS (metres or degrees).")
+    parser.add_argument("--nodata", type=float | None, default=None,
+                        help="Extra no-data value of the DEM (as given to train.py).")
+    parser.add_argument("--out", type=str | None, default=None,
+                        help="Output folder; default: <map folder>/geotiff.")
+    parser.add_argument("--layers", type=list[str], default=list(LAYERS),
+                        help=f"Layers to write, of {list(LAYERS)}.")
+    return parser
+
+
+def export(args: object) -> dict[str, Path]:
+    """Loads the map and its DEM and writes the layers; returns layer -> path."""
+    from neuralmap.dem import load_tile
+    from neuralmap.io import check_writable_dir
+    from neuralmap.terrain.export import load_map
+    from neuralmap.terrain.geotiff import write_map_geotiffs
+
+    terrain = load_map(args.map)
+    info = getattr(terrain, "tile_info", {}) or {}
+    dem = args.dem or info.get("source") or info.get("name")
+    if not dem:
+        raise NeuralMapError(f"map '{args.map}' records no source DEM; give it with --dem.")
+    out = Path(args.out) if args.out else Path(args.map).parent / "geotiff"
+    check_writable_dir(out, option="--out")
+    spacing = args.spacing
+    if spacing is None and str(dem).lower().endswith(".npy") and info.get("spacing"):
+        spacing = tuple(info["spacing"])
+    origin = tuple(info["origin"]) if info.get("origin") else None
+    tile = load_tile(dem, spacing=spacing, units=args.units, nodata=args.nodata, origin=origin)
+    paths = write_map_geotiffs(terrain, tile, out, layers=tuple(args.layers))
+    for name, path in paths.items():
+        print(f"{PROG}: {name} -> {path}", flush=True)
+    return paths
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point; exit code 2 with one ``error:`` line on bad input."""
+    args = _parser().parse_args(argv)
+    try:
+        export(args)
+    except NeuralMapError as exc:
+        sys.stdout.flush()
+        print(f"{PROG}: error: {exc}", file=sys.stderr, flush=True)
+        raise SystemExit(EXIT_BAD_INPUT) from None
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

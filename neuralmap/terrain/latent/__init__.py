@@ -1,0 +1,29 @@
+"""Latent-grid neural maps: multiresolution latents, a smooth kernel, a tiny decoder.
+
+A few latent grids at decreasing resolution (the Cool-chic / C3 / Instant-NGP line) are
+upsampled with the cubic B-spline kernel (:mod:`.bspline`), mixed by a linear synthesis
+plus a tiny tanh MLP (:mod:`.synthesis`), and stored as range-coded integer latents under a
+factorized Laplace entropy model (:mod:`.entropy`, :mod:`.bitstream`). Training state:
+:class:`LatentGrid` with the rate-distortion objective :class:`RateDistortion`; the decoded
+map is :class:`LatentTerrainMap`, a :class:`~neuralmap.terrain.base.TerrainModel`.
+"""
+
+from neuralmap.terrain.latent.bitstream import (
+    is_latent_file,
+    read_latent_map,
+    write_latent_map,
+)
+from neuralmap.terrain.latent.latent_grid import LatentGrid, export_map
+from neuralmap.terrain.latent.map import LatentTerrainMap
+from neuralmap.terrain.latent.objective import RateDistortion, check_rate_weight
+
+__all__ = [
+    "LatentGrid",
+    "LatentTerrainMap",
+    "RateDistortion",
+    "check_rate_weight",
+    "export_map",
+    "is_latent_file",
+    "read_latent_map",
+    "write_latent_map",
+]

@@ -1,0 +1,173 @@
+"""The latent-map file: header, decoder weights, range-coded latents, CRC32.
+
+Layout (all integers little-endian; sizes in bytes)::
+
+    offset  size   field
+    0       8      magic b"NMLATENT"
+    8       2      format version (uint16), currently 1
+    10      4      header length J (uint32)
+    14      J      header, UTF-8 JSON: {"tile_info": DemTile.describe(), "levels": L,
+                   "hidden": H, "ranges": [[min, max] per level], "metrics": {...}}
+    ..      12 L   float32 quantisation steps Delta_l, Laplace scales b_l, feature scales
+    ..      4(L+1) float32 linear synthesis weights w_l and bias b_0
+    ..      2 H(L+2) float16 MLP weights A (H x L, row-major), biases a, output weights v
+    ..      4      number of range-coder words W (uint32)
+    ..      4 W    uint32 words of the range coder (constriction), levels finest first,
+                   each level in C order with its Laplace(0, b_l) on [min_l, max_l]
+    end-4   4      CRC32 (zlib) of every byte before it
+
+The latent shapes follow from the tile shape and ``L``
+(:func:`~neuralmap.terrain.latent.pyramid.level_shapes`). The file on disk is the map's
+stored size; :func:`read_latent_map` checks the magic, version, length and CRC before
+decoding, so a truncated or corrupted file is refused with a clear error.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import atomic_write_bytes
+from neuralmap.terrain.latent.entropy import decode_levels, encode_levels, symbol_range
+from neuralmap.terrain.latent.map import LatentTerrainMap
+from neuralmap.terrain.latent.pyramid import level_shapes
+
+MAGIC = b"NMLATENT"
+FORMAT_VERSION = 1
+_FIXED = len(MAGIC) + 2 + 4
+
+
+def is_latent_file(path: str | os.PathLike[str]) -> bool:
+    """Whether ``path`` is a file that starts with the latent-map magic bytes."""
+    try:
+        with open(path, "rb") as handle:
+            return handle.read(len(MAGIC)) == MAGIC
+    except (OSError, TypeError):
+        return False
+
+
+def encode_latent_map(latent_map: LatentTerrainMap) -> bytes:
+    """The file bytes of a latent map (see the module docstring for the layout)."""
+    levels, hidden = latent_map.levels, latent_map.hidden
+    ranges = [list(symbol_range(s)) for s in latent_map.symbols]
+    header = {
+        "tile_info": latent_map.tile_info,
+        "levels": levels,
+        "hidden": hidden,
+        "ranges": ranges,
+        "metrics": latent_map.metrics,
+    }
+    header_bytes = json.dumps(header, separators=(",", ":"), allow_nan=False).encode()
+    synth = latent_map.synthesis_vector
+    linear = synth[: levels + 1]
+    mlp = synth[levels + 1 :]
+    words = encode_levels(latent_map.symbols, [float(b) for b in latent_map.scales])
+    parts = [
+        MAGIC,
+        struct.pack("<HI", FORMAT_VERSION, len(header_bytes)),
+        header_bytes,
+        np.concatenate([latent_map.steps, latent_map.scales, latent_map.feature_scale])
+        .astype("<f4").tobytes(),
+        np.asarray(linear, "<f4").tobytes(),
+        np.asarray(mlp, "<f2").tobytes(),
+        struct.pack("<I", words.size),
+        words.astype("<u4").tobytes(),
+    ]
+    body = b"".join(parts)
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
+def stored_latent_map(latent_map: LatentTerrainMap) -> LatentTerrainMap:
+    """The map exactly as the file stores it (MLP weights rounded to float16)."""
+    return decode_latent_map(encode_latent_map(latent_map), where="<memory>")
+
+
+def write_latent_map(latent_map: LatentTerrainMap, path: str | os.PathLike[str]) -> Path:
+    """Writes the map's bitstream atomically; returns the path."""
+    return atomic_write_bytes(Path(path), encode_latent_map(latent_map))
+
+
+def _damaged(where: str, what: str) -> NeuralMapError:
+    return NeuralMapError(
+        f"{where}: latent map file is damaged ({what}). Export it again with "
+        "`python train.py --config configs/latent_map.yaml`."
+    )
+
+
+def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
+    """Decodes file bytes into a :class:`LatentTerrainMap` (checks magic, CRC, lengths).
+
+    Raises:
+        NeuralMapError: Not a latent map, newer format, checksum mismatch (truncated or
+            corrupted), or inconsistent contents.
+    """
+    if data[: len(MAGIC)] != MAGIC:
+        raise NeuralMapError(f"{where}: not a latent map file (no {MAGIC!r} magic bytes).")
+    if len(data) < _FIXED + 4:
+        raise _damaged(where, f"truncated: {len(data)} bytes")
+    body, (crc,) = data[:-4], struct.unpack("<I", data[-4:])
+    if zlib.crc32(body) != crc:
+        raise NeuralMapError(
+            f"{where}: checksum mismatch (CRC32 {zlib.crc32(body):08x} != stored {crc:08x}): "
+            "the latent map file is truncated or corrupted. Copy it again or re-export it "
+            "with `python train.py --config configs/latent_map.yaml`."
+        )
+    version, header_len = struct.unpack("<HI", body[len(MAGIC) : _FIXED])
+    if version > FORMAT_VERSION:
+        raise NeuralMapError(
+            f"{where}: latent map format version {version} is newer than this neuralmap "
+            f"reads ({FORMAT_VERSION}); upgrade neuralmap."
+        )
+    try:
+        pos = _FIXED
+        header: dict[str, Any] = json.loads(body[pos : pos + header_len].decode())
+        pos += header_len
+        levels, hidden = int(header["levels"]), int(header["hidden"])
+        floats = np.frombuffer(body, "<f4", 3 * levels, pos).astype(np.float32)
+        pos += 12 * levels
+        linear = np.frombuffer(body, "<f4", levels + 1, pos).astype(np.float32)
+        pos += 4 * (levels + 1)
+        n_mlp = hidden * (levels + 2)
+        mlp = np.frombuffer(body, "<f2", n_mlp, pos).astype(np.float32)
+        pos += 2 * n_mlp
+        (n_words,) = struct.unpack("<I", body[pos : pos + 4])
+        pos += 4
+        words = np.frombuffer(body, "<u4", n_words, pos)
+        pos += 4 * n_words
+        if pos != len(body):
+            raise ValueError(f"{len(body) - pos} trailing bytes")
+        info = header["tile_info"]
+        shapes = level_shapes(tuple(info["shape"]), levels)  # type: ignore[arg-type]
+        ranges = [(int(lo), int(hi)) for lo, hi in header["ranges"]]
+        steps, scales, feature_scale = floats[:levels], floats[levels : 2 * levels], floats[2 * levels :]
+        symbols = decode_levels(words, shapes, [float(b) for b in scales], ranges)
+    except NeuralMapError:
+        raise
+    except (KeyError, TypeError, ValueError, IndexError, struct.error,
+            UnicodeDecodeError) as exc:
+        raise _damaged(where, f"{type(exc).__name__}: {exc}") from None
+    return LatentTerrainMap(
+        symbols, steps, scales, np.concatenate([linear, mlp]), feature_scale,
+        hidden=hidden, tile_info=info, metrics=header.get("metrics") or {},
+    )
+
+
+def read_latent_map(path: str | os.PathLike[str]) -> LatentTerrainMap:
+    """Loads a latent map file written by :func:`write_latent_map` (eval mode).
+
+    Raises:
+        NeuralMapError: Missing file, or see :func:`decode_latent_map`.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise NeuralMapError(f"latent map file not found: {path}.")
+    latent_map = decode_latent_map(path.read_bytes(), where=str(path))
+    latent_map.eval()
+    return latent_map

@@ -1,0 +1,87 @@
+"""Encoding a tile into a latent-grid map without Lightning (benchmarks, tests, scripts).
+
+The training recipe (shared with the Lightning module
+:class:`~neuralmap.training.latent_module.LatentFitModule`): Adam with a cosine learning
+rate; the rounding relaxed by additive noise for the first ``1 - ste_fraction`` of the
+steps, then straight-through rounding (Cool-chic's annealing from noise to the true
+quantiser, so the last steps optimise what is stored).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+
+from neuralmap.dem.tile import DemTile
+from neuralmap.terrain.latent.latent_grid import LatentGrid, export_map
+from neuralmap.terrain.latent.map import LatentTerrainMap
+from neuralmap.terrain.latent.objective import RateDistortion
+
+
+def quantizer_at(step: int, total: int, ste_fraction: float) -> str:
+    """The relaxation used at ``step`` of ``total``: ``"noise"``, then ``"ste"``."""
+    return "ste" if step >= math.ceil((1.0 - ste_fraction) * total) else "noise"
+
+
+def make_optimizer(grid: LatentGrid, lr: float, total: int
+                   ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler]:
+    """Adam over every parameter with a cosine decay to 0.1 ``lr`` over ``total`` steps."""
+    optimizer = torch.optim.Adam(grid.parameters(), lr=lr)
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(1, total),
+                                                           eta_min=0.1 * lr)
+    return optimizer, scheduler
+
+
+def fit_latent_map(
+    tile: DemTile,
+    *,
+    rate_weight: float,
+    steps: int = 1500,
+    levels: int = 6,
+    hidden: int = 8,
+    lr: float = 0.01,
+    init_step: float = 1.0,
+    between_weight: float = 0.5,
+    between_points: int = 8192,
+    ste_fraction: float = 0.2,
+    seed: int = 0,
+) -> tuple[LatentTerrainMap, dict[str, Any]]:
+    """Fits a latent-grid map to ``tile`` and returns it as its file stores it.
+
+    Args:
+        tile: The DEM tile.
+        rate_weight: ``lambda`` of :class:`RateDistortion` (m² per bit per node).
+        steps: Adam steps.
+        levels: Latent levels.
+        hidden: MLP hidden units.
+        lr: Peak learning rate.
+        init_step: Initial quantisation step (m).
+        between_weight: Weight of the between-node term.
+        between_points: Between-node points per step.
+        ste_fraction: Final fraction of steps with straight-through rounding.
+        seed: Seed of the MLP and of the between-node points.
+
+    Returns:
+        ``(map, history)`` with the last step's loss terms in ``history``.
+    """
+    torch.manual_seed(seed)
+    objective = RateDistortion(tile, rate_weight=rate_weight, between_weight=between_weight,
+                               between_points=between_points)
+    grid = LatentGrid(tile, levels=levels, hidden=hidden, init_step=init_step, seed=seed)
+    optimizer, scheduler = make_optimizer(grid, lr, steps)
+    generator = torch.Generator().manual_seed(seed)
+    terms = None
+    for step in range(steps):
+        terms = objective(grid, quantizer_at(step, steps, ste_fraction), generator)
+        optimizer.zero_grad(set_to_none=True)
+        terms.loss.backward()
+        optimizer.step()
+        scheduler.step()
+    history: dict[str, Any] = {}
+    if terms is not None:
+        history = {key: float(getattr(terms, key).detach())
+                   for key in ("loss", "node_mse", "between_mse", "bits")}
+    latent_map = export_map(grid)
+    return latent_map, history

@@ -1,0 +1,207 @@
+"""The trainable latent grid: continuous latents, learned quantisation, rate and distortion.
+
+Cool-chic-style training state of a latent-grid map (Ladune et al. 2023; C3, Kim et al.
+2024): per level ``l`` continuous latents ``z_l`` (metres), a learned quantisation step
+``Delta_l`` and a Laplace scale ``b_l`` of the factorized entropy model, plus the
+:class:`~neuralmap.terrain.latent.synthesis.Synthesis`. The stored latents are the symbols
+``q_l = round(z_l / Delta_l)`` and the decoded latents ``q_l Delta_l``. During training the
+rounding is relaxed, either by additive noise ``z / Delta + u``, ``u ~ U(-1/2, 1/2)``, or by
+straight-through rounding (forward rounds, backward is the identity); the rate is
+:func:`~neuralmap.terrain.latent.entropy.laplace_bits` of the relaxed symbols.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.terrain.grid import fill_voids_nearest
+from neuralmap.terrain.latent.bspline import bspline_weights, cell_position, node_values
+from neuralmap.terrain.latent.entropy import laplace_bits
+from neuralmap.terrain.latent.pyramid import laplacian_init, level_shapes, node_lattice
+from neuralmap.terrain.latent.synthesis import Synthesis
+
+#: Relaxations of the rounding during training.
+QUANTIZERS = ("noise", "ste", "round")
+
+
+def gather_features(lattice: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """Spline features of a node-lattice coefficient grid at fractional node positions.
+
+    Args:
+        lattice: ``(C, ny + 2, nx + 2)`` coefficients (:func:`node_lattice`).
+        u: ``(M,)`` east positions in node intervals.
+        v: ``(M,)`` north positions in node intervals.
+
+    Returns:
+        ``(M, C)`` features, differentiable in the coefficients and positions.
+    """
+    c, py, px = lattice.shape
+    j, tu, _ = cell_position(u, px - 3)
+    i, tv, _ = cell_position(v, py - 3)
+    wx = bspline_weights(tu, derivative=False)  # (4, M)
+    wy = bspline_weights(tv, derivative=False)
+    offsets = (torch.arange(4)[:, None] * px + torch.arange(4)[None, :]).reshape(16)
+    index = (i * px + j)[:, None] + offsets  # (M, 16)
+    flat = lattice.reshape(c, -1)
+    vals = flat[:, index.reshape(-1)].view(c, -1, 4, 4)  # (C, M, a, b)
+    weights = wy.T[:, :, None] * wx.T[:, None, :]  # (M, a, b)
+    return (vals * weights).sum((-1, -2)).T
+
+
+def node_operator(nodes: int, scale: int, count: int) -> torch.Tensor:
+    """Sparse ``(nodes, count)`` matrix of a level's B-splines at the nodes of one axis.
+
+    Entry ``(n, k)`` is ``B(n / scale - (k - 1))`` (at most 4 non-zeros per row).
+    """
+    n = torch.arange(nodes, dtype=torch.float64)[:, None]
+    k = torch.arange(count, dtype=torch.float64)[None, :]
+    a = (n / scale - (k - 1)).abs()
+    dense = torch.where(a < 1, 2.0 / 3.0 - a**2 + a**3 / 2,
+                        torch.where(a < 2, (2 - a).clamp(min=0) ** 3 / 6, torch.zeros_like(a)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "sparse CSR support is in beta"
+        return dense.float().to_sparse_csr()
+
+
+class LatentGrid(nn.Module):
+    """Trainable latent pyramid + entropy model + synthesis for one tile.
+
+    Args:
+        tile: The DEM tile (voids are filled nearest for the start and masked in the loss).
+        levels: Latent levels ``L`` (knot spacing ``2^l`` nodes).
+        hidden: MLP hidden units (0 = linear synthesis only).
+        init_step: Initial quantisation step ``Delta_l`` of every level, metres.
+        seed: Seed of the MLP's initial weights.
+
+    Raises:
+        NeuralMapError: ``levels`` < 1 or too many for the tile, ``hidden`` < 0,
+            ``init_step`` <= 0.
+    """
+
+    def __init__(self, tile: DemTile, *, levels: int = 6, hidden: int = 8,
+                 init_step: float = 1.0, seed: int = 0) -> None:
+        super().__init__()
+        ny, nx = tile.shape
+        if not 1 <= int(levels) <= 12 or 2 ** (levels - 1) > max(ny, nx):
+            raise NeuralMapError(
+                f"latent map: levels must be in 1..12 with 2^(levels-1) <= the tile's larger "
+                f"side ({max(ny, nx)} nodes), got {levels}."
+            )
+        if int(hidden) < 0:
+            raise NeuralMapError(f"latent map: hidden must be >= 0, got {hidden}.")
+        if not init_step > 0:
+            raise NeuralMapError(f"latent map: init_step must be > 0 metres, got {init_step}.")
+        self.shape = (int(ny), int(nx))
+        self.levels = int(levels)
+        self.hidden = int(hidden)
+        self.tile_info = tile.describe()
+        filled = torch.as_tensor(fill_voids_nearest(tile.heights, tile.spacing))
+        mean = float(filled.mean())
+        init = laplacian_init(filled - mean, self.levels)
+        node_feats = node_values(node_lattice(init, self.shape))
+        scale = node_feats.reshape(self.levels, -1).std(dim=1).clamp(min=1e-3)
+        self.latents = nn.ParameterList([nn.Parameter(z.float()) for z in init])
+        step = torch.full((self.levels,), float(init_step))
+        self.log_step = nn.Parameter(step.log())
+        spread = torch.stack([z.float().abs().mean() for z in init]).clamp(min=1e-3) / step
+        self.log_scale = nn.Parameter(spread.clamp(min=0.05).log())
+        self.synthesis = Synthesis(self.levels, self.hidden, scale.float(), bias=mean, seed=seed)
+        # node-evaluation operators (sparse, not state): features_l = A_y c_l A_x^T
+        shapes = level_shapes(self.shape, self.levels)
+        self._node_ops = [
+            (node_operator(ny, 2**level, shapes[level][0]),
+             node_operator(nx, 2**level, shapes[level][1]))
+            for level in range(self.levels)
+        ]
+
+    # ------------------------------------------------------------------ quantisation
+    @property
+    def steps(self) -> torch.Tensor:
+        """``(L,)`` quantisation steps ``Delta_l`` (metres)."""
+        return self.log_step.exp()
+
+    @property
+    def scales(self) -> torch.Tensor:
+        """``(L,)`` Laplace scales ``b_l`` (quantisation-step units)."""
+        return self.log_scale.exp()
+
+    def relaxed(self, quantizer: str) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """Decoded latents and total rate under a relaxation of the rounding.
+
+        Args:
+            quantizer: ``"noise"`` (additive uniform noise), ``"ste"`` (straight-through
+                rounding) or ``"round"`` (hard rounding, no gradient to the latents).
+
+        Returns:
+            ``(decoded latents (metres, finest first), rate in bits (scalar))``.
+        """
+        if quantizer not in QUANTIZERS:
+            raise NeuralMapError(f"latent map: quantizer must be one of {QUANTIZERS}, got "
+                                 f"{quantizer!r}.")
+        decoded, bits = [], []
+        steps, scales = self.steps, self.scales
+        for level, z in enumerate(self.latents):
+            y = z / steps[level]
+            if quantizer == "noise":
+                y = y + (torch.rand_like(y) - 0.5)
+            elif quantizer == "ste":
+                y = y + (torch.round(y) - y).detach()
+            else:
+                y = torch.round(y).detach()
+            decoded.append(y * steps[level])
+            bits.append(laplace_bits(y, scales[level]).sum())
+        return decoded, torch.stack(bits).sum()
+
+    def symbols(self) -> list[np.ndarray]:
+        """The integer symbols ``round(z_l / Delta_l)`` per level (int32)."""
+        with torch.no_grad():
+            return [torch.round(z / s).to(torch.int32).numpy()
+                    for z, s in zip(self.latents, self.steps, strict=True)]
+
+    # ------------------------------------------------------------------ decoding
+    def node_features(self, decoded: list[torch.Tensor]) -> torch.Tensor:
+        """``(ny, nx, L)`` features at every node: ``A_y c_l A_x^T`` per level (sparse
+        banded B-spline operators; equal to refining to the node lattice)."""
+        feats = []
+        for (op_y, op_x), c in zip(self._node_ops, decoded, strict=True):
+            t = torch.sparse.mm(op_y, c.to(op_y.dtype))  # (ny, kx)
+            feats.append(torch.sparse.mm(op_x, t.T.contiguous()))  # (nx, ny)
+        return torch.stack(feats, dim=-1).transpose(0, 1)
+
+    def node_heights(self, decoded: list[torch.Tensor]) -> torch.Tensor:
+        """``(ny, nx)`` heights at every node from decoded latents."""
+        return self.synthesis(self.node_features(decoded))
+
+    def point_heights(self, decoded: list[torch.Tensor], uv: torch.Tensor) -> torch.Tensor:
+        """``(M,)`` heights at fractional node positions ``uv (M, 2)`` (east, north)."""
+        feats = [gather_features(c.unsqueeze(0), uv[:, 0] / 2**level, uv[:, 1] / 2**level)
+                 for level, c in enumerate(decoded)]
+        return self.synthesis(torch.cat(feats, dim=-1))
+
+    def config(self) -> dict[str, Any]:
+        """Constructor-level description stored in the bitstream header."""
+        return {"levels": self.levels, "hidden": self.hidden, "shape": list(self.shape),
+                "level_shapes": [list(s) for s in level_shapes(self.shape, self.levels)]}
+
+
+def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None) -> Any:
+    """The :class:`~neuralmap.terrain.latent.map.LatentTerrainMap` of a trained grid,
+    exactly as its file stores it (symbols rounded, MLP weights in float16)."""
+    from neuralmap.terrain.latent.bitstream import stored_latent_map
+    from neuralmap.terrain.latent.map import LatentTerrainMap
+
+    with torch.no_grad():
+        latent_map = LatentTerrainMap(
+            grid.symbols(), grid.steps.numpy(), grid.scales.numpy(),
+            grid.synthesis.parameter_vector().numpy(),
+            grid.synthesis.feature_scale.numpy(), hidden=grid.hidden,
+            tile_info=grid.tile_info, metrics=metrics,
+        )
+    return stored_latent_map(latent_map)

@@ -1,0 +1,217 @@
+"""LatentTerrainMap: a decoded latent-grid neural map as a :class:`TerrainModel`.
+
+Built from what the bitstream stores (integer symbols, quantisation steps, synthesis
+weights), it refines every latent level to the node lattice
+(:func:`~neuralmap.terrain.latent.pyramid.node_lattice`, exact) and folds the linear parts
+of the synthesis into ``K = 1 + H`` coefficient channels
+(:meth:`~neuralmap.terrain.latent.synthesis.Synthesis.folded`). A query is then one 4 x 4
+gather of ``K``-vectors, the cubic B-spline weights, and ``H`` ``tanh``:
+
+``h = b + g_0 + sum_k v_k tanh(g_k + a_k)``,  ``dh/dx = dg_0/dx + sum_k v_k (1 - tanh^2) dg_k/dx``
+
+with ``g = sum_ab w_a(v) w_b(u) C[i + a, j + b, :]`` (forward-mode chain rule through the
+kernel and the MLP, no autograd). The map is C² inside the extent (cubic B-spline,
+smooth ``tanh``), so height and slope are continuous across cells. Nothing is sampled on
+a grid: the coefficient grid *is* the stored map, re-expressed in one spline basis.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.terrain.base import TerrainModel
+from neuralmap.terrain.latent.bspline import bspline_matrix, cell_position
+from neuralmap.terrain.latent.pyramid import level_shapes, node_lattice
+from neuralmap.terrain.latent.synthesis import Synthesis
+
+
+class LatentTerrainMap(TerrainModel):
+    """A latent-grid neural map decoded from its stored form.
+
+    Points outside :attr:`extent` are clamped to the border (height of the nearest border
+    point, zero slope across the border), like :class:`~neuralmap.terrain.grid.GridTerrain`.
+
+    Args:
+        symbols: Integer latents per level, finest first, shapes ``level_shapes``.
+        steps: ``(L,)`` quantisation steps (metres).
+        scales: ``(L,)`` Laplace scales of the entropy model (step units).
+        synthesis: ``(L + 1 + H L + 2 H,)`` synthesis parameters
+            (:meth:`Synthesis.parameter_vector` order).
+        feature_scale: ``(L,)`` feature scales of the synthesis.
+        hidden: MLP hidden units ``H``.
+        tile_info: :meth:`DemTile.describe` of the tile the map was fitted to.
+        metrics: Fit metrics (stored in the file header).
+        dtype: dtype of the coefficient buffer (float32 for speed; ``.double()`` works).
+
+    Raises:
+        NeuralMapError: Inconsistent shapes.
+    """
+
+    coeffs: torch.Tensor
+    inner_bias: torch.Tensor
+    outer: torch.Tensor
+
+    def __init__(
+        self,
+        symbols: list[np.ndarray],
+        steps: np.ndarray,
+        scales: np.ndarray,
+        synthesis: np.ndarray,
+        feature_scale: np.ndarray,
+        *,
+        hidden: int,
+        tile_info: dict[str, Any],
+        metrics: dict[str, Any] | None = None,
+        dtype: torch.dtype = torch.float32,
+    ) -> None:
+        super().__init__()
+        self.tile_info = dict(tile_info)
+        self.tile_name = str(self.tile_info.get("name", ""))
+        self.tile_fingerprint = str(self.tile_info.get("fingerprint", ""))
+        self.shape = tuple(int(n) for n in self.tile_info["shape"])
+        self.spacing = tuple(float(s) for s in self.tile_info["spacing"])
+        self.origin = tuple(float(o) for o in self.tile_info["origin"])
+        ny, nx = self.shape
+        self.extent = (self.origin[0], self.origin[0] + (nx - 1) * self.spacing[0],
+                       self.origin[1], self.origin[1] + (ny - 1) * self.spacing[1])
+        self.levels = len(symbols)
+        self.hidden = int(hidden)
+        self.metrics: dict[str, Any] = dict(metrics or {})
+        expected = level_shapes(self.shape, self.levels)  # type: ignore[arg-type]
+        got = [tuple(s.shape) for s in symbols]
+        if got != expected:
+            raise NeuralMapError(
+                f"latent map: latent shapes {got} do not fit a {ny} x {nx} tile (expected "
+                f"{expected}); the file is damaged."
+            )
+        self.symbols = [np.ascontiguousarray(s, dtype=np.int32) for s in symbols]
+        self.steps = np.asarray(steps, np.float32).copy()
+        self.scales = np.asarray(scales, np.float32).copy()
+        self.feature_scale = np.asarray(feature_scale, np.float32).copy()
+        self.synthesis_vector = np.asarray(synthesis, np.float32).copy()
+        synth = Synthesis(self.levels, self.hidden, torch.from_numpy(self.feature_scale))
+        synth.load_parameter_vector(torch.from_numpy(self.synthesis_vector))
+        mix, bias, inner_bias, outer = synth.folded()
+        decoded = [torch.from_numpy(s).double() * float(d)
+                   for s, d in zip(self.symbols, self.steps, strict=True)]
+        lattice = node_lattice(decoded, self.shape)  # type: ignore[arg-type]
+        coeffs = torch.einsum("lyx,lk->yxk", lattice, mix)  # (ny + 2, nx + 2, K)
+        self.register_buffer("coeffs", coeffs.reshape(-1, coeffs.shape[-1]).to(dtype).contiguous())
+        self.register_buffer("bias", bias.to(dtype))
+        self.register_buffer("inner_bias", inner_bias.to(dtype))
+        self.register_buffer("outer", outer.to(dtype))
+        px = nx + 2
+        offsets = (torch.arange(4)[:, None] * px + torch.arange(4)[None, :]).reshape(16)
+        self.register_buffer("_offsets", offsets, persistent=False)
+        self._matrix_cache: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
+
+    def extra_repr(self) -> str:
+        """Short description for ``print(model)``."""
+        return (f"tile={self.tile_name!r}, shape={self.shape}, levels={self.levels}, "
+                f"hidden={self.hidden}")
+
+    @property
+    def decoded_latents(self) -> list[torch.Tensor]:
+        """Decoded latents ``q_l Delta_l`` per level (float64, finest first)."""
+        return [torch.from_numpy(s).double() * float(d)
+                for s, d in zip(self.symbols, self.steps, strict=True)]
+
+    def _check_xy(self, xy: torch.Tensor) -> torch.Tensor:
+        if not isinstance(xy, torch.Tensor) or xy.ndim < 1 or xy.shape[-1] != 2:
+            shape = tuple(xy.shape) if isinstance(xy, torch.Tensor) else type(xy).__name__
+            raise NeuralMapError(
+                f"LatentTerrainMap: xy must be a tensor of shape (..., 2) (east, north "
+                f"metres), got {shape}."
+            )
+        return xy if xy.is_floating_point() else xy.to(self.coeffs.dtype)
+
+    def _matrix(self, like: torch.Tensor) -> torch.Tensor:
+        key = (like.dtype, like.device)
+        mat = self._matrix_cache.get(key)
+        if mat is None:
+            mat = bspline_matrix(like)
+            self._matrix_cache[key] = mat
+        return mat
+
+    def _evaluate(self, xy: torch.Tensor, *, with_slope: bool
+                  ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Heights ``(M,)`` and optional slopes ``(M, 2)`` of ``(M, 2)`` points."""
+        ny, nx = self.shape
+        (x0, y0), (dx, dy) = self.origin, self.spacing
+        u = (xy[:, 0] - x0) * (1.0 / dx)
+        v = (xy[:, 1] - y0) * (1.0 / dy)
+        j, tu, in_u = cell_position(u, nx - 1)
+        i, tv, in_v = cell_position(v, ny - 1)
+        index = (i * (nx + 2) + j).unsqueeze(-1) + self._offsets  # (M, 16)
+        k = self.coeffs.shape[1]
+        dt = xy.dtype
+        vals = self.coeffs.index_select(0, index.view(-1)).to(dt).view(-1, 16, k)
+        mat = self._matrix(tu)
+        rows = 8 if with_slope else 4
+        wx = mat[:rows] @ torch.stack([tu * tu * tu, tu * tu, tu, torch.ones_like(tu)])
+        wy = mat[:rows] @ torch.stack([tv * tv * tv, tv * tv, tv, torch.ones_like(tv)])
+        value = (wy[:4].T.unsqueeze(-1) * wx[:4].T.unsqueeze(1)).reshape(-1, 1, 16)
+        if with_slope:
+            gx = (wy[:4].T.unsqueeze(-1) * wx[4:].T.unsqueeze(1)).reshape(-1, 1, 16)
+            gy = (wy[4:].T.unsqueeze(-1) * wx[:4].T.unsqueeze(1)).reshape(-1, 1, 16)
+            weights = torch.cat([value, gx, gy], dim=1)  # (M, 3, 16)
+        else:
+            weights = value
+        g = torch.bmm(weights, vals)  # (M, rows, K)
+        bias = self.bias.to(dt)
+        height = g[:, 0, 0] + bias
+        if self.hidden:
+            z = torch.tanh(g[:, 0, 1:] + self.inner_bias.to(dt))
+            outer = self.outer.to(dt)
+            height = height + z @ outer
+        if not with_slope:
+            return height, None
+        grad = g[:, 1:, 0]  # (M, 2) in node units
+        if self.hidden:
+            grad = grad + (g[:, 1:, 1:] * ((1.0 - z * z) * outer).unsqueeze(1)).sum(-1)
+        scale = torch.tensor([1.0 / dx, 1.0 / dy], dtype=dt, device=xy.device)
+        inside = torch.stack([in_u, in_v], dim=-1)
+        return height, grad * scale * inside
+
+    def forward(self, xy: torch.Tensor) -> torch.Tensor:
+        """Heights, differentiable in ``xy``.
+
+        Args:
+            xy: ``(..., 2)`` east/north metres.
+
+        Returns:
+            ``(...)`` heights in metres, dtype of ``xy``.
+        """
+        xy = self._check_xy(xy)
+        height, _ = self._evaluate(xy.reshape(-1, 2), with_slope=False)
+        return height.view(xy.shape[:-1])
+
+    def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Heights and analytic slopes ``(dh/dx, dh/dy)`` (forward mode, no autograd).
+
+        Args:
+            xy: ``(..., 2)`` east/north metres.
+
+        Returns:
+            ``(height (...), slope (..., 2))``, metres and metres per metre.
+        """
+        xy = self._check_xy(xy)
+        lead = xy.shape[:-1]
+        with torch.no_grad():
+            height, slope = self._evaluate(xy.reshape(-1, 2), with_slope=True)
+        assert slope is not None
+        return height.view(lead), slope.view(*lead, 2)
+
+    def node_heights(self) -> torch.Tensor:
+        """``(ny, nx)`` heights at the tile's nodes (float64 decode, for metrics)."""
+        synth = Synthesis(self.levels, self.hidden, torch.from_numpy(self.feature_scale))
+        synth.load_parameter_vector(torch.from_numpy(self.synthesis_vector))
+        from neuralmap.terrain.latent.bspline import node_values
+
+        feats = node_values(node_lattice(self.decoded_latents, self.shape))  # type: ignore[arg-type]
+        with torch.no_grad():
+            return synth.double()(feats.permute(1, 2, 0))

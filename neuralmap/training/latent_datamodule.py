@@ -1,0 +1,75 @@
+"""LatentDataModule: one DEM tile for latent-grid map training (full-tile steps).
+
+A latent-grid map is fitted to the whole tile at every step (every node plus random
+between-node points, :class:`~neuralmap.terrain.latent.RateDistortion`), so an epoch is
+just ``steps_per_epoch`` step indices; validation is one item (the whole tile, quantised).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import lightning.pytorch as pl
+import torch
+from lightning.pytorch.utilities.rank_zero import rank_zero_info
+from torch.utils.data import DataLoader, Dataset
+
+from neuralmap.dem import load_tile
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+
+
+class _Steps(Dataset):
+    """``count`` items, each its own index (the module does the work)."""
+
+    def __init__(self, count: int) -> None:
+        self.count = int(count)
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, index: int) -> torch.Tensor:
+        if not 0 <= index < self.count:
+            raise IndexError(index)
+        return torch.tensor(index)
+
+
+class LatentDataModule(pl.LightningDataModule):
+    """A DEM tile served as full-tile training steps.
+
+    Args:
+        path: Sample name (``jacksboro``, ``synthetic``, ``synthetic:64x48``) or a DEM file
+            (:func:`neuralmap.dem.load_tile`); from Python also a :class:`DemTile`.
+        spacing: Grid spacing override in metres (for files without one).
+        steps_per_epoch: Optimisation steps per epoch (each over the whole tile).
+
+    Raises:
+        NeuralMapError: Bad path / file, or ``steps_per_epoch`` < 1.
+    """
+
+    def __init__(self, path: str | Path = "jacksboro", spacing: float | None = None,
+                 steps_per_epoch: int = 100) -> None:
+        super().__init__()
+        if int(steps_per_epoch) < 1:
+            raise NeuralMapError(
+                f"data.steps_per_epoch must be >= 1, got {steps_per_epoch}.")
+        self.steps_per_epoch = int(steps_per_epoch)
+        if isinstance(path, DemTile):
+            self.tile: DemTile = path
+        else:
+            self.tile = load_tile(str(path), spacing=spacing)
+        rank_zero_info(
+            f"tile '{self.tile.name}': {self.tile.shape[0]} x {self.tile.shape[1]} nodes, "
+            f"spacing {self.tile.spacing[0]:.2f} x {self.tile.spacing[1]:.2f} m")
+
+    @property
+    def experiment_name(self) -> str:
+        """Run folder name: ``latent_<tile name>``."""
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in self.tile.name)
+        return f"latent_{safe}"
+
+    def train_dataloader(self) -> DataLoader:
+        return DataLoader(_Steps(self.steps_per_epoch), batch_size=None, shuffle=False)
+
+    def val_dataloader(self) -> DataLoader:
+        return DataLoader(_Steps(1), batch_size=None, shuffle=False)

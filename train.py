@@ -1,4 +1,9 @@
-"""Fit a neural terrain map to a DEM tile: ``python train.py [--config configs/train.yaml]``."""
+"""Every trainer: ``python train.py [map|noise|region] [--config FILE] [options]``.
+
+``map`` (default) fits a neural map to a DEM tile or a mosaic of tiles, ``noise`` learns
+the TAN filter's Q and R from flights, ``region`` fits a region-scale sharded map; see
+:mod:`neuralmap.training.cli`.
+"""
 
 from neuralmap.training.cli import main
 

@@ -1,12 +1,14 @@
-"""Fit a region-scale neural map: ``python train_region.py SOURCE... --out DIR``.
+"""Replaced by ``python train.py region`` (same option style as every trainer).
 
-Mosaics of DEM files, memory-mapped ``.npy`` regions or the paper-size synthetic region,
-fitted shard by shard over Lightning's launcher. Logic: :mod:`neuralmap.training.region_cli`.
+``python train_region.py SOURCE... --out DIR --steps N`` is now
+``python train.py region --data.path SOURCE --out DIR --model.steps N``; this stub only
+says so.
 """
 
 import sys
 
-from neuralmap.training.region_cli import main
-
 if __name__ == "__main__":
-    sys.exit(main())
+    print("error: train_region.py is replaced by `python train.py region`: e.g. "
+          "`python train.py region --data.path \"srtm/*.hgt\" --out runs/two_tiles "
+          "--trainer.devices 2` (options: python train.py region --help).", file=sys.stderr)
+    sys.exit(2)

@@ -14,6 +14,11 @@ Measures in one run, on the scenario's tile (default: jacksboro), and prints rat
 (d) height + slope queries per second: neural map (autograd), torch bilinear and bicubic
     (``GridTerrain.height_and_slope``) and scipy ``RegularGridInterpolator`` (cubic, slope
     from its spline derivatives ``nu=(1, 0)``, ``(0, 1)``);
+(f) height + slope queries of latent-grid neural maps
+    (:class:`neuralmap.terrain.latent.LatentTerrainMap.height_and_slope`, float32, one
+    thread, no grid evaluated first) against the torch bicubic grid in the same run,
+    interleaved repeats, ratio = latent / bicubic throughput (target ≥ 1.0x); linear
+    synthesis (hidden 0) and the 8-unit MLP; ``--latent_only`` runs just this section;
 (e) the float32 bilinear TAN step of (a) with every robust/adaptive update policy
     (:mod:`neuralmap.filters.policies`), each with its cost ratio to the plain step
     measured in the same run (targets: weight/factor policies ≤ 1.5×, the variational
@@ -426,6 +431,55 @@ def bench_queries(
     return rows
 
 
+def latent_maps_for(tile: DemTile, hidden: list[int]) -> list[tuple[torch.nn.Module, str]]:
+    """Latent maps of the tile: freshly initialised (Laplacian-pyramid latents, untrained
+    decoder; the query cost does not depend on the values) for each ``hidden``."""
+    from neuralmap.terrain.latent import LatentGrid, export_map
+
+    return [(export_map(LatentGrid(tile, hidden=h)), f"6 levels, hidden {h}") for h in hidden]
+
+
+def bench_latent_queries(tile: DemTile, *, n_points: int, repeats: int,
+                         hidden: list[int]) -> list[Row]:
+    """Latent-map vs torch bicubic height + slope queries, float32, one thread, same run."""
+    from neuralmap.terrain.grid import GridTerrain
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        gen = torch.Generator().manual_seed(1)
+        xmin, xmax, ymin, ymax = tile.extent
+        xy = (torch.tensor([xmin, ymin]) + torch.tensor([xmax - xmin, ymax - ymin])
+              * torch.rand(n_points, 2, generator=gen, dtype=torch.float64)).float()
+        bicubic = GridTerrain(tile, method="bicubic", dtype=torch.float32)
+        maps = latent_maps_for(tile, hidden)
+        times: dict[str, list[float]] = {"bicubic": []}
+        times.update({what: [] for _, what in maps})
+        fns = [("bicubic", lambda: bicubic.height_and_slope(xy))]
+        fns += [(what, lambda m=m: m.height_and_slope(xy)) for m, what in maps]
+        for _, fn in fns:
+            fn()
+        for _ in range(max(repeats, 3)):  # interleaved: machine load hits every method alike
+            for what, fn in fns:
+                start = time.perf_counter()
+                fn()
+                times[what].append(time.perf_counter() - start)
+    finally:
+        torch.set_num_threads(previous)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    best = {k: min(v) for k, v in times.items()}
+    rows = [Row("(f) latent queries", "torch bicubic grid, analytic (float32, 1 thread)",
+                n_points / med["bicubic"], n_points / best["bicubic"], "queries/s",
+                f"{n_points} points")]
+    for _, what in maps:
+        rows.append(Row(
+            "(f) latent queries", f"latent-grid map, analytic ({what}; float32, 1 thread)",
+            n_points / med[what], n_points / best[what], "queries/s",
+            f"{n_points} points; {med['bicubic'] / med[what]:.2f}x bicubic (median), "
+            f"{best['bicubic'] / best[what]:.2f}x (best repeat)"))
+    return rows
+
+
 def run(args: argparse.Namespace) -> list[Row]:
     """Runs every benchmark and returns the rows (also printed)."""
     from neuralmap.linearize.factory import make_linearizer
@@ -433,6 +487,11 @@ def run(args: argparse.Namespace) -> list[Row]:
 
     torch.set_num_threads(args.threads)
     scenario, tile, scenario_name = load_bench_tile(args.scenario)
+    if args.latent_only:
+        print(f"# bench_filter (f) only: torch {torch.__version__}; tile {tile.name} "
+              f"{tile.shape[0]}x{tile.shape[1]}")
+        return bench_latent_queries(tile, n_points=args.n_queries, repeats=args.repeats,
+                                    hidden=args.latent_hidden)
     scenario = dataclasses.replace(scenario, duration_s=args.steps * scenario.dt)
     n, n_neural = args.n, args.n_neural
     print(
@@ -525,6 +584,9 @@ def run(args: argparse.Namespace) -> list[Row]:
         tile, neural, n_points=args.n_queries, n_scipy=args.n_scipy, repeats=args.repeats
     )
     stage("(d) queries")
+    rows += bench_latent_queries(tile, n_points=args.n_queries, repeats=args.repeats,
+                                 hidden=args.latent_hidden)
+    stage("(f) latent queries")
     return rows
 
 
@@ -542,18 +604,24 @@ def _subset(truth: Any, n: int) -> Any:
 
 
 def format_rows(rows: list[Row]) -> str:
-    """Markdown table with ratios: filters against FilterPy, queries against scipy."""
+    """Markdown table with ratios: filters against FilterPy, queries against scipy, latent
+    queries against the torch bicubic grid of (f)."""
     ref_filter = next((r.rate for r in rows if r.group.startswith("(c)")), float("nan"))
     ref_query = next(
         (r.rate for r in rows if r.group.startswith("(d)") and "scipy" in r.name), float("nan")
     )
+    ref_latent = next((r.rate for r in rows if r.group.startswith("(f)")), float("nan"))
     lines = [
         "| benchmark | implementation | median throughput | ratio | best repeat | problem |",
         "|---|---|---:|---:|---:|---|",
     ]
     for r in rows:
-        ref = ref_query if r.group.startswith("(d)") else ref_filter
-        ref_name = "scipy" if r.group.startswith("(d)") else "FilterPy"
+        if r.group.startswith("(f)"):
+            ref, ref_name = ref_latent, "bicubic"
+        elif r.group.startswith("(d)"):
+            ref, ref_name = ref_query, "scipy"
+        else:
+            ref, ref_name = ref_filter, "FilterPy"
         lines.append(
             f"| {r.group} | {r.name} | {r.rate:,.0f} {r.unit} | {r.rate / ref:,.1f}x {ref_name} "
             f"| {r.best:,.0f} | {r.detail} |"
@@ -576,6 +644,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=2, help="torch.set_num_threads")
     parser.add_argument("--runs_dir", default="runs", help="where to look for a trained map")
     parser.add_argument("--skip_policies", action="store_true", help="skip benchmark (e)")
+    parser.add_argument("--latent_only", action="store_true", help="run benchmark (f) only")
+    parser.add_argument("--latent_hidden", type=int, nargs="+", default=[0, 8],
+                        help="MLP widths of the latent maps in (f)")
     args = parser.parse_args(argv)
     if args.quick:
         args.n, args.n_neural, args.n_filterpy = 2000, 1000, 10

@@ -1,20 +1,26 @@
-"""GNSS/INS throughput: batched torch mechanisation + 15-state EKF vs a single-run NumPy loop.
+"""GNSS/INS throughput: the block filter vs the per-sample filter and a NumPy loop.
 
-Measures in one run and prints the ratio (the NumPy loop is the 1x reference):
+Measures in one run and prints ratios:
 
-(a) :func:`neuralmap.ins.loosely_coupled.run_loosely_coupled` over N runs at once (default
-    N = 1000): IMU error simulation, strapdown mechanisation at the IMU rate, covariance
-    propagation every ``propagate_every`` samples and at each GNSS epoch, 1 Hz GNSS
-    position + velocity updates with the lever arm, feedback, error bookkeeping;
-(b) the same algorithm for one run in plain NumPy (Python loop over IMU samples, float64):
+(a) :func:`neuralmap.ins.loosely_coupled.run_loosely_coupled` (block form: IMU samples,
+    mechanisation and covariance propagation of a whole stretch between GNSS epochs at
+    once; compiled loops where numba is installed) over N runs at once: strapdown at the
+    IMU rate, covariance propagation every ``propagate_every`` samples and at each GNSS
+    epoch, 1 Hz GNSS position + velocity updates with the lever arm, feedback, error
+    bookkeeping;
+(b) the per-sample form it replaced (one torch operation set per IMU sample: the
+    implementation of commit ``c9af50c``, loaded from git into a temporary module) on the
+    same inputs; the largest difference of the recorded errors is printed;
+(c) the same algorithm for one run in plain NumPy (Python loop over IMU samples, float64):
     the same increment mechanisation, Φ = I + FT + (FT)²/2, trapezoid Q_d, Joseph update.
 
-Throughput is IMU-steps per second summed over runs (N x samples / wall time). A
-cross-check runs (a) with N = 1 on the IMU samples and initial error of (b) and prints the
-largest final-state difference (both are float64, so it is at rounding level).
+(a) and (b) replay one recorded IMU record (mechanisation + filter only); the last row
+times (a) with the IMU error simulation included. Throughput is IMU-steps per second
+summed over runs (N x samples / wall time). Targets: (a)/(b) ≥ 10 at N = 200 and
+(a) at N = 1 ≥ (c).
 
 Usage:
-    python benchmarks/bench_ins.py            # N = 1000, 20 s drive at 200 Hz
+    python benchmarks/bench_ins.py            # N = 200 and N = 1, 20 s drive at 200 Hz
     python benchmarks/bench_ins.py --quick    # smoke test (a few seconds)
 """
 
@@ -210,93 +216,177 @@ def np_filter(traj, gyro: np.ndarray, accel: np.ndarray, y0: np.ndarray, gnss_po
 
 
 class RecordedImu:
-    """An IMU 'process' replaying recorded samples for one run (for the cross-check)."""
+    """An IMU 'process' replaying recorded samples ``(N, K, 3)`` (or ``(K, 3)`` for one run)."""
 
     def __init__(self, gyro: torch.Tensor, accel: torch.Tensor) -> None:
-        self.n_runs = 1
+        if gyro.ndim == 2:
+            gyro, accel = gyro[None], accel[None]
+        self.n_runs = gyro.shape[0]
         self._g, self._a, self._k = gyro, accel, 0
 
     def measure(self, gyro: torch.Tensor, accel: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        out = self._g[self._k:self._k + 1], self._a[self._k:self._k + 1]
+        out = self._g[:, self._k], self._a[:, self._k]
         self._k += 1
         return out
+
+    def measure_block(self, gyro: torch.Tensor, accel: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        k, self._k = self._k, self._k + gyro.shape[0]
+        return self._g[:, k:self._k], self._a[:, k:self._k]
+
+
+def previous_filter() -> object:
+    """``run_loosely_coupled`` of the per-sample implementation (commit c9af50c), or None."""
+    import importlib.util
+    import subprocess
+    import tempfile
+
+    try:
+        source = subprocess.run(
+            ["git", "-C", str(REPO_ROOT), "show", "c9af50c:neuralmap/ins/loosely_coupled.py"],
+            check=True, capture_output=True, text=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    path = Path(tempfile.mkdtemp()) / "loosely_coupled_per_sample.py"
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location("loosely_coupled_per_sample", path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module.run_loosely_coupled
+
+
+def _record_imu(n: int, traj, dt: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[no-untyped-def]
+    imu = ImuErrorProcess("tactical_mems", n_runs=n, dt=dt,
+                          generator=torch.Generator().manual_seed(seed))
+    return imu.measure_block(traj.gyro, traj.accel)
+
+
+def _timed(fn, *args, **kwargs):  # type: ignore[no-untyped-def]
+    start = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - start
+
+
+def _max_difference(a, b) -> float:  # type: ignore[no-untyped-def]
+    return max(float((x - y).abs().max()) for x, y in (
+        (a.position_error, b.position_error), (a.velocity_error, b.velocity_error),
+        (a.attitude_error, b.attitude_error), (a.std, b.std)))
 
 
 def main(argv: list[str] | None = None) -> int:
     """Runs the benchmark and prints the table."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--n", type=int, default=1000, help="runs of the batched filter")
+    parser.add_argument("--n", type=int, default=200, help="runs of the batched filter")
     parser.add_argument("--duration", type=float, default=20.0, help="drive length (s)")
     parser.add_argument("--rate", type=float, default=200.0, help="IMU rate (Hz)")
     parser.add_argument("--every", type=int, default=10, help="IMU samples per propagation")
     parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
-    parser.add_argument("--device", default="cpu", help="torch device of the batched run")
     parser.add_argument("--quick", action="store_true", help="small sizes: a smoke test")
     args = parser.parse_args(argv)
     if args.quick:
-        args.n, args.duration, args.rate = 50, 4.0, 50.0
+        args.n, args.duration, args.rate = 16, 4.0, 50.0
+    from neuralmap.ins.kernels import HAVE_NUMBA
+
     torch.set_num_threads(args.threads)
     dt = 1.0 / args.rate
     traj = short_drive(duration=args.duration, dt=dt)
     cfg = LooselyCoupledConfig(propagate_every=args.every)
     k = traj.n_samples
     print(f"# bench_ins: torch {torch.__version__}, {torch.get_num_threads()} thread(s), "
-          f"{platform.processor() or platform.machine()}; {args.duration:g} s drive, "
+          f"{platform.processor() or platform.machine()}, numba "
+          f"{'on' if HAVE_NUMBA else 'not installed'}; {args.duration:g} s drive, "
           f"{args.rate:g} Hz IMU ({k} samples), 1 Hz GNSS, covariance every {args.every} "
-          f"samples")
+          f"samples; load average {' '.join(f'{x:.1f}' for x in _load())}")
+    old = previous_filter()
+    if old is None:
+        print("# the per-sample implementation (git commit c9af50c) is not available here")
 
+    rows: list[tuple[str, int, float, float]] = []
+    results = {}
+    # warm-up on a short drive (compiled loops load or compile once per process)
+    warm = short_drive(duration=2.0, dt=dt)
+    gyro, accel = _record_imu(2, warm, dt, seed=1)
+    run_loosely_coupled(warm, RecordedImu(gyro, accel),
+                        simulate_gnss(warm, n_runs=2, lever_arm=LEVER_ARM,
+                                      generator=torch.Generator().manual_seed(2)),
+                        cfg, generator=torch.Generator().manual_seed(3))
+    for n in (args.n, 1):
+        gyro, accel = _record_imu(n, traj, dt, seed=1)
+        rec = simulate_gnss(traj, n_runs=n, lever_arm=LEVER_ARM,
+                            generator=torch.Generator().manual_seed(2))
+        new, t_new = _timed(run_loosely_coupled, traj, RecordedImu(gyro, accel), rec, cfg,
+                            generator=torch.Generator().manual_seed(3))
+        rows.append((f"block filter (this toolkit), N = {n}", n, t_new, n * k / t_new))
+        results[("new", n)] = new
+        if old is not None:
+            prev, t_old = _timed(old, traj, RecordedImu(gyro, accel), rec, cfg,
+                                 generator=torch.Generator().manual_seed(3))
+            rows.append((f"per-sample filter (c9af50c), N = {n}", n, t_old, n * k / t_old))
+            print(f"# N = {n}: block vs per-sample filter, largest difference of the recorded "
+                  f"errors and σ: {_max_difference(new, prev):.2e}")
+    n = args.n
     gen = torch.Generator().manual_seed(0)
-    imu = ImuErrorProcess("tactical_mems", n_runs=args.n, dt=dt, generator=gen)
-    rec = simulate_gnss(traj, n_runs=args.n, lever_arm=LEVER_ARM, generator=gen)
-    start = time.perf_counter()
-    res = run_loosely_coupled(traj, imu, rec, cfg, generator=gen)
-    torch_time = time.perf_counter() - start
-    torch_rate = args.n * k / torch_time
+    imu = ImuErrorProcess("tactical_mems", n_runs=n, dt=dt, generator=gen)
+    rec = simulate_gnss(traj, n_runs=n, lever_arm=LEVER_ARM, generator=gen)
+    res, t_sim = _timed(run_loosely_coupled, traj, imu, rec, cfg, generator=gen)
+    rows.append((f"block filter + IMU error simulation, N = {n}", n, t_sim, n * k / t_sim))
 
-    # NumPy reference on run 0's IMU samples and initial error
-    gen1 = torch.Generator().manual_seed(1)
-    imu1 = ImuErrorProcess("tactical_mems", n_runs=1, dt=dt, generator=gen1)
-    meas = [imu1.measure(traj.gyro[i], traj.accel[i]) for i in range(k)]
-    gyro = torch.cat([m[0] for m in meas])
-    accel = torch.cat([m[1] for m in meas])
-    rec1 = simulate_gnss(traj, n_runs=1, lever_arm=LEVER_ARM, generator=gen1)
+    # NumPy reference on the N = 1 IMU record and initial error of the torch run
+    gyro, accel = _record_imu(1, traj, dt, seed=1)
+    rec1 = simulate_gnss(traj, n_runs=1, lever_arm=LEVER_ARM,
+                         generator=torch.Generator().manual_seed(2))
     p0 = initial_covariance(cfg, dtype=torch.float64)
-    gen_torch = torch.Generator().manual_seed(7)
-    res1 = run_loosely_coupled(traj, RecordedImu(gyro, accel), rec1, cfg,  # type: ignore[arg-type]
-                               generator=gen_torch)
     from neuralmap.ins.error_state import inject
 
-    e0 = torch.randn(1, 9, generator=torch.Generator().manual_seed(7),
+    e0 = torch.randn(1, 9, generator=torch.Generator().manual_seed(3),
                      dtype=torch.float64) @ torch.linalg.cholesky(p0[:9, :9]).T
     y0 = inject(traj.states[:1], e0)[0].numpy()
     q = rec1.quality
     sigma = torch.cat([q.sigma_pos, q.sigma_vel], 1).numpy()
     grade = imu_grade(cfg.grade)
-    start = time.perf_counter()
-    y_np = np_filter(traj, gyro.numpy(), accel.numpy(), y0, rec1.position[0].numpy(),
-                     rec1.velocity[0].numpy(), sigma, q.imu_index.numpy(), p0.numpy(),
-                     process_noise_density(grade).numpy(),
-                     (grade.gyro_corr_time, grade.accel_corr_time), args.every)
-    np_time = time.perf_counter() - start
+    y_np, np_time = _timed(np_filter, traj, gyro[0].numpy(), accel[0].numpy(), y0,
+                           rec1.position[0].numpy(), rec1.velocity[0].numpy(), sigma,
+                           q.imu_index.numpy(), p0.numpy(), process_noise_density(grade).numpy(),
+                           (grade.gyro_corr_time, grade.accel_corr_time), args.every)
     np_rate = k / np_time
     from neuralmap.ins.earth import position_offset_ned
 
     truth = traj.states[-1]
     yt = torch.from_numpy(y_np)
     np_err = position_offset_ned(yt[0:1], yt[1:2], yt[2:3], truth[0:1], truth[1:2], truth[2:3])
-    deviation = float((np_err[0] - res1.position_error[0, -1]).abs().max())
+    deviation = float((np_err[0] - results[("new", 1)].position_error[0, -1]).abs().max())
     print(f"# cross-check: final position error NumPy vs torch (N = 1, same inputs): "
           f"max difference {deviation:.2e} m")
     print(f"# batched run: final horizontal position RMSE "
           f"{float(res.position_error[:, -1, :2].square().sum(-1).mean().sqrt()):.3f} m over "
-          f"{args.n} runs; all healthy: {bool(res.healthy.all())}")
+          f"{n} runs; all healthy: {bool(res.healthy.all())}")
     print()
-    print("| implementation | runs | wall time | IMU-steps/s | ratio |")
+    print("| implementation | runs | wall time | IMU-steps/s | vs NumPy loop |")
     print("|---|---:|---:|---:|---:|")
     print(f"| NumPy loop, one run (float64) | 1 | {np_time:.2f} s | {np_rate:,.0f} | 1.0x |")
-    print(f"| torch batched, {args.device} (float64) | {args.n} | {torch_time:.2f} s | "
-          f"{torch_rate:,.0f} | {torch_rate / np_rate:,.1f}x |")
+    for name, runs, t, rate in rows:
+        print(f"| {name} | {runs} | {t:.2f} s | {rate:,.0f} | {rate / np_rate:,.1f}x |")
+    rate = {name: r for name, _, _, r in rows}
+    if old is not None:
+        ratio = (rate[f"block filter (this toolkit), N = {args.n}"]
+                 / rate[f"per-sample filter (c9af50c), N = {args.n}"])
+        ratio1 = (rate["block filter (this toolkit), N = 1"]
+                  / rate["per-sample filter (c9af50c), N = 1"])
+        print(f"\nblock / per-sample filter: {ratio:.1f}x at N = {args.n} (target >= 10x), "
+              f"{ratio1:.1f}x at N = 1")
+    print(f"block filter at N = 1 / NumPy loop: "
+          f"{rate['block filter (this toolkit), N = 1'] / np_rate:.1f}x (target >= 1x)")
     return 0
+
+
+def _load() -> tuple[float, ...]:
+    try:
+        import os
+
+        return os.getloadavg()
+    except (AttributeError, OSError):
+        return ()
 
 
 if __name__ == "__main__":

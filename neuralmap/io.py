@@ -4,7 +4,8 @@ Every writer goes through a temporary file in the destination folder and
 :func:`os.replace`, so a reader (or a crash) never sees a half-written file. Files get the
 permission bits a plain ``open`` would give under the current umask (``tempfile`` alone
 would leave them owner-only). Run folders are built under a hidden temporary name and
-published as the next free ``version_<N>``; the number is reserved with an atomic
+published as the next free ``version_<N>`` (or in place of an earlier output:
+:func:`replacing_dir`); the number is reserved with an atomic
 ``mkdir`` so two concurrent runs can never take the same folder.
 """
 
@@ -39,6 +40,7 @@ __all__ = [
     "default_mode",
     "next_version_dir",
     "publish_dir",
+    "replacing_dir",
     "staging_dir",
     "to_jsonable",
     "version_number",
@@ -204,6 +206,32 @@ def publish_dir(staging: Path, root: str | os.PathLike[str]) -> Path:
 _STAGING_PREFIX = ".tmp-version_"
 
 
+def check_experiment_name(name: str, *, option: str = "--experiment") -> str:
+    """The one rule for experiment names (trainers and studies): a plain, visible folder
+    name inside the runs folder.
+
+    Args:
+        name: The experiment name.
+        option: The option to name in the message.
+
+    Returns:
+        ``name``.
+
+    Raises:
+        NeuralMapError: Empty, ``.``/``..``, a path separator, or a leading ``.`` (hidden
+            folders are the staging folders of runs in progress).
+    """
+    text = str(name)
+    if (not text or text.startswith(".") or "/" in text or "\\" in text or os.sep in text
+            or Path(text).name != text):
+        raise NeuralMapError(
+            f"{option} {text!r} must be a plain folder name inside --runs_dir (no '/', "
+            "'\\', no leading '.', not '..'); choose the parent folder with --runs_dir "
+            "instead."
+        )
+    return text
+
+
 def _pid_alive(pid: int) -> bool:
     """Whether a process with this id runs on this machine (signal 0 probes, sends nothing)."""
     try:
@@ -259,6 +287,66 @@ def staging_dir(root: str | os.PathLike[str]) -> Iterator[Path]:
     finally:
         if path.exists():
             shutil.rmtree(path, ignore_errors=True)
+
+
+@contextmanager
+def replacing_dir(target: str | os.PathLike[str], *, option: str = "--out") -> Iterator[Path]:
+    """Builds a folder under a hidden name beside ``target``; puts it in place when whole.
+
+    ``with replacing_dir(out) as tmp: ...write into tmp...``: when the block ends without an
+    exception the hidden ``.<name>.tmp-*`` folder replaces ``target`` (an earlier complete
+    output is moved aside and deleted only then); an exception, Ctrl-C or ``kill -9``
+    leaves ``target`` as it was. Only one builder per target at a time: an exclusive lock
+    on ``.<name>.lock`` (released by the kernel when its process dies) refuses a second;
+    hidden builds left by killed runs are removed when the lock is taken.
+
+    The replacement is two renames (old aside, new in); a crash between them, a window of
+    microseconds, leaves the complete old output under ``.<name>.old-*``.
+
+    Raises:
+        NeuralMapError: ``target`` is a file, its parent is not writable, or another run
+            is building it now.
+    """
+    import fcntl
+
+    target = Path(target)
+    if target.exists() and not target.is_dir():
+        raise NeuralMapError(
+            f"{option} '{target}' is a file; give a folder (new or an earlier output).")
+    parent = target.parent
+    lock_path = parent / f".{target.name}.lock"
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+        lock = open(lock_path, "a+b")  # noqa: SIM115 - held to the end
+    except OSError as exc:
+        raise NeuralMapError(f"{option} '{target}': cannot write in '{parent}' ({exc}).") from None
+    try:
+        try:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            lock.close()
+            raise NeuralMapError(
+                f"{option} '{target}': another run is writing this output now; wait for it "
+                f"to finish or give another {option}.") from None
+        for stale in (*parent.glob(f".{target.name}.tmp-*"), *parent.glob(f".{target.name}.old-*")):
+            shutil.rmtree(stale, ignore_errors=True)
+        staging = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=parent))
+        os.chmod(staging, default_mode(directory=True))
+        try:
+            yield staging
+            old = None
+            if target.exists():
+                old = parent / f".{target.name}.old-{os.getpid()}"
+                os.replace(target, old)
+            os.replace(staging, target)
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+        finally:
+            if staging.exists():
+                shutil.rmtree(staging, ignore_errors=True)
+            lock_path.unlink(missing_ok=True)  # still held: no other run can be past flock
+    finally:
+        lock.close()
 
 
 class _NumberLoader(yaml.SafeLoader):

@@ -259,7 +259,10 @@ def test_bench_filter_quick(capsys: pytest.CaptureFixture[str]) -> None:
     policies = [line for line in table if line.startswith("| (e)")]
     assert len(policies) == len(bench.policy_factories())  # (e) one row per policy
     assert all("the plain step" in line for line in policies)
-    assert len(table) == 11 + len(policies)  # (a) 2, (b) 2, (c) 1, (d) 6 (neural, 4 grids, scipy)
+    latent = [line for line in table if line.startswith("| (f)")]
+    assert latent and "torch bicubic grid" in latent[0]  # (f) the grid, then latent maps
+    # (a) 2, (b) 2, (c) 1, (d) 6 (neural, 4 grids, scipy), (e) policies, (f) latent queries
+    assert len(table) == 11 + len(policies) + len(latent)
     assert any("FilterPy" in line for line in table) and any("scipy" in line for line in table)
     cross = next(line for line in out.splitlines() if "cross-check" in line)
     assert float(cross.rsplit("=", 1)[1]) < 1e-6  # torch and FilterPy solve the same problem

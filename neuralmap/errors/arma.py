@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 
-from neuralmap.errors.optional import require_scipy
 from neuralmap.exceptions import NeuralMapError
 
 #: Roots of φ(z) or θ(z) closer than this to the unit circle count as on it.
@@ -136,7 +135,6 @@ class ArmaModel:
 
     def psi_weights(self, n: int) -> np.ndarray:
         """First ``n`` weights of ``x_t = Σ ψ_j a_{t-j}`` (``ψ_0 = 1``); ``(n,)``."""
-        require_scipy("ArmaModel.psi_weights")
         from scipy.signal import lfilter
 
         impulse = np.zeros(n)

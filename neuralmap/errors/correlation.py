@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from neuralmap.errors.optional import require_scipy, require_statsmodels
+from neuralmap.errors.optional import require_statsmodels
 from neuralmap.errors.sequence import as_sequence
 
 
@@ -55,7 +55,6 @@ def partial_autocorrelation(sequence: Any, *, nlags: int = 20) -> np.ndarray:
 
 def confidence_band(n: int, *, level: float = 0.95) -> float:
     """Half-width ``z_{(1+level)/2} / √n`` of the white-noise band for ρ̂_k and partial ρ̂_k."""
-    require_scipy("confidence_band")
     from scipy.stats import norm
 
     return float(norm.ppf(0.5 + level / 2.0) / np.sqrt(n))

@@ -14,7 +14,6 @@ fits worse, which the method of moments allows.
 
 from __future__ import annotations
 
-from neuralmap.errors.optional import require_scipy
 from neuralmap.exceptions import NeuralMapError
 
 
@@ -57,7 +56,6 @@ def f_quantile(s: int, dof: int, *, level: float = 0.95) -> float:
         raise NeuralMapError(
             f"f_quantile: need s ≥ 1, dof ≥ 1 and 0 < level < 1, got {s}, {dof}, {level}."
         )
-    require_scipy("f_quantile")
     from scipy.stats import f as f_distribution
 
     return float(f_distribution.ppf(level, s, dof))

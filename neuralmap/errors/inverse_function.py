@@ -14,7 +14,6 @@ from typing import Any
 import numpy as np
 
 from neuralmap.errors.arma import ArmaModel, ar_polynomial, ma_polynomial
-from neuralmap.errors.optional import require_scipy
 from neuralmap.exceptions import NeuralMapError
 
 
@@ -31,7 +30,6 @@ def inverse_function_weights(model: ArmaModel, n: int) -> np.ndarray:
     Returns:
         ``(n,)`` float64 array.
     """
-    require_scipy("inverse_function_weights")
     from scipy.signal import lfilter
 
     impulse = np.zeros(n + 1)
@@ -59,7 +57,6 @@ def innovations(sequence: Any, model: ArmaModel, *, demean: bool = True) -> np.n
             f"innovations: {model.name} with theta={model.theta} is not invertible; its "
             "inverse function diverges. Use the invertible moment solution."
         )
-    require_scipy("innovations")
     from scipy.signal import lfilter
 
     return lfilter(ar_polynomial(model.phi), ma_polynomial(model.theta), x, axis=-1)

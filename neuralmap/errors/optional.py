@@ -1,4 +1,5 @@
-"""The optional SciPy / statsmodels dependencies of the error-model toolkit."""
+"""The optional statsmodels dependency of the error-model toolkit (SciPy is a core
+dependency)."""
 
 from __future__ import annotations
 
@@ -28,21 +29,3 @@ def require_statsmodels(what: str) -> ModuleType:
         ) from exc
     return statsmodels
 
-
-def require_scipy(what: str) -> ModuleType:
-    """Imports SciPy or raises NeuralMapError naming the extra that installs it.
-
-    Args:
-        what: The function that needs SciPy (for the message).
-
-    Returns:
-        The ``scipy`` module.
-    """
-    try:
-        import scipy
-    except ImportError as exc:
-        raise NeuralMapError(
-            f"{what} needs SciPy, which is not installed. Install the optional extra: "
-            f"pip install 'neuralmap[{STATSMODELS_EXTRA}]'."
-        ) from exc
-    return scipy

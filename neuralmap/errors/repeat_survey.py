@@ -135,7 +135,8 @@ def survey_recovery(
 
     Returns:
         Plain dict: ``true_model``, ``ar1_phi_mean`` / ``ar1_phi_std``, ``ar2_phi_mean`` /
-        ``ar2_phi_std``, ``sample_std_mean``, ``chosen_counts`` (order name → count),
+        ``ar2_phi_std``, ``arma11_mean`` / ``arma11_std`` (``[φ, θ]`` of ARMA(1,1)),
+        ``sample_std_mean``, ``chosen_counts`` (order name → count),
         ``first`` (the :class:`ErrorModelIdentification` of survey 0, as a dict) and
         ``first_result`` (the object itself).
     """
@@ -143,7 +144,7 @@ def survey_recovery(
         n_nodes=n_nodes, n_passes=n_passes, phi=phi, batch=n_trials, seed=seed
     )
     samples = survey.errors
-    ar1, ar2, chosen, stds = [], [], Counter(), []
+    ar1, ar2, arma11, chosen, stds = [], [], [], Counter(), []
     first: ErrorModelIdentification | None = None
     for i in range(n_trials):  # one identification per survey (not a hot path)
         result = identify_error_model(samples[i], max_order=max_order, diagnostics=i == 0)
@@ -154,10 +155,14 @@ def survey_recovery(
             row = result.row(2, 0)
             if row.model is not None:
                 ar2.append(row.model.phi)
+        if any((r.p, r.q) == (1, 1) for r in result.rows):
+            row = result.row(1, 1)
+            if row.model is not None:
+                arma11.append((*row.model.phi, *row.model.theta))
         chosen[result.chosen.name] += 1
         stds.append(result.std)
     assert first is not None
-    ar1_arr, ar2_arr = np.asarray(ar1), np.asarray(ar2)
+    ar1_arr, ar2_arr, arma_arr = np.asarray(ar1), np.asarray(ar2), np.asarray(arma11)
     true = ArmaModel(phi=tuple(phi), sigma2=1.0)
     return {
         "true_model": true.to_dict(),
@@ -166,6 +171,8 @@ def survey_recovery(
         "ar1_phi_std": ar1_arr.std(axis=0).tolist(),
         "ar2_phi_mean": ar2_arr.mean(axis=0).tolist() if ar2_arr.size else None,
         "ar2_phi_std": ar2_arr.std(axis=0).tolist() if ar2_arr.size else None,
+        "arma11_mean": arma_arr.mean(axis=0).tolist() if arma_arr.size else None,
+        "arma11_std": arma_arr.std(axis=0).tolist() if arma_arr.size else None,
         "sample_std_mean": float(np.mean(stds)),
         "chosen_counts": dict(chosen),
         "first": first.to_dict(),

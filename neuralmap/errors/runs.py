@@ -8,7 +8,6 @@ from typing import Any
 
 import numpy as np
 
-from neuralmap.errors.optional import require_scipy
 from neuralmap.errors.sequence import as_sequence
 from neuralmap.exceptions import NeuralMapError
 
@@ -57,7 +56,6 @@ def runs_test(values: Any, *, alpha: float = 0.05, where: str = "runs_test") -> 
     Returns:
         The :class:`RunsResult`.
     """
-    require_scipy(where)
     from scipy.stats import norm
 
     x = as_sequence(values, where=where, min_length=4, why="a runs test")

@@ -236,3 +236,45 @@ class ImuErrorProcess:
         self.gyro_gm = self._phi_g * self.gyro_gm + self._drive_g * drive[:, :3]
         self.accel_gm = self._phi_a * self.accel_gm + self._drive_a * drive[:, 3:]
         return w, f
+
+    def measure_block(
+        self, gyro: torch.Tensor, accel: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """L consecutive samples at once: the same numbers as L calls of :meth:`measure`.
+
+        The random draws come from the generator in the same order (noise, then bias
+        drive, per sample); torch fills normal draws in blocks of 16 values, so one call
+        for the whole block gives the same numbers exactly when a sample's 6 N draws are a
+        whole number of blocks (N a multiple of 8); otherwise each sample's draws are made
+        separately into one buffer. The bias walk runs as a compiled loop where numba is
+        installed (:func:`~neuralmap.ins.kernels.gauss_markov_block`).
+
+        Args:
+            gyro: ``(L, 3)`` true angular rates (rad/s).
+            accel: ``(L, 3)`` true specific forces (m/s²).
+
+        Returns:
+            ``(gyro_measured, accel_measured)``, ``(N, L, 3)`` each.
+        """
+        from neuralmap.ins.kernels import gauss_markov_block
+
+        n, steps = self.n_runs, gyro.shape[0]
+        if (6 * n) % 16 == 0:
+            draws = torch.randn(steps, 2, n, 6, generator=self._gen, **self._kw)
+        else:
+            draws = torch.empty(steps, 2, n, 6, **self._kw)
+            for t in range(steps):
+                torch.randn(n, 6, generator=self._gen, out=draws[t, 0])
+                torch.randn(n, 6, generator=self._gen, out=draws[t, 1])
+        kw = self._kw
+        phi = torch.tensor([self._phi_g] * 3 + [self._phi_a] * 3, **kw)
+        sigma = torch.tensor([self._drive_g] * 3 + [self._drive_a] * 3, **kw)
+        hist, gm = gauss_markov_block(torch.cat([self.gyro_gm, self.accel_gm], 1), phi, sigma,
+                                      draws[:, 1])
+        self.gyro_gm, self.accel_gm = gm[:, :3].contiguous(), gm[:, 3:].contiguous()
+        noise = draws[:, 0]
+        w = (gyro[:, None, :] * (1.0 + self.gyro_scale) + (self.gyro_turn_on + hist[..., :3])
+             + self._white_g * noise[..., :3])
+        f = (accel[:, None, :] * (1.0 + self.accel_scale) + (self.accel_turn_on + hist[..., 3:])
+             + self._white_a * noise[..., 3:])
+        return w.transpose(0, 1), f.transpose(0, 1)

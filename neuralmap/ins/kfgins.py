@@ -34,12 +34,17 @@ import io as _io
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import atomic_write_text, load_yaml
+
+if TYPE_CHECKING:
+    from neuralmap.ins.gnss import GnssRecord
+    from neuralmap.ins.imu_model import ImuErrorProcess, ImuGrade
+    from neuralmap.ins.trajectory import Trajectory
 
 __all__ = [
     "GnssLog",
@@ -253,7 +258,8 @@ def read_imu(path: str | Path, *, rate_hz: float | None = None, columns: int = 7
             f"{what} '{path}', line {lines[k]}: a gap of {steps[k - 1]:.6g} s after time "
             f"{float(time[k - 1])!r} s (line {lines[k - 1]}); the nominal interval is {dt:.6g} s. "
             "Split the log at the gap (starttime/endtime) or fill it; the increments of a "
-            "missing interval cannot be recovered."
+            "missing interval cannot be recovered. If every interval is flagged, imudatarate "
+            "does not match the file."
         )
     return ImuLog(time=time.copy(), dtheta=table[:, 1:4].copy(), dvel=table[:, 4:7].copy(),
                   dt=dt)
@@ -434,7 +440,7 @@ class KfGinsConfig:
     reference: Path | None
     source: Path
 
-    def imu_grade(self) -> Any:
+    def imu_grade(self) -> ImuGrade:
         """The noise model as an :class:`~neuralmap.ins.imu_model.ImuGrade`.
 
         The filter's initial bias variance is turn-on² + instability², so the turn-on σ is
@@ -567,8 +573,8 @@ def read_config(path: str | Path) -> KfGinsConfig:
 # --------------------------------------------------------------------------- simulation
 
 
-def simulated_logs(traj: Any, gnss: Any, *, imu: Any = None, run: int = 0,
-                   week: int = 0) -> tuple[ImuLog, GnssLog, NavLog]:
+def simulated_logs(traj: Trajectory, gnss: GnssRecord, *, imu: ImuErrorProcess | None = None,
+                   run: int = 0, week: int = 0) -> tuple[ImuLog, GnssLog, NavLog]:
     """One run of the toolkit's simulator as KF-GINS logs: IMU, GNSS and reference.
 
     The IMU increments are the trapezoid of the sampled rates over each interval,

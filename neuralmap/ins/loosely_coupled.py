@@ -26,16 +26,13 @@ from neuralmap.filters import BatchedEKF
 from neuralmap.filters.policies.compose import quality_members
 from neuralmap.filters.policy import FilterPolicy
 from neuralmap.ins.error_model import (
-    continuous_noise,
-    discretize,
-    error_dynamics,
     process_noise_density,
 )
 from neuralmap.ins.error_state import correct, inject, navigation_error, total_attitude_error
 from neuralmap.ins.gnss import GnssRecord, sanitize_quality
 from neuralmap.ins.imu_model import ImuErrorProcess, ImuGrade, imu_grade
+from neuralmap.ins.kernels import mechanize_block, propagate_block
 from neuralmap.ins.measurement import check_lever_arm, gnss_measurement_model
-from neuralmap.ins.mechanization import strapdown_step
 from neuralmap.ins.trajectory import Trajectory, check_continuity
 
 __all__ = ["LooselyCoupledConfig", "LooselyCoupledResult", "initial_covariance",
@@ -113,7 +110,9 @@ class LooselyCoupledResult:
         applied: ``(N, K)`` update applied.
         healthy: ``(N,)`` filter health at the end.
         counts: Counted treatments (skipped epochs, sanitised quality indicators, runs
-            frozen after their solution became non-finite: ``failed_runs``).
+            frozen after their solution became non-finite: ``failed_runs``, samples the
+            filter froze when their covariance lost positive definiteness:
+            ``frozen_samples``).
     """
 
     time: torch.Tensor
@@ -150,6 +149,23 @@ def _guard(
     return y, y
 
 
+def _freeze_overflow(
+    P: torch.Tensor, phi: torch.Tensor, qd: torch.Tensor, P_old: torch.Tensor,
+    failed: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Runs whose error model overflowed (a diverged run's huge bias estimate or solution)
+    are marked in ``failed`` (in place) and keep their covariance (Φ = I, Q = 0)."""
+    ok = (torch.isfinite(phi).flatten(1).all(1) & torch.isfinite(qd).flatten(1).all(1)
+          & torch.isfinite(P).flatten(1).all(1))
+    if bool(ok.all()):
+        return P, phi, qd
+    failed |= ~ok
+    keep = ok.reshape(-1, 1, 1)
+    eye = torch.eye(phi.shape[-1], dtype=phi.dtype, device=phi.device)
+    return (torch.where(keep, P, P_old), torch.where(keep, phi, eye),
+            torch.where(keep, qd, 0.0))
+
+
 def initial_covariance(config: LooselyCoupledConfig, *, dtype: torch.dtype) -> torch.Tensor:
     """``P0`` ``(15, 15)``: configured navigation σ, bias σ² = turn-on² + instability²."""
     g = imu_grade(config.grade)
@@ -169,6 +185,7 @@ def run_loosely_coupled(
     generator: torch.Generator,
     measurement_noise: Callable[[int, torch.Tensor], torch.Tensor] | None = None,
     policy: FilterPolicy | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> LooselyCoupledResult:
     """Runs the closed-loop error-state EKF over a drive for the N runs of ``imu``.
 
@@ -188,6 +205,8 @@ def run_loosely_coupled(
             ``pdop``, ``fix_ratio``, ``satellites`` and ``sigma_m`` (the reported horizontal
             position σ, RMS of north and east), after NaN treatment
             (:func:`~neuralmap.ins.gnss.sanitize_quality`).
+        progress: Optional callback, called with the number of IMU samples advanced after
+            each stretch between GNSS epochs (e.g. a progress bar's ``update``).
 
     Returns:
         :class:`LooselyCoupledResult`.
@@ -303,25 +322,48 @@ def run_loosely_coupled(
     if 0 in epoch_of:
         update(epoch_of[0], raw_g - bg_hat)
         record(epoch_of[0], 0)
-    since = 0
     with torch.no_grad():
-        for k in range(1, traj.n_samples):
-            new_g, new_a = imu.measure(traj.gyro[k], traj.accel[k])
-            w1, f1 = new_g - bg_hat, new_a - ba_hat
-            y = strapdown_step(y, raw_g - bg_hat, raw_a - ba_hat, w1, f1, dt)
-            raw_g, raw_a = new_g, new_a
-            since += 1
-            j = epoch_of.get(k)
-            if since == config.propagate_every or j is not None:
-                y, y_good = _guard(y, y_good, failed)
-                F = error_dynamics(y, f1, gyro_corr_time=tau_g, accel_corr_time=tau_a)
-                phi, qd = discretize(F, continuous_noise(y, qc), since * dt)
+        # One block per stretch between GNSS epochs: IMU samples, mechanisation and the
+        # covariance propagation of the whole stretch at once (the same numbers as one
+        # IMU sample at a time; see propagate_block).
+        ends = [k for k in index if k > 0]
+        if not ends or ends[-1] != traj.n_samples - 1:
+            ends.append(traj.n_samples - 1)
+        start = 0
+        for end in ends:
+            new_g, new_a = imu.measure_block(traj.gyro[start + 1:end + 1],
+                                             traj.accel[start + 1:end + 1])
+            gyro = torch.cat([raw_g[:, None], new_g], 1)
+            accel = torch.cat([raw_a[:, None], new_a], 1)
+            every = config.propagate_every
+            stops = list(range(every, end - start, every))
+            j = epoch_of.get(end)
+            if j is not None:  # every epoch is a propagation point
+                stops.append(end - start)
+            states, y, y_good = mechanize_block(y, y_good, failed, gyro, accel, bg_hat, ba_hat,
+                                                dt, stops)
+            states, y, y_good = states.to(device), y.to(device), y_good.to(device)
+            if stops:
+                f_stops = accel[:, stops] - ba_hat[:, None]
+                intervals = [(b - a) * dt for a, b in zip([0, *stops], stops, strict=False)]
+                # all but the last point here; the last one is the filter's predict (health
+                # check, and the process noise that policies read)
+                P, phi, qd = propagate_block(ekf.P, ekf.healthy, states, f_stops, intervals,
+                                             qc, tau_g, tau_a)
+                P, phi, qd = _freeze_overflow(P, phi, qd, ekf.P, failed)
+                if len(stops) > 1:
+                    ekf.P = P
                 ekf.predict(phi, qd)
-                since = 0
+            raw_g, raw_a = gyro[:, -1], accel[:, -1]
             if j is not None:
-                update(j, w1)
-                record(j, k)
+                update(j, raw_g - bg_hat)
+                record(j, end)
+            if progress is not None:
+                progress(end - start)
+            start = end
     counts["failed_runs"] = int(failed.sum())
+    # samples the filter froze (P or S lost positive definiteness, non-finite values)
+    counts["frozen_samples"] = int((~ekf.healthy).sum())
     return LooselyCoupledResult(
         time=quality.time, position_error=out["pos"], velocity_error=out["vel"],
         attitude_error=out["att"], std=std, nees_position=nees_p, nees_navigation=nees_n,

@@ -8,7 +8,6 @@ dependencies are missing does not break the others.
 from __future__ import annotations
 
 import importlib
-import importlib.util
 from typing import Any
 
 _EXPORTS: dict[str, str] = {
@@ -41,11 +40,7 @@ _EXPORTS: dict[str, str] = {
     "paper_tan_model": "augmented",
 }
 
-# pcrb.py is optional until it exists: star-imports must not fail without it
-__all__ = sorted(
-    name for name, module in _EXPORTS.items()
-    if module != "pcrb" or importlib.util.find_spec("neuralmap.nav.pcrb") is not None
-)
+__all__ = sorted(_EXPORTS)
 
 
 def __getattr__(name: str) -> Any:

@@ -30,6 +30,7 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.metrics import diverged_runs
 from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
 from neuralmap.nav.simulator import Truth, simulate
 
@@ -133,10 +134,10 @@ class MethodSummary:
         ``pcrb_factor`` × ``pcrb_final`` when given, or the estimate left the map.
         """
         n_inc = int(self.included.sum())
-        too_far = self.final_pos_err > divergence_sigma * self.final_sigma
-        if pcrb_final is not None:
-            too_far = too_far | (self.final_pos_err > pcrb_factor * pcrb_final)
-        diverged = self.included & self.healthy & (too_far | self.est_left)
+        diverged = diverged_runs(self.final_pos_err, self.final_sigma, included=self.included,
+                                 healthy=self.healthy, est_left=self.est_left,
+                                 pcrb_final=pcrb_final, pcrb_factor=pcrb_factor,
+                                 divergence_sigma=divergence_sigma)
         half = self.sum_pos2.shape[0] // 2
         curve = (self.sum_pos2 / max(n_inc, 1)).sqrt()
         return {

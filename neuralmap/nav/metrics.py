@@ -141,6 +141,39 @@ def _pooled_sigma(err_xy: torch.Tensor) -> float | None:
     return _none_if_bad(math.sqrt(float(flat.var(dim=0, unbiased=True).sum())))
 
 
+def diverged_runs(
+    final_err: torch.Tensor,
+    final_sigma: torch.Tensor,
+    *,
+    included: torch.Tensor,
+    healthy: torch.Tensor,
+    est_left: torch.Tensor,
+    pcrb_final: float | None,
+    pcrb_factor: float = 5.0,
+    divergence_sigma: float = 9.0,
+) -> torch.Tensor:
+    """The divergence rule (:func:`divergence_rule`) per run.
+
+    Args:
+        final_err: ``(N,)`` final horizontal error, m.
+        final_sigma: ``(N,)`` the filter's final 1σ horizontal bound ``sqrt(Pxx + Pyy)``.
+        included: ``(N,)`` runs that count (on the map, finite).
+        healthy: ``(N,)`` runs whose filter stayed numerically healthy (a failed run is a
+            numerical failure, not a divergence).
+        est_left: ``(N,)`` runs whose estimate left the map.
+        pcrb_final: Final PCRB position bound, m (None: only the 1σ test).
+        pcrb_factor: Threshold in final PCRBs.
+        divergence_sigma: Threshold in the filter's own 1σ.
+
+    Returns:
+        ``(N,)`` bool, True where the run diverged.
+    """
+    too_far = final_err > divergence_sigma * final_sigma
+    if pcrb_final is not None:
+        too_far = too_far | (final_err > pcrb_factor * pcrb_final)
+    return included & healthy & (too_far | est_left)
+
+
 def nees(err: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
     """Normalised estimation error squared ``errᵀ P⁻¹ err`` (Cholesky solve, float64).
 
@@ -256,10 +289,11 @@ def navigation_metrics(
     final_e = e_pos2[:, -1].sqrt()
     bound1 = (P[:, -1, 0, 0] + P[:, -1, 1, 1]).clamp(min=0.0).sqrt()
     pcrb_final = float(pcrb_pos[-1])
-    too_far = (final_e > pcrb_factor * pcrb_final) | (final_e > divergence_sigma * bound1)
     est_left = ~run.est_on_map.detach().cpu().bool().all(dim=1)
     failed = included & ~healthy
-    diverged = included & healthy & (too_far | est_left)
+    diverged = diverged_runs(final_e, bound1, included=included, healthy=healthy,
+                             est_left=est_left, pcrb_final=pcrb_final,
+                             pcrb_factor=pcrb_factor, divergence_sigma=divergence_sigma)
     converged = included & ~diverged & ~failed
     n_included, n_conv = int(included.sum()), int(converged.sum())
 

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.metrics import nees
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
@@ -49,6 +50,8 @@ class AcquisitionStudyConfig(StudyConfig):
             the tile. Without one, the neural rows are skipped and the report says so.
         n_runs_neural: Runs for the neural-map rows (its forward over every grid cell is
             the expensive part); None = ``n_runs``.
+        map_error_points: Seeded random points of the neural map's error against the
+            truth (its extra R), as in the TAN study.
         grid_cells: Point-mass cells per axis; None = the fewest covering ±4σ0 at
             ``max_spacing_m`` (at most ``max_cells``).
         max_spacing_m: Largest initial grid spacing when ``grid_cells`` is None, m.
@@ -74,6 +77,7 @@ class AcquisitionStudyConfig(StudyConfig):
 
     study: str = "acquisition"
     experiment: str = "acquisition"
+    progress: bool = False
     scenario: str = "jacksboro"
     sigmas_m: list[float] = field(default_factory=lambda: [300.0, 1000.0, 3000.0])
     n_runs: int = 1000
@@ -82,6 +86,7 @@ class AcquisitionStudyConfig(StudyConfig):
     maps: list[str] = field(default_factory=lambda: ["grid", "neural"])
     map: str | None = None
     n_runs_neural: int | None = 100
+    map_error_points: int = 2000
     grid_cells: int | None = None
     max_spacing_m: float = 50.0
     max_cells: int = 256
@@ -106,6 +111,8 @@ class AcquisitionStudyConfig(StudyConfig):
         super().validate()
         if self.n_runs < 1 or (self.n_runs_neural is not None and self.n_runs_neural < 1):
             raise NeuralMapError("--n_runs and --n_runs_neural must be >= 1.")
+        if self.map_error_points < 100:
+            raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
         if not self.sigmas_m or any(not s > 0 for s in self.sigmas_m):
             raise NeuralMapError(f"--sigmas_m must be a non-empty list of sigmas > 0 m, got "
                                  f"{self.sigmas_m}.")
@@ -233,7 +240,8 @@ def _map_and_methods(kind: str, tile: Any, config: AcquisitionStudyConfig,
     check_map_tile(terrain, tile, map_path=path, scenario_name=config.scenario)
     from neuralmap.nav.map_error import measure_map_error
 
-    error = measure_map_error(terrain, truth_terrain.model, tile, n_points=2000, seed=seed)
+    error = measure_map_error(terrain, truth_terrain.model, tile,
+                              n_points=config.map_error_points, seed=seed)
     fit = max(float(error.get("mse_m2", 0.0) or 0.0) - scenario.fit_variance_m2, 0.0)
     lin = make_linearizer("neural_region", tile=tile, terrain=terrain, fit_variance=fit)
     return terrain.to(device), lin.to(device), fit, f"neural map {path}"
@@ -349,7 +357,7 @@ def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: Any, acq_cfg: Any
         "final_posterior_sigma_median_m": float(post_sigma.median()),
         "final_error_rms_m": float(err.square().mean().sqrt()),
         "handed_off_fraction": float((res.handoff_step >= 0).double().mean()),
-        "nees_final_mean": float(_nees(res.run.err[:, -1, :2], P).mean()),
+        "nees_final_mean": float(nees(res.run.err[:, -1, :2], P).mean()),
     }
 
 
@@ -357,11 +365,6 @@ def _plane_linearizer(tile: Any) -> Any:
     from neuralmap.linearize.factory import make_linearizer
 
     return make_linearizer("bilinear", tile=tile)
-
-
-def _nees(err: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
-    e = err.double()[..., None]
-    return (e.transpose(-1, -2) @ torch.linalg.solve(P, e)).reshape(-1)
 
 
 def _fmt(value: Any) -> str:

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal
 
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import check_experiment_name
 
 __all__ = ["StudyConfig", "check_device", "torch_dtype"]
 
@@ -23,7 +23,8 @@ class StudyConfig:
         experiment: Output folder name: results go to
             ``<runs_dir>/<experiment>/version_<N>/``.
         runs_dir: Root of the run folders.
-        seed: Seed of every random draw of the study (``None`` = the study's default).
+        seed: Seed of every random draw of the study (default 0, fixed, printed at the
+            start, so a rerun reproduces the report; ``None`` = the scenario's seed).
         device: Torch device (``cpu``, ``cuda``, ``cuda:1``...).
         dtype: Filter precision.
         threads: ``torch.set_num_threads`` for the run (restored afterwards); ``None``
@@ -35,7 +36,7 @@ class StudyConfig:
     study: str = "tan"
     experiment: str = "evaluate"
     runs_dir: str = "runs"
-    seed: int | None = None
+    seed: int | None = 0
     device: str = "cpu"
     dtype: Literal["float64", "float32"] = "float64"
     threads: int | None = None
@@ -48,12 +49,7 @@ class StudyConfig:
         Raises:
             NeuralMapError: A value out of range, naming the option and the fix.
         """
-        name = self.experiment
-        if not name or Path(name).name != name or name.startswith(".") or name in ("..",):
-            raise NeuralMapError(
-                f"--experiment must be a plain folder name (no '/', not starting with '.'), "
-                f"got {name!r}."
-            )
+        check_experiment_name(self.experiment)
         if self.seed is not None and self.seed < 0:
             raise NeuralMapError(f"--seed must be >= 0 (or null), got {self.seed}.")
         if self.threads is not None and self.threads < 1:

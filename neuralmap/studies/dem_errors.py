@@ -34,10 +34,37 @@ from typing import Any
 import numpy as np
 import torch
 
+from neuralmap.dem.tile import DemTile
+from neuralmap.errors import (
+    ar1_coefficient,
+    ar_error_field,
+    arma_moments,
+    correlation_length,
+    linearization_error,
+    summarise_error_sequences,
+    survey_recovery,
+)
+from neuralmap.errors.arma import check_stationary
+from neuralmap.errors.simulation import DEM_ERROR_AR2
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
+from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS, make_linearizer
+from neuralmap.nav.augmented import (
+    AugmentedTanModel,
+    augment_information,
+    paper_tan_model,
+)
+from neuralmap.nav.metrics import navigation_metrics
+from neuralmap.nav.model import TanModel
+from neuralmap.nav.monte_carlo import run_filter
+from neuralmap.nav.pcrb import pcrb, pcrb_position, pcrb_recursion, terrain_information
+from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.nav.simulator import simulate
+from neuralmap.nav.truth_terrain import TrueTerrain, true_terrain
 from neuralmap.studies.base import StudyConfig
+from neuralmap.studies.maps import check_map_tile, resolve_map_path
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.terrain.export import load_map
+from neuralmap.terrain.grid import GridTerrain
 
 __all__ = ["DemErrorsStudyConfig", "prior_estimates", "run"]
 
@@ -45,6 +72,14 @@ __all__ = ["DemErrorsStudyConfig", "prior_estimates", "run"]
 DEFAULT_METHODS: tuple[str, ...] = (
     "lsq_max", "lsq_mean", "lsq_min", "lsq_adaptive", "nine_point", "mean_point",
 )
+#: The paper's Table 1 (coefficients identified from its repeat survey).
+PAPER_TABLE1: dict[str, tuple[float, ...]] = {
+    "AR(1) φ": (0.53150,),
+    "AR(2) φ₁, φ₂": (0.44417, 0.16430),
+    "ARMA(1,1) φ, θ": (0.75330, 0.31867),
+}
+#: Largest |identified mean − paper| for the Table 1 rows to count as brought back.
+TABLE1_TOLERANCE = 0.03
 #: The paper's Table 2 (std of m2, m) for the rows it has, by period 0.5 / 1 / 2 s.
 PAPER_TABLE2: dict[str, tuple[float, float, float]] = {
     "lsq_max": (25.39, 24.99, 24.26),
@@ -64,7 +99,10 @@ class DemErrorsStudyConfig(StudyConfig):
         max_order: Largest ARMA order identified (Tables 1 and 2).
         survey_nodes: Nodes of the simulated repeat survey (paper: 61).
         survey_passes: Passes (paper: 10).
-        survey_phi: AR coefficients of the simulated survey error (paper: AR(1) 0.5315).
+        survey_phi: AR coefficients of the simulated survey error. Default the paper's
+            AR(2) (0.44417, 0.16430): the one process consistent with all three rows of
+            its Table 1 (an AR(1) 0.5315 implies ρ₂ ≈ 0.283, the AR(2) and ARMA(1,1)
+            rows ρ₂ ≈ 0.400), so the identification can bring back every row.
         survey_trials: Surveys simulated for the recovery statistics.
         periods: Filter periods T of Table 2, s.
         methods: Linearisation methods of Table 2 (``neural`` needs ``map``).
@@ -82,11 +120,12 @@ class DemErrorsStudyConfig(StudyConfig):
 
     study: str = "dem_errors"
     experiment: str = "dem_errors"
+    progress: bool = False
     scenario: str = "jacksboro"
     max_order: int = 2
     survey_nodes: int = 61
     survey_passes: int = 10
-    survey_phi: list[float] = field(default_factory=lambda: [0.5315])
+    survey_phi: list[float] = field(default_factory=lambda: list(DEM_ERROR_AR2))
     survey_trials: int = 100
     periods: list[float] = field(default_factory=lambda: [0.5, 1.0, 2.0])
     methods: list[str] = field(default_factory=lambda: list(DEFAULT_METHODS))
@@ -110,7 +149,6 @@ class DemErrorsStudyConfig(StudyConfig):
                 "--survey_nodes and --survey_passes must be >= 2 and --survey_trials >= 1, got "
                 f"{self.survey_nodes}, {self.survey_passes}, {self.survey_trials}."
             )
-        from neuralmap.errors.arma import check_stationary
 
         if len(self.survey_phi) not in (1, 2):
             raise NeuralMapError(
@@ -176,7 +214,6 @@ def prior_estimates(truth: Any, run: Any, model: Any) -> tuple[torch.Tensor, tor
 
 def _survey_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
                     seed: int) -> dict[str, Any]:
-    from neuralmap.errors import survey_recovery
 
     out = survey_recovery(
         n_trials=config.survey_trials, phi=tuple(config.survey_phi),
@@ -191,48 +228,55 @@ def _survey_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
         f"(sample σ set to the paper's 1.0435 m). One survey:\n\n" + first.to_markdown()
     )
     counts = ", ".join(f"{k} {v}" for k, v in sorted(out["chosen_counts"].items()))
+    identified = {"AR(1) φ": (out["ar1_phi_mean"], out["ar1_phi_std"]),
+                  "AR(2) φ₁, φ₂": (out["ar2_phi_mean"], out["ar2_phi_std"]),
+                  "ARMA(1,1) φ, θ": (out["arma11_mean"], out["arma11_std"])}
+    rows = []
+    for row, paper in PAPER_TABLE1.items():
+        mean, std = identified[row]
+        rows.append([row, ", ".join(f"{v:.4f}" for v in paper),
+                     "—" if mean is None else ", ".join(
+                         f"{m:.4f} ± {d:.4f}" for m, d in zip(mean, std, strict=True))])
+    rows += [["sample σ, m", "1.0435", f"{out['sample_std_mean']:.4f}"],
+             ["chosen order", f"AR({len(config.survey_phi)}) simulated", counts]]
     outputs.add_table(
-        f"Recovery over {config.survey_trials} simulated surveys",
-        ["quantity", "true", "identified (mean ± std)"],
-        [
-            ["AR(1) φ", f"{config.survey_phi[0]:.4f}" if len(config.survey_phi) == 1 else "—",
-             f"{out['ar1_phi_mean'][0]:.4f} ± {out['ar1_phi_std'][0]:.4f}"],
-            ["AR(2) φ₁, φ₂",
-             ", ".join(f"{v:.4f}" for v in config.survey_phi) if len(config.survey_phi) == 2
-             else "—",
-             "—" if out["ar2_phi_mean"] is None else ", ".join(
-                 f"{m:.4f} ± {s:.4f}" for m, s in zip(out["ar2_phi_mean"], out["ar2_phi_std"],
-                                                      strict=True))],
-            ["sample σ, m", "1.0435", f"{out['sample_std_mean']:.4f}"],
-            ["chosen order", f"AR({len(config.survey_phi)})", counts],
-        ],
+        f"Recovery over {config.survey_trials} simulated surveys (paper's Table 1 beside)",
+        ["quantity", "paper (Table 1)", "identified (mean ± std)"], rows,
+        note=f"Simulated error: AR φ = {list(config.survey_phi)}. This checks the "
+             "identification on data drawn from a known model; that the paper's printed "
+             "parameters solve back from their own autocorrelations is a separate check of "
+             "the formulas (tests/errors), not of data.",
     )
+    runs = RunCounts(config.survey_trials, config.survey_trials)
     chosen_share = out["chosen_counts"].get(f"AR({len(config.survey_phi)})", 0) / max(
         config.survey_trials, 1)
     outputs.add_claim(
         "SEEDS 000", "the DEM-making error sample is stationary and AR(1) or AR(2)",
         f"simulated AR({len(config.survey_phi)}) survey identified as such in "
         f"{100 * chosen_share:.0f} % of {config.survey_trials} surveys",
-        verdict(chosen_share >= 0.7, detail="simulation"),
-        runs=RunCounts(config.survey_trials, config.survey_trials),
+        verdict(chosen_share >= 0.7, detail="simulation"), runs=runs,
+    )
+    misses = {row: max(abs(m - p) for m, p in zip(identified[row][0], paper, strict=True))
+              for row, paper in PAPER_TABLE1.items() if identified[row][0] is not None}
+    outputs.add_claim(
+        "SEEDS 000", "Table 1: AR(1) 0.5315, AR(2) 0.444 / 0.164, ARMA(1,1) 0.753 / 0.319 "
+        "describe one sample",
+        "largest |identified − paper| per row: " + ", ".join(
+            f"{row} {miss:.3f}" for row, miss in misses.items())
+        + f" (simulated AR φ = {list(config.survey_phi)})",
+        verdict(len(misses) == len(PAPER_TABLE1)
+                and max(misses.values()) <= TABLE1_TOLERANCE,
+                partly=any(v <= TABLE1_TOLERANCE for v in misses.values()),
+                detail="simulation"), runs=runs,
     )
     return {"one_survey": first.to_dict(), **out}
 
 
 def _m2_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scenario: Any, tile: Any,
                 seed: int) -> dict[str, Any]:
-    from neuralmap.errors import linearization_error, summarise_error_sequences
-    from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import run_filter
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.nav.truth_terrain import true_terrain
-    from neuralmap.terrain.grid import GridTerrain
 
     terrain_map = None
     if any(m in TERRAIN_MODEL_METHODS for m in config.methods):
-        from neuralmap.studies.maps import check_map_tile, resolve_map_path
-        from neuralmap.terrain.export import load_map
 
         map_path = resolve_map_path(config.map, config.runs_dir,
                                     tile_fingerprint=tile.fingerprint())
@@ -368,7 +412,6 @@ def _plot_sequences(typical: dict[str, np.ndarray], config: DemErrorsStudyConfig
 
 def _identify_along_path(field_model: Any, truth: Any, max_order: int) -> dict[str, Any]:
     """AR(1) and AR(2) moments of the DEM error sampled along the true paths (pooled)."""
-    from neuralmap.errors import arma_moments
 
     with torch.no_grad():
         e = field_model(truth.pos[..., :2].to(torch.float64)).numpy()  # (N, K+1)
@@ -386,21 +429,6 @@ def _identify_along_path(field_model: Any, truth: Any, max_order: int) -> dict[s
 def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scenario: Any,
                        tile: Any, seed: int, device: torch.device,
                        dtype: torch.dtype) -> dict[str, Any]:
-    from neuralmap.dem.tile import DemTile
-    from neuralmap.errors import ar1_coefficient, ar_error_field, correlation_length
-    from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.augmented import (
-        AugmentedTanModel,
-        augment_information,
-        paper_tan_model,
-    )
-    from neuralmap.nav.metrics import navigation_metrics
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import run_filter
-    from neuralmap.nav.pcrb import pcrb, pcrb_position, pcrb_recursion, terrain_information
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.nav.truth_terrain import TrueTerrain, true_terrain
-    from neuralmap.terrain.grid import GridTerrain
 
     corr = config.dem_error_corr_m or correlation_length(0.5315, 100.0)
     phi = (ar1_coefficient(corr, tile.spacing[0]),)
@@ -525,6 +553,23 @@ def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scen
     return results
 
 
+def _check_periods(periods: list[float], scenario: Any) -> None:
+    """Every Table 2 period must be a valid filter period of the scenario.
+
+    Raises:
+        NeuralMapError: Naming ``--periods`` (the scenario's own check names its YAML key).
+    """
+    for period in periods:
+        try:
+            dataclasses.replace(scenario, dt=float(period)).validate(where="with it")
+        except NeuralMapError as exc:
+            why = str(exc).split(" Fix it in")[0].rstrip(".")
+            raise NeuralMapError(
+                f"--periods: T = {period:g} s does not fit scenario {scenario.name!r} ({why}); "
+                "give periods the flight can be filtered at (the paper: 0.5, 1, 2 s)."
+            ) from exc
+
+
 def _fmt(value: Any, digits: int = 2) -> str:
     return "—" if value is None else f"{float(value):.{digits}f}"
 
@@ -535,10 +580,10 @@ def run(config: DemErrorsStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad input (scenario, methods, map...).
     """
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
 
     started = time.perf_counter()
     scenario = load_scenario(config.scenario)
+    _check_periods(config.periods, scenario)  # before minutes of work, named as the option
     tile = scenario_tile(scenario)
     seed = scenario.seed if config.seed is None else int(config.seed)
     config.seed = seed

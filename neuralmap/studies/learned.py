@@ -32,9 +32,27 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.policies.variational import VariationalAdaptive
 from neuralmap.learning.covariance import COVARIANCE_KINDS
+from neuralmap.learning.em import em_noise
+from neuralmap.learning.flights import FlightBatch
+from neuralmap.learning.likelihood import linear_log_likelihood
+from neuralmap.learning.map_correction import BiasedTerrain, CorrectedTerrain
+from neuralmap.learning.map_refine import refine_map
+from neuralmap.learning.noise_fit import fit_noise
+from neuralmap.learning.noise_model import NoiseModel
+from neuralmap.linearize.factory import make_linearizer
+from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.model import TanModel
+from neuralmap.nav.monte_carlo import run_filter
+from neuralmap.nav.pcrb import pcrb, pcrb_position
+from neuralmap.nav.scenario import load_scenario
+from neuralmap.nav.simulator import simulate
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.studies.setup import prepare_tan
+from neuralmap.terrain.grid import GridTerrain
+from neuralmap.viz.navigation import plot_error_vs_time
 
 __all__ = ["LearnedStudyConfig", "run"]
 
@@ -70,6 +88,7 @@ class LearnedStudyConfig(StudyConfig):
 
     study: str = "learned"
     experiment: str = "learned"
+    threads: int | None = 1
     scenario: str = "jacksboro"
     hand_scenario: str = "paper"
     map_source: str = "neural"
@@ -106,7 +125,7 @@ class LearnedStudyConfig(StudyConfig):
 
     @property
     def methods(self) -> list[str]:
-        """The linearisers :func:`neuralmap.studies.tan.prepare` builds."""
+        """The linearisers :func:`neuralmap.studies.setup.prepare_tan` builds."""
         return [self.method] if self.map_source == "neural" else ["bilinear"]
 
     def validate(self) -> None:
@@ -175,9 +194,6 @@ def _linear_problem(n_flights: int, n_steps: int, seed: int) -> dict[str, np.nda
 
 
 def _em_comparison(config: LearnedStudyConfig, seed: int) -> dict[str, Any]:
-    from neuralmap.learning.em import em_noise
-    from neuralmap.learning.likelihood import linear_log_likelihood
-    from neuralmap.learning.noise_model import NoiseModel
 
     prob = _linear_problem(config.em_flights, config.em_steps, seed)
     q0 = np.diag(prob["Q"]) * 10.0
@@ -253,25 +269,14 @@ def _unflown_drift(correction: Any, flown: torch.Tensor, *, distance_m: float) -
 # ---------------------------------------------------------------------- run
 def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
     """Learns, refines, flies every configuration on the same draws and fills ``outputs``."""
-    from neuralmap.filters.policies.variational import VariationalAdaptive
-    from neuralmap.learning.flights import FlightBatch
-    from neuralmap.learning.map_correction import BiasedTerrain, CorrectedTerrain
-    from neuralmap.learning.map_refine import refine_map
-    from neuralmap.learning.noise_fit import fit_noise
-    from neuralmap.learning.noise_model import NoiseModel
-    from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import run_filter
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.scenario import load_scenario
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.studies.tan import prepare
-    from neuralmap.terrain.grid import GridTerrain
 
     started = time.perf_counter()
     timing: dict[str, float] = {}
-    setup = prepare(config)
+    setup = prepare_tan(scenario=config.scenario, methods=config.methods, map_path=config.map,
+                        runs_dir=config.runs_dir, seed=config.seed,
+                        neural_fit_variance=config.neural_fit_variance,
+                        map_error_points=config.map_error_points, device=config.torch_device)
+    setup.pin(config)
     scenario, tile, seed, world = setup.scenario, setup.tile, setup.seed, setup.truth_terrain
     if config.bias_m != 0.0:
         _check_bias_box(config.bias_box, tile)  # before minutes of learning, not after
@@ -531,17 +536,11 @@ def _figures(outputs: StudyOutputs, history: list[dict[str, Any]], truth_q: list
     outputs.add_figure("learning", fig, "Likelihood and parameter trajectories of noise learning")
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for name, m in metrics.items():
-        curve = [np.nan if v is None else v for v in m["rmse_pos_curve"]]
-        ax.plot(curve, label=name)
-    ax.set_yscale("log")
-    ax.set_xlabel("step")
-    ax.set_ylabel("horizontal RMSE (m)")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    curves = {name: m["rmse_pos_curve"] for name, m in metrics.items()}
+    steps = len(next(iter(curves.values())))
+    fig = plot_error_vs_time(np.arange(steps), curves, None, xlabel="step",
+                             title="Horizontal position error vs time, same draws")
     outputs.add_figure("error_vs_time", fig, "Horizontal position RMSE vs time, same draws")
-    plt.close(fig)
 
     fig, ax = plt.subplots(figsize=(7, 4))
     path = np.asarray(em["em_R_path"])

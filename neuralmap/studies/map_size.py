@@ -63,6 +63,7 @@ from torch import nn
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies.base import StudyConfig
+from neuralmap.studies.maps import find_tile_maps
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.rate_distortion import bd_rate, bytes_at_error, pareto_front
 
@@ -116,7 +117,10 @@ class MapSizeStudyConfig(StudyConfig):
         confidence: Two-sided coverage of the bootstrap intervals.
     """
 
+    study: str = "map_size"
     experiment: str = "map_size"
+    threads: int | None = 1
+    progress: bool = False
     scenario: str = "jacksboro"
     n_runs: int = 500
     codecs: list[str] = field(
@@ -216,35 +220,10 @@ class MapEntry:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-#: Map files the study looks for in every ``runs_dir/<experiment>/version_*`` folder: the
-#: blockwise export and the latent-grid bitstream.
-MAP_FILES = ("neural_map.pt", "latent_map.nlat")
-
-
 def find_neural_maps(runs_dir: str, tile_fingerprint: str) -> list[Path]:
-    """Newest map file of the tile in every experiment folder of ``runs_dir``."""
-    found: list[Path] = []
-    root = Path(runs_dir)
-    if not root.is_dir():
-        return found
-    for experiment in sorted(p for p in root.iterdir() if p.is_dir()):
-        candidates = sorted((p for name in MAP_FILES for p in experiment.glob(f"version_*/{name}")),
-                            key=lambda p: p.stat().st_mtime, reverse=True)
-        for path in candidates:
-            if _file_fingerprint(path) == tile_fingerprint:
-                found.append(path)
-                break
-    return found
-
-
-def _file_fingerprint(path: Path) -> str:
-    """The tile fingerprint a map file records ("" when it records none or is unreadable)."""
-    from neuralmap.terrain.export import load_map
-
-    try:
-        return str(getattr(load_map(path), "tile_fingerprint", "") or "")
-    except NeuralMapError:
-        return ""
+    """Newest map file (blockwise or latent-grid) of the tile in every experiment folder of
+    ``runs_dir`` (the one map discovery: :func:`neuralmap.studies.maps.find_tile_maps`)."""
+    return find_tile_maps(runs_dir, tile_fingerprint)
 
 
 def build_grid_maps(tile: Any, config: MapSizeStudyConfig) -> list[MapEntry]:

@@ -15,12 +15,16 @@ __all__ = [
     "MAP_FILENAME",
     "check_map_tile",
     "find_latest_map",
+    "find_tile_maps",
     "map_fit_variance",
     "resolve_map_path",
 ]
 
 #: File name of an exported neural map inside a training run folder.
 MAP_FILENAME = "neural_map.pt"
+#: Every map file a training run folder may hold: the blockwise export and the latent-grid
+#: bitstream (:mod:`neuralmap.terrain.latent`).
+MAP_FILENAMES = (MAP_FILENAME, "latent_map.nlat")
 
 NO_MAP_MESSAGE = (
     "no trained map found under {runs}/: run `python train.py` first (or pass --map PATH)"
@@ -30,8 +34,10 @@ NO_MAP_MESSAGE = (
 def _map_tile_fingerprint(path: Path) -> str:
     """The tile fingerprint recorded in a map file ("" when unreadable)."""
     try:
-        from neuralmap.terrain.export import load_map_payload
+        from neuralmap.terrain.export import load_map, load_map_payload
 
+        if path.suffix != ".pt":  # a latent-grid bitstream: its header names the tile
+            return str(getattr(load_map(path), "tile_fingerprint", "") or "")
         payload = load_map_payload(path)
     except Exception:  # noqa: BLE001 - a broken candidate is simply not preferred
         return ""
@@ -62,6 +68,33 @@ def find_latest_map(runs_dir: str | os.PathLike[str], *, tile_fingerprint: str =
             if _map_tile_fingerprint(path) == tile_fingerprint:
                 return path
     return ordered[0]
+
+
+def find_tile_maps(runs_dir: str | os.PathLike[str], tile_fingerprint: str) -> list[Path]:
+    """The newest map of the tile in every experiment folder of ``runs_dir`` (experiments
+    in name order), the tile read from the map file as :func:`find_latest_map` reads it.
+
+    Args:
+        runs_dir: Root of the run folders.
+        tile_fingerprint: The tile's :meth:`~neuralmap.dem.tile.DemTile.fingerprint`.
+
+    Returns:
+        One path per experiment that holds a map of the tile (may be empty).
+    """
+    root = Path(runs_dir)
+    if not root.is_dir():
+        return []
+    found: list[Path] = []
+    for experiment in sorted(p for p in root.iterdir() if p.is_dir()):
+        candidates = sorted((p for name in MAP_FILENAMES
+                             for p in experiment.glob(f"version_*/{name}") if p.is_file()),
+                            key=lambda p: (p.stat().st_mtime, version_number(p.parent)),
+                            reverse=True)
+        for path in candidates:
+            if _map_tile_fingerprint(path) == tile_fingerprint:
+                found.append(path)
+                break
+    return found
 
 
 def resolve_map_path(map_path: str | None, runs_dir: str, *, tile_fingerprint: str = "") -> Path:

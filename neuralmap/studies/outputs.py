@@ -152,12 +152,14 @@ class Claim:
         claim: The claim in words.
         measured: What this run measured, in words and numbers.
         verdict: A verdict of :data:`VERDICTS` (see :func:`verdict`).
+        detail: How the verdict was reached (the rule), optional.
     """
 
     paper: str
     claim: str
     measured: str
     verdict: str
+    detail: str = ""
 
 
 def _cell(value: Any) -> str:
@@ -246,7 +248,8 @@ class StudyOutputs:
         return path
 
     def add_claim(self, paper: str, claim: str, measured: str, verdict: str, *,
-                  runs: RunCounts | None = None, min_converged: int = MIN_CONVERGED) -> Claim:
+                  runs: RunCounts | None = None, min_converged: int = MIN_CONVERGED,
+                  detail: str = "") -> Claim:
         """Records a paper's claim beside the measured number (report and results.json).
 
         Args:
@@ -258,6 +261,7 @@ class StudyOutputs:
                 the verdict by "not enough converged runs (n of N)", and numerical
                 failures are named in ``measured``.
             min_converged: Converged runs a verdict needs.
+            detail: How the verdict was reached (a "how" column in the report).
 
         Raises:
             ValueError: ``verdict`` is not of the vocabulary.
@@ -268,7 +272,7 @@ class StudyOutputs:
                 verdict = runs.too_few(min_converged)
             if runs.failed:
                 measured = f"{measured}; {runs.failed} of {runs.total} runs failed numerically"
-        item = Claim(paper, claim, measured, verdict)
+        item = Claim(paper, claim, measured, verdict, detail)
         self.claims.append(item)
         if self.echo:
             print(f"claim ({paper}): {claim}: {measured} -> {verdict}", flush=True)
@@ -307,9 +311,13 @@ class StudyOutputs:
             return self._report
         parts = [f"# {self.title}\n"] + self._sections
         if self.claims:
-            rows = [[c.paper, c.claim, c.measured, c.verdict] for c in self.claims]
+            headers = ["paper", "claim", "measured", "verdict"]
+            rows = [[c.paper, c.claim, c.measured, f"**{c.verdict}**"] for c in self.claims]
+            if any(c.detail for c in self.claims):
+                headers.append("how")
+                rows = [[*row, c.detail] for row, c in zip(rows, self.claims, strict=True)]
             parts.append("## Papers' claims beside the measurements\n\n"
-                         + markdown_table(["paper", "claim", "measured", "verdict"], rows) + "\n")
+                         + markdown_table(headers, rows) + "\n")
         return "\n".join(parts)
 
     def finalize(self) -> Path:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import asdict, dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,12 +24,27 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
+from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.monte_carlo import run_monte_carlo
+from neuralmap.nav.pcrb import pcrb, pcrb_position
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.maps import check_map_tile, resolve_map_path
 from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.setup import prepare_tan, void_exposure
+from neuralmap.studies.tan_report import (
+    build_results,
+    check_claims,
+    format_table,
+    report_text,
+)
 from neuralmap.studies.trajectories import write_trajectories
+from neuralmap.viz.navigation import (
+    plot_error_vs_time,
+    plot_final_error_histogram,
+    plot_trajectories,
+)
+from neuralmap.viz.tensorboard_nav import log_navigation
 
-__all__ = ["DEFAULT_METHODS", "TanStudyConfig", "build_methods", "run"]
+__all__ = ["DEFAULT_METHODS", "TanStudyConfig", "run"]
 
 #: Methods evaluated when ``--methods`` is not given.
 DEFAULT_METHODS: tuple[str, ...] = (
@@ -120,40 +134,6 @@ class TanStudyConfig(StudyConfig):
         return any(m in TERRAIN_MODEL_METHODS for m in self.methods)
 
 
-def build_methods(
-    names: list[str],
-    *,
-    tile: Any,
-    terrain_map: Any,
-    device: torch.device,
-    fit_variance: float = 0.0,
-) -> dict[str, Any]:
-    """One linearizer per method name (``neural*`` = the map with autograd).
-
-    Args:
-        names: Method names (:data:`neuralmap.linearize.factory.LINEARIZER_NAMES`).
-        tile: The scenario's DEM tile (grid and plane-fit methods).
-        terrain_map: The loaded neural map (None when no neural method is asked for).
-        device: Device the filters run on.
-        fit_variance: The neural map's error variance (m²), its linearisation variance.
-
-    Returns:
-        Method name -> :class:`~neuralmap.linearize.base.Linearizer`, in ``names`` order.
-    """
-    from neuralmap.linearize.factory import make_linearizer
-
-    methods: dict[str, Any] = {}
-    for name in names:
-        if name in TERRAIN_MODEL_METHODS:
-            linearizer = make_linearizer(
-                name, tile=tile, terrain=terrain_map, fit_variance=fit_variance
-            )
-        else:
-            linearizer = make_linearizer(name, tile=tile)
-        methods[name] = linearizer.to(device)
-    return methods
-
-
 def _final_horizontal_errors(run: Any) -> np.ndarray:
     """``(M,)`` final horizontal errors (m) of the runs that stayed on the map."""
     err = run.err[:, -1, :2].detach().to("cpu", torch.float64)
@@ -170,15 +150,8 @@ def _plot_indices(truth: Any, runs: dict[str, Any], count: int) -> list[int]:
 
 
 def _write_figures(outputs: StudyOutputs, *, config: TanStudyConfig, results: dict[str, Any],
-                   truth: Any, runs: dict[str, Any], tile: Any, pcrb_pos: np.ndarray
-                   ) -> dict[str, str]:
-    """Plots into the run folder and TensorBoard; returns caption -> file name."""
-    from neuralmap.io import atomic_write_figure
-    from neuralmap.viz.navigation import (
-        plot_error_vs_time,
-        plot_final_error_histogram,
-        plot_trajectories,
-    )
+                   truth: Any, runs: dict[str, Any], tile: Any, pcrb_pos: np.ndarray) -> None:
+    """Plots through the outputs writer (PNG, report, TensorBoard) and logs the curves."""
 
     curves = results["curves"]
     t = np.asarray(curves["t"])
@@ -202,116 +175,16 @@ def _write_figures(outputs: StudyOutputs, *, config: TanStudyConfig, results: di
         final_errors, pcrb_final=float(pcrb_pos[-1])
     )
     for name, fig in figures.items():
-        atomic_write_figure(outputs.dir / f"{name}.png", fig)
-    if config.tensorboard:
-        from neuralmap.viz.tensorboard_nav import log_navigation
-
+        outputs.add_figure(name, fig, _FIGURES[name])
+    writer = outputs.writer()
+    if writer is not None:
         log_navigation(
-            outputs.dir,
+            writer,
             curves={m: curves[m] for m in runs},
             pcrb_pos=pcrb_pos,
             final_errors=final_errors,
             summary={m: results["methods"][m] for m in runs},
-            figures=figures,
         )
-    return {_FIGURES[name]: f"{name}.png" for name in figures}
-
-
-@dataclass
-class TanSetup:
-    """What a TAN study flies: scenario, tile, truth terrain, map and methods.
-
-    Attributes:
-        scenario: The validated scenario.
-        tile: Its DEM tile.
-        seed: The seed used.
-        truth_terrain: The truth terrain (one world per seed).
-        terrain_map: The neural map (None when no method needs it).
-        map_path: Its file.
-        map_error: Its error against the truth between nodes (empty without a map).
-        fit_variance: The extra R of the neural methods, m².
-        methods: Method name -> linearizer.
-    """
-
-    scenario: Any
-    tile: Any
-    seed: int
-    truth_terrain: Any
-    terrain_map: Any
-    map_path: Path | None
-    map_error: dict[str, Any]
-    fit_variance: float
-    methods: dict[str, Any]
-
-    def map_info(self) -> dict[str, Any]:
-        """The map's description for results.json."""
-        terrain_map = self.terrain_map
-        return {
-            "path": str(self.map_path) if self.map_path else None,
-            "tile_name": getattr(terrain_map, "tile_name", ""),
-            "tile_fingerprint": getattr(terrain_map, "tile_fingerprint", ""),
-            "model": type(terrain_map).__name__ if terrain_map is not None else None,
-            "num_parameters": int(sum(p.numel() for p in terrain_map.parameters()))
-            if terrain_map is not None else None,
-            "fit_metrics": dict(getattr(terrain_map, "metrics", None) or {}),
-            "error_vs_truth": self.map_error,
-            "neural_extra_variance_m2": self.fit_variance,
-        }
-
-
-def prepare(config: Any, *, scenario: Any = None) -> TanSetup:
-    """Loads the scenario, map and truth terrain and builds the methods of a TAN study.
-
-    ``config`` needs ``scenario``, ``map``, ``runs_dir``, ``methods``, ``seed``,
-    ``neural_fit_variance``, ``map_error_points`` and the device; its ``map`` and ``seed``
-    are set to the values actually used (so the saved config.yaml reruns exactly this).
-
-    Raises:
-        NeuralMapError: Bad scenario, no map, a map of another tile.
-    """
-    from neuralmap.nav.map_error import measure_map_error
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
-    from neuralmap.nav.truth_terrain import true_terrain
-    from neuralmap.terrain.export import load_map
-
-    scenario = load_scenario(config.scenario) if scenario is None else scenario
-    tile = scenario_tile(scenario)
-    map_path: Path | None = None
-    terrain_map = None
-    if any(m in TERRAIN_MODEL_METHODS for m in config.methods):
-        map_path = resolve_map_path(config.map, config.runs_dir,
-                                    tile_fingerprint=tile.fingerprint())
-        terrain_map = load_map(map_path)
-        check_map_tile(terrain_map, tile, map_path=map_path, scenario_name=scenario.name)
-    seed = scenario.seed if config.seed is None else int(config.seed)
-    config.map = str(map_path) if map_path is not None else config.map
-    config.seed = seed
-    truth_terrain = true_terrain(scenario, tile, seed=seed)
-    map_error: dict[str, Any] = {}
-    if terrain_map is not None:
-        map_error = measure_map_error(terrain_map, truth_terrain.model, tile,
-                                      n_points=config.map_error_points, seed=seed)
-    if config.neural_fit_variance is None:
-        mse = map_error.get("mse_m2", 0.0) or 0.0
-        fit_variance = max(float(mse) - scenario.fit_variance_m2, 0.0)
-    else:
-        fit_variance = float(config.neural_fit_variance)
-    methods = build_methods(config.methods, tile=tile, terrain_map=terrain_map,
-                            device=config.torch_device, fit_variance=fit_variance)
-    return TanSetup(scenario, tile, seed, truth_terrain, terrain_map, map_path, map_error,
-                    fit_variance, methods)
-
-
-def void_exposure(tile: Any, truth: Any) -> dict[str, int]:
-    """Truth samples (and runs) whose terrain height is read from a DEM void.
-
-    Under a void the truth terrain is the grid's nearest-node fill, not real terrain; the
-    count goes into the report so that a study over voids is never silently wrong.
-    """
-    if tile.n_void == 0:
-        return {"samples": 0, "runs": 0}
-    under = tile.void_under(truth.pos[..., :2].detach().cpu().double().numpy(), halo=1)
-    return {"samples": int(under.sum()), "runs": int(under.any(axis=1).sum())}
 
 
 def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
@@ -320,20 +193,15 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad input (no map, tile mismatch, bad scenario, device...).
     """
-    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-    from neuralmap.nav.monte_carlo import run_monte_carlo
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.studies.tan_report import (
-        build_results,
-        check_claims,
-        format_table,
-        render_report,
-    )
 
     started = time.perf_counter()
     timing: dict[str, float] = {}
     device, dtype = config.torch_device, config.torch_dtype
-    setup = prepare(config)
+    setup = prepare_tan(scenario=config.scenario, methods=config.methods, map_path=config.map,
+                        runs_dir=config.runs_dir, seed=config.seed,
+                        neural_fit_variance=config.neural_fit_variance,
+                        map_error_points=config.map_error_points, device=config.torch_device)
+    setup.pin(config)
     scenario, tile, seed = setup.scenario, setup.tile, setup.seed
     truth_terrain, methods, map_path = setup.truth_terrain, setup.methods, setup.map_path
     print(
@@ -404,22 +272,15 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         f"{config.n_runs}; per method: "
         + ", ".join(f"{k} {v}" for k, v in off_map["per_method"].items())
     )
-    for check in claims:
-        outputs.claims.append(_as_claim(check))
-        print(f"claim: {check.claim}: {check.measured} -> {check.verdict}")
     results["timing_s"]["total"] = time.perf_counter() - started
-    figures = _write_figures(outputs, config=config, results=results, truth=truth, runs=runs,
+    outputs.add_text(report_text(results))
+    for check in claims:
+        paper = "SEEDS 004" if "SEEDS 004" in check.claim else "toolkit target"
+        outputs.add_claim(paper, check.claim, check.measured, check.verdict, detail=check.detail)
+    _write_figures(outputs, config=config, results=results, truth=truth, runs=runs,
                              tile=tile, pcrb_pos=pcrb_pos)
     tracks = {"truth": truth.pos, "ins": truth.ins_pos,
               **{name: truth.pos + r.err[..., :3] for name, r in runs.items()}}
     write_trajectories(outputs.dir, tile, truth.t.cpu().numpy(),
                        {name: v.detach().cpu().numpy() for name, v in tracks.items()})
     outputs.results.update(results)
-    outputs.set_report(render_report(results, claims=claims, figures=figures))
-
-
-def _as_claim(check: Any) -> Any:
-    from neuralmap.studies.outputs import Claim
-
-    paper = "SEEDS 004" if "SEEDS 004" in check.claim else "toolkit target"
-    return Claim(paper, check.claim, check.measured, check.verdict)

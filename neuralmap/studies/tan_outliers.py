@@ -28,8 +28,18 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies.registry import POLICY_NAMES, make_policy, policy_label
 from neuralmap.filters.policy import FilterPolicy
 from neuralmap.linearize.factory import LINEARIZER_NAMES, method_label
+from neuralmap.nav.altimeter import FAULT_CODES
+from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.model import TanModel
+from neuralmap.nav.monte_carlo import check_map_matches, run_filter
+from neuralmap.nav.pcrb import pcrb, pcrb_position
+from neuralmap.nav.scenario import load_scenario
+from neuralmap.nav.simulator import simulate
+from neuralmap.progress import progress_bar
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.studies.setup import prepare_tan
+from neuralmap.viz.navigation import plot_error_vs_time
 
 __all__ = ["POLICIES", "TanOutliersConfig", "run", "study_policy"]
 
@@ -82,6 +92,7 @@ class TanOutliersConfig(StudyConfig):
         target_rmse_ratio: Target all-run RMSE of the best policy over the clean run's.
     """
 
+    study: str = "tan_outliers"
     experiment: str = "tan_outliers"
     map: str | None = None
     scenario: str = "jacksboro"
@@ -161,14 +172,6 @@ def _fault_error(run: Any, faulty: torch.Tensor) -> float | None:
 
 def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
     """Flies the clean and faulty altimeter with every policy and fills ``outputs``."""
-    from neuralmap.nav.altimeter import FAULT_CODES
-    from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.monte_carlo import check_map_matches, run_filter
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.scenario import load_scenario
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.studies.tan import prepare
 
     started = time.perf_counter()
     base = load_scenario(config.scenario)
@@ -176,7 +179,11 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
                                          lock_loss_prob=0.0, outlier_prob=0.0).validate()
     faulty_scenario = dataclasses.replace(clean_scenario, **config.faults()).validate(
         where="tan_outliers", options=True)
-    setup = prepare(config, scenario=clean_scenario)
+    setup = prepare_tan(scenario=clean_scenario, methods=config.methods, map_path=config.map,
+                        runs_dir=config.runs_dir, seed=config.seed,
+                        neural_fit_variance=config.neural_fit_variance,
+                        map_error_points=config.map_error_points, device=config.torch_device)
+    setup.pin(config)
     device, dtype = config.torch_device, config.torch_dtype
     sim = {"n_runs": config.n_runs, "seed": setup.seed, "dtype": dtype, "device": device,
            "truth_terrain": setup.truth_terrain}
@@ -204,7 +211,6 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
     total = len(config.methods) * (len(config.policies) + 1)
     bar = None
     if config.progress:
-        from neuralmap.progress import progress_bar
 
         bar = progress_bar(total=total, desc="tan_outliers", unit="filter")
     try:
@@ -386,19 +392,11 @@ def _figures(outputs: StudyOutputs, config: TanOutliersConfig,
     from matplotlib.figure import Figure
 
     for method, by_policy in curves.items():
-        fig = Figure(figsize=(8, 4.5))
-        ax = fig.add_subplot()
-        t = np.arange(len(pcrb_pos))
-        for label, curve in by_policy.items():
-            values = np.array([np.nan if v is None else v for v in curve], dtype=float)
-            style = "k--" if label.startswith("clean") else "-"
-            ax.plot(t, values, style, lw=1.2, label=label)
-        ax.plot(t, pcrb_pos, "k:", lw=1.5, label="PCRB")
-        ax.set_yscale("log")
-        ax.set_xlabel("time step")
-        ax.set_ylabel("horizontal RMSE, all runs [m]")
-        ax.set_title(f"{method_label(method)}: faulty altimeter, every policy")
-        ax.legend(fontsize=7, ncol=2)
+        fig = plot_error_vs_time(
+            np.arange(len(pcrb_pos)), by_policy, pcrb_pos,
+            references=[k for k in by_policy if k.startswith("clean")], xlabel="time step",
+            ylabel="horizontal RMSE, all runs [m]",
+            title=f"{method_label(method)}: faulty altimeter, every policy")
         outputs.add_figure(f"rmse_vs_time_{method}", fig,
                            f"{method_label(method)}: all-run RMSE vs time per policy")
     fig = Figure(figsize=(8, 4))

@@ -441,27 +441,13 @@ def format_table(results: Mapping[str, Any], *, markdown: bool = False) -> str:
     return "\n".join(out)
 
 
-def _claims_table(checks: Sequence[ClaimCheck]) -> str:
-    lines = ["| claim | measured | verdict | how |", "|---|---|---|---|"]
-    for check in checks:
-        lines.append(f"| {check.claim} | {check.measured} | **{check.verdict}** | {check.detail} |")
-    return "\n".join(lines)
-
-
-def render_report(
-    results: Mapping[str, Any],
-    *,
-    claims: Sequence[ClaimCheck],
-    figures: Mapping[str, str] | None = None,
-    title: str = "Terrain-aided navigation: Monte Carlo evaluation",
-) -> str:
-    """The markdown report: setup, metrics table, PCRB, divergence rule, claims, plots.
+def report_text(results: Mapping[str, Any]) -> str:
+    """The TAN study's own report sections: setup, metrics table, off-map runs, divergence
+    rule and timing (the title, figures and claims table come from
+    :class:`~neuralmap.studies.outputs.StudyOutputs`).
 
     Args:
         results: The structure from :func:`build_results`.
-        claims: From :func:`check_claims`.
-        figures: Caption -> image path relative to the report.
-        title: First heading.
 
     Returns:
         Markdown text.
@@ -470,8 +456,7 @@ def render_report(
     scenario = results.get("scenario", {})
     map_info = results.get("map", {})
     off_map = results.get("off_map", {})
-    lines = [f"# {title}", ""]
-    lines.append("## Setup")
+    lines = ["## Setup"]
     lines.append("")
     setup = [
         ("map", map_info.get("path", config.get("map", "n/a"))),
@@ -561,20 +546,6 @@ def render_report(
     lines.append("")
     lines.append(str(results.get("divergence_rule", "n/a")))
     lines.append("")
-
-    lines.append("## Paper 004's claims and the accuracy targets, checked")
-    lines.append("")
-    lines.append(_claims_table(claims))
-    lines.append("")
-
-    if figures:
-        lines.append("## Plots")
-        lines.append("")
-        for caption, path in figures.items():
-            lines.append(f"### {caption}")
-            lines.append("")
-            lines.append(f"![{caption}]({path})")
-            lines.append("")
 
     timing = results.get("timing_s", {})
     if timing:

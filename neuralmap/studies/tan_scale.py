@@ -1,6 +1,6 @@
 """TAN Monte Carlo at scale (``study: tan_scale``): chunked runs in bounded memory.
 
-The same scenario, map and methods as the TAN study (:func:`neuralmap.studies.tan.prepare`),
+The same scenario, map and methods as the TAN study (:func:`neuralmap.studies.setup.prepare_tan`),
 flown as :func:`neuralmap.nav.chunked.run_monte_carlo_chunked` runs: seed blocks of 1024
 runs, chunks of ``chunk_runs`` runs dealt over ``workers`` processes. Only per-run final
 errors and bounds and per-step sums are kept, so a million runs fit in memory; the results
@@ -19,7 +19,9 @@ import time
 from dataclasses import dataclass, field
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.chunked import SEED_BLOCK_RUNS, peak_rss_mb, run_monte_carlo_chunked
 from neuralmap.studies.outputs import StudyOutputs
+from neuralmap.studies.setup import prepare_tan
 from neuralmap.studies.tan import TanStudyConfig
 
 __all__ = ["TanScaleConfig", "run"]
@@ -34,7 +36,10 @@ class TanScaleConfig(TanStudyConfig):
         workers: Processes the chunks are dealt to (``--workers``; 1 = this process).
     """
 
+    study: str = "tan_scale"
     experiment: str = "tan_scale"
+    threads: int | None = 1
+    progress: bool = False
     n_runs: int = 100_000
     methods: list[str] = field(default_factory=lambda: ["bilinear", "nine_point"])
     chunk_runs: int = 8192
@@ -52,10 +57,12 @@ class TanScaleConfig(TanStudyConfig):
 
 def run(config: TanScaleConfig, outputs: StudyOutputs) -> None:
     """Runs the chunked Monte Carlo and writes the reduced metrics and the throughput."""
-    from neuralmap.nav.chunked import SEED_BLOCK_RUNS, peak_rss_mb, run_monte_carlo_chunked
-    from neuralmap.studies.tan import prepare
 
-    setup = prepare(config)
+    setup = prepare_tan(scenario=config.scenario, methods=config.methods, map_path=config.map,
+                        runs_dir=config.runs_dir, seed=config.seed,
+                        neural_fit_variance=config.neural_fit_variance,
+                        map_error_points=config.map_error_points, device=config.torch_device)
+    setup.pin(config)
     started = time.perf_counter()
     result = run_monte_carlo_chunked(
         setup.scenario, setup.methods, n_runs=config.n_runs, chunk_runs=config.chunk_runs,

@@ -31,9 +31,11 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.viz.wind import plot_bands, plot_wind_estimates
 from neuralmap.wind.checks import require_in_range, require_open_unit, require_positive
 from neuralmap.wind.comparison import WindFilterSpec, make_policy, run_filters
 from neuralmap.wind.faults import FaultConfig
+from neuralmap.wind.filtering import WindEstimate
 from neuralmap.wind.lti_model import LTIWindModel
 from neuralmap.wind.measurement import MeasurementConfig, measure_wind
 from neuralmap.wind.metrics import (
@@ -111,6 +113,8 @@ class WindStudyConfig(StudyConfig):
 
     study: str = "wind"
     experiment: str = "wind"
+    threads: int | None = 1
+    progress: bool = False
     n_runs: int = 500
     n_steps: int = 400
     conditions: list[str] = field(default_factory=lambda: list(CONDITIONS))
@@ -316,7 +320,6 @@ def run(config: WindStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad options or a filter whose policy cannot be built.
     """
-    from neuralmap.viz.wind import plot_bands, plot_wind_estimates
 
     started = time.perf_counter()
     seed = 0 if config.seed is None else int(config.seed)
@@ -440,7 +443,6 @@ def run(config: WindStudyConfig, outputs: StudyOutputs) -> None:
 
 
 def _to_cpu(est: Any) -> Any:
-    from neuralmap.wind.filtering import WindEstimate
 
     return WindEstimate(*(v.detach().cpu() for v in (est.wind, est.variance, est.nis,
                                                      est.coefficient, est.healthy)))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
 
@@ -64,3 +66,22 @@ class TerrainModel(nn.Module):
             ``(...)`` bool.
         """
         return inside_extent(xy, self.extent, margin)
+
+    def to_geotiff(self, out_dir: Any, tile: Any, *, layers: tuple[str, ...] | None = None,
+                   stem: str = "neural_map") -> dict[str, Any]:
+        """Writes the map's height, residual and slope as GeoTIFF on ``tile``'s source grid.
+
+        See :func:`neuralmap.terrain.geotiff.write_map_geotiffs` (needs rasterio).
+
+        Args:
+            out_dir: Output folder.
+            tile: The DEM tile the map was fitted to.
+            layers: Any of ``("height", "residual", "slope")`` (default all).
+            stem: File name prefix.
+
+        Returns:
+            Layer name -> path.
+        """
+        from neuralmap.terrain.geotiff import LAYERS, write_map_geotiffs
+
+        return write_map_geotiffs(self, tile, out_dir, layers=layers or LAYERS, stem=stem)

@@ -25,6 +25,7 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.activations import get_activation
 from neuralmap.terrain.base import TerrainModel
 from neuralmap.terrain.block_layout import BlockLayout, layout_for_tile
+from neuralmap.terrain.forward_slope import blockwise_height_and_slope
 from neuralmap.terrain.grouped import TileGroups
 
 ENCODINGS = ("fourier", "none")
@@ -361,8 +362,6 @@ class BlockwiseTerrainNet(TerrainModel):
         Returns:
             ``(height (...), slope (..., 2))`` in ``xy``'s dtype.
         """
-        from neuralmap.terrain.forward_slope import blockwise_height_and_slope
-
         return blockwise_height_and_slope(self, xy)
 
     def _finite_points(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:

@@ -56,6 +56,8 @@ def export(args: object) -> dict[str, Path]:
     terrain = load_map(args.map)
     info = getattr(terrain, "tile_info", {}) or {}
     dem = args.dem or info.get("source") or info.get("name")
+    if isinstance(dem, str) and dem.startswith("sample:"):  # "sample:jacksboro (...)"
+        dem = dem.split(":", 1)[1].split()[0]
     if not dem:
         raise NeuralMapError(f"map '{args.map}' records no source DEM; give it with --dem.")
     out = Path(args.out) if args.out else Path(args.map).parent / "geotiff"

@@ -1,6 +1,18 @@
-"""``train.py``: fit a neural map to a DEM tile with LightningCLI.
+"""``train.py``: every trainer of the toolkit behind one command and one option style.
 
-``python train.py`` fits the jacksboro sample with ``configs/train.yaml``;
+``python train.py [map|noise|region] [--config FILE] [--data.* --model.* --trainer.* ...]``:
+
+- ``map`` (the default when the first word is an option): fit a neural map to a DEM tile,
+  or to a mosaic of tiles (``--data.path "srtm/*.hgt"`` or a list), with LightningCLI;
+- ``noise``: learn the TAN filter's Q and R from flights (:mod:`neuralmap.training.noise_cli`,
+  ``python train.py noise --config configs/learn_noise.yaml``);
+- ``region``: fit a region-scale sharded map on several processes
+  (:mod:`neuralmap.training.region_cli`, ``python train.py region --config
+  configs/train_region.yaml``);
+- ``latent``: fit a latent-grid map (:mod:`neuralmap.training.latent_cli`,
+  ``python train.py latent --config configs/latent_map.yaml``).
+
+Map fit: ``python train.py`` fits the jacksboro sample with ``configs/train.yaml``;
 ``python train.py --config configs/paper_bp.yaml`` uses the SEEDS 004 preset;
 ``--data.path my_tile.hgt``, ``--trainer.max_epochs 5``,
 ``--trainer.strategy ddp --trainer.devices 2 --trainer.accelerator cpu`` and every other
@@ -21,41 +33,33 @@ exporting a map (including Ctrl-C, which prints the command that resumes from
 from __future__ import annotations
 
 import os
-import shutil
 import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
-import torch
-from lightning.fabric.utilities.exceptions import MisconfigurationException
+import yaml
 from lightning.pytorch.callbacks import ModelCheckpoint
-from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
-from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.io import check_writable_dir, next_version_dir
+from neuralmap.io import load_yaml
 from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
+from neuralmap.training.cli_base import (
+    EXIT_BAD_INPUT,
+    EXIT_NO_MAP,
+    NeuralMapCLI,
+    remove_orphan_run_dir,
+)
 from neuralmap.training.datamodule import DemDataModule
+from neuralmap.training.latent_cli import main_latent
 from neuralmap.training.module import TerrainFitModule
-from neuralmap.training.resume import inspect_checkpoint
+from neuralmap.training.noise_cli import main_noise
+from neuralmap.training.region_cli import main_region
 
-#: Exit status for bad user input (NeuralMapError), as argparse uses for bad arguments.
-EXIT_BAD_INPUT = 2
-#: Exit status of a run that ended without exporting a map.
-EXIT_NO_MAP = 1
-#: Environment variable through which DDP worker processes learn rank 0's run folder.
-RUN_DIR_ENV = "NEURALMAP_RUN_DIR"
+__all__ = ["MODES", "default_config_path", "main", "main_map"]
 
-
-def check_experiment_name(name: str) -> None:
-    """Refuses experiment names that would leave ``runs_dir`` (``..``, separators)."""
-    if name in ("", ".", "..") or "/" in name or "\\" in name or os.sep in name:
-        raise NeuralMapError(
-            f"--experiment {name!r} must be a plain folder name inside --runs_dir (no '/', "
-            "'\\', '.' or '..'); choose the parent folder with --runs_dir instead."
-        )
-
+#: The modes of ``train.py``: its first word (default ``map``).
+MODES = ("map", "noise", "region", "latent")
 
 def default_config_path() -> Path | None:
     """The shipped ``configs/train.yaml`` (package data), else one in the cwd."""
@@ -66,117 +70,6 @@ def default_config_path() -> Path | None:
         if candidate.is_file():
             return candidate
     return None
-
-
-class NeuralMapCLI(LightningCLI):
-    """LightningCLI for :class:`TerrainFitModule` + :class:`DemDataModule`.
-
-    Adds ``--experiment`` (run folder name, default the tile name), ``--runs_dir``
-    (default ``runs``), ``--ckpt_path`` (resume) and ``--threads`` (torch CPU threads).
-    Unless the config sets ``trainer.logger``, a :class:`TensorBoardLogger` writes to
-    ``<runs_dir>/<experiment>/version_N``.
-    """
-
-    def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
-        parser.add_argument(
-            "--experiment", type=str | None, default=None,
-            help="Run folder name under runs_dir (default: the tile name).",
-        )
-        parser.add_argument(
-            "--runs_dir", type=str, default="runs", help="Root folder of the runs."
-        )
-        parser.add_argument(
-            "--ckpt_path", type=str | None, default=None,
-            help="Checkpoint to resume from, e.g. "
-            "runs/<experiment>/version_0/checkpoints/last.ckpt.",
-        )
-        parser.add_argument(
-            "--threads", type=int | None, default=None,
-            help="torch CPU threads per process (default: torch's choice, all physical cores).",
-        )
-
-    def before_instantiate_classes(self) -> None:
-        threads = self.config.get("threads")
-        if threads is not None:
-            if threads < 1:
-                raise NeuralMapError(f"--threads must be >= 1, got {threads}.")
-            torch.set_num_threads(int(threads))
-        experiment = self.config.get("experiment")
-        if experiment is not None:
-            check_experiment_name(str(experiment))
-        check_writable_dir(Path(self.config.get("runs_dir") or "runs"), option="--runs_dir")
-        max_epochs = self.config.get("trainer.max_epochs")
-        max_steps = self.config.get("trainer.max_steps")
-        if max_epochs == 0 or max_steps == 0:
-            which = "max_epochs" if max_epochs == 0 else "max_steps"
-            raise NeuralMapError(
-                f"--trainer.{which} 0 trains nothing, so no map would be exported; pass at "
-                f"least 1 (or --trainer.fast_dev_run true for a one-batch smoke test)."
-            )
-        ckpt = self.config.get("ckpt_path")
-        if ckpt is not None:
-            inspect_checkpoint(ckpt, max_epochs=max_epochs)
-
-    def experiment_name(self) -> str:
-        """``--experiment`` or the tile's name."""
-        name = self.config_init.get("experiment")
-        return str(name) if name else self.datamodule.experiment_name
-
-    def instantiate_trainer(self, **kwargs: Any) -> Any:
-        """Trainer with a run folder of its own, reserved here with an atomic ``mkdir``
-        (:func:`neuralmap.io.next_version_dir`): TensorBoard's ``version_N`` is that folder,
-        and without a logger it is the trainer's root (never the experiment folder itself).
-        Two runs started at once into one experiment therefore never share a folder."""
-        trainer_config = self._get(self.config_init, "trainer", default={})
-        runs_dir = Path(self.config_init.get("runs_dir") or "runs")
-        experiment = self.experiment_name()
-        logger = trainer_config.get("logger")
-        self.reserved_dir: Path | None = None
-        own_root = trainer_config.get("default_root_dir") is None
-        # fast_dev_run replaces every logger by a dummy one and writes no run folder
-        reserve = not trainer_config.get("fast_dev_run") and (
-            logger in (None, True) or (logger is False and own_root))
-        run_dir = self._run_dir(runs_dir / experiment) if reserve else None
-        if logger in (None, True):
-            kwargs["logger"] = TensorBoardLogger(
-                save_dir=str(runs_dir), name=experiment, default_hp_metric=False,
-                version=None if run_dir is None else run_dir.name,
-            )
-        if own_root:
-            kwargs["default_root_dir"] = str(
-                run_dir if logger is False and run_dir is not None else runs_dir / experiment)
-        try:
-            return super().instantiate_trainer(**kwargs)
-        except MisconfigurationException as exc:
-            self.remove_reserved_dir()
-            raise NeuralMapError(
-                f"trainer settings cannot run here: {exc} Check --trainer.accelerator, "
-                "--trainer.devices and --trainer.strategy (e.g. --trainer.accelerator cpu; "
-                "'gpu' needs a CUDA or MPS device)."
-            ) from None
-
-    def _run_dir(self, experiment_dir: Path) -> Path:
-        """The run folder: reserved here on rank 0, rank 0's one on DDP worker processes."""
-        worker = os.environ.get("LOCAL_RANK", "0") != "0"
-        if worker and os.environ.get(RUN_DIR_ENV):
-            return Path(os.environ[RUN_DIR_ENV])
-        run_dir = next_version_dir(experiment_dir)
-        self.reserved_dir = run_dir
-        os.environ[RUN_DIR_ENV] = str(run_dir)
-        return run_dir
-
-    def remove_reserved_dir(self) -> None:
-        """Removes the version folder reserved for this run if it holds no checkpoint or map."""
-        remove_orphan_run_dir(getattr(self, "reserved_dir", None))
-
-
-def remove_orphan_run_dir(run_dir: Path | None) -> None:
-    """Deletes a run folder created by a failed run, unless it holds a checkpoint or a map."""
-    if run_dir is None or not run_dir.is_dir():
-        return
-    if any(run_dir.glob("checkpoints/*.ckpt")) or (run_dir / "neural_map.pt").exists():
-        return
-    shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def _trainer_callbacks() -> tuple[list[Any], FitReport]:
@@ -194,8 +87,58 @@ def _trainer_callbacks() -> tuple[list[Any], FitReport]:
     return callbacks, report
 
 
+def config_mode(argv: list[str]) -> str:
+    """The mode a ``--config`` file names with its top-level ``learn:`` key (else ``map``).
+
+    Lets ``python train.py --config configs/latent_map.yaml`` run the mode the config is
+    written for; the file is parsed in full by that mode's LightningCLI afterwards.
+    """
+    for flag, value in zip(argv, argv[1:], strict=False):
+        if flag in ("--config", "-c"):
+            try:
+                data = load_yaml(Path(value).read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, yaml.YAMLError):
+                continue  # the mode's CLI reports an unreadable config
+            learn = data.get("learn") if isinstance(data, dict) else None
+            if learn in MODES:
+                return str(learn)
+    return "map"
+
+
 def main(args: list[str] | None = None) -> Path | None:
-    """Runs ``train.py``: parse, fit, export; returns the exported map path.
+    """Runs ``train.py``: picks the mode from the first word, then parses, fits, exports.
+
+    Args:
+        args: Command-line arguments (``None`` = ``sys.argv[1:]``); a first word of
+            :data:`MODES` selects the mode (default ``map``).
+
+    Returns:
+        The exported file: ``neural_map.pt`` (map), ``learned_scenario.yaml`` (noise) or
+        ``map_index.json`` (region); ``None`` on DDP worker ranks.
+
+    Raises:
+        SystemExit: 2 on bad input (one ``error:`` line on stderr), 1 when nothing was
+            exported (see each mode).
+    """
+    argv = list(sys.argv[1:] if args is None else args)
+    mode = argv[0] if argv and not argv[0].startswith("-") else config_mode(argv)
+    if argv and not argv[0].startswith("-"):
+        argv = argv[1:]
+        if mode not in MODES:
+            print(f"error: train.py mode {mode!r} is unknown; the first word is one of "
+                  f"{', '.join(MODES)} (or an option, for map).", file=sys.stderr, flush=True)
+            raise SystemExit(EXIT_BAD_INPUT)
+    if mode == "noise":
+        return main_noise(argv)
+    if mode == "region":
+        return main_region(argv)
+    if mode == "latent":
+        return main_latent(argv)
+    return main_map(argv)
+
+
+def main_map(args: list[str] | None = None) -> Path | None:
+    """``train.py map``: parse, fit, export; returns the exported map path.
 
     Args:
         args: Command-line arguments (``None`` = ``sys.argv[1:]``). Without ``--config``
@@ -209,19 +152,6 @@ def main(args: list[str] | None = None) -> Path | None:
         SystemExit: Code 2 on bad input (:class:`NeuralMapError`: the message goes to
             stderr without a traceback) or bad arguments.
     """
-    from neuralmap.training.noise_cli import learn_mode, main_noise
-
-    try:
-        mode = learn_mode(args)
-    except NeuralMapError as error:
-        print(f"error: {error}", file=sys.stderr, flush=True)
-        raise SystemExit(EXIT_BAD_INPUT) from None
-    if mode == "noise":
-        return main_noise(args)
-    if mode == "latent":
-        from neuralmap.training.latent_cli import main_latent
-
-        return main_latent(args)
     default_config = default_config_path()
     parser_kwargs: dict[str, Any] = {
         "description": "Fit a neural terrain map (blockwise MLPs) to a DEM tile.",

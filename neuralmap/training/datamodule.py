@@ -20,7 +20,7 @@ import torch
 from lightning.pytorch.utilities.rank_zero import rank_zero_info, rank_zero_warn
 from torch.utils.data import DataLoader, Dataset
 
-from neuralmap.dem import load_tile
+from neuralmap.dem import load_mosaic, load_tile
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.grid import GridTerrain
@@ -144,6 +144,13 @@ class Chunks(Dataset):
         return tuple(torch.tensor_split(t, self.n_chunks)[index] for t in self.tensors)
 
 
+def _is_mosaic(path: str | list[str]) -> bool:
+    """A list of sources, or one glob pattern that is not an existing file."""
+    if not isinstance(path, str):
+        return True
+    return any(c in path for c in "*?[") and not Path(path).exists()
+
+
 class DemDataModule(pl.LightningDataModule):
     """The valid nodes of one DEM tile, split into training and validation nodes.
 
@@ -164,8 +171,9 @@ class DemDataModule(pl.LightningDataModule):
 
     Args:
         path: Sample name (``"jacksboro"``, ``"synthetic"``) or DEM file path, as for
-            :func:`neuralmap.dem.load_tile`; from Python also an already loaded
-            :class:`DemTile` (see :meth:`from_tile`).
+            :func:`neuralmap.dem.load_tile`; a glob (``"srtm/*.hgt"``) or a list of files /
+            globs: the tiles stitched by :func:`neuralmap.dem.load_mosaic`; from Python
+            also an already loaded :class:`DemTile` (see :meth:`from_tile`).
         spacing: Grid spacing in metres for files that do not carry it (``.npy``, generic
             ``.npz``): one number or ``[dx, dy]``.
         origin: ``[x0, y0]`` metres of node ``[0, 0]`` for such files.
@@ -197,7 +205,7 @@ class DemDataModule(pl.LightningDataModule):
 
     def __init__(
         self,
-        path: str = "jacksboro",
+        path: str | list[str] = "jacksboro",
         spacing: float | list[float] | None = None,
         origin: list[float] | None = None,
         name: str | None = None,
@@ -227,7 +235,11 @@ class DemDataModule(pl.LightningDataModule):
                 f"validation), got {val_fraction}. Try 0.02."
             )
         # A DemTile passed from Python is recorded by its source (or name).
-        self.path = (path.source or path.name) if tile_given else str(path)  # type: ignore
+        mosaic = not tile_given and _is_mosaic(path)
+        if tile_given:
+            self.path = path.source or path.name  # type: ignore[union-attr]
+        else:
+            self.path = str(path) if isinstance(path, str) else ", ".join(map(str, path))
         self.batch_size = int(batch_size)
         self.val_fraction = float(val_fraction)
         self.seed = int(seed)
@@ -254,6 +266,13 @@ class DemDataModule(pl.LightningDataModule):
             spacing_arg = float(spacing) if scalar else tuple(spacing)  # type: ignore[arg-type]
         if tile_given:
             self.tile: DemTile = path  # type: ignore[assignment]
+        elif mosaic:
+            if spacing is not None or origin is not None:
+                raise NeuralMapError(
+                    f"data.path {path!r} is a mosaic: each tile's spacing and place come from "
+                    "its own georeference, so remove --data.spacing / --data.origin.")
+            self.tile = load_mosaic(path, name=name, units=units, nodata=nodata,
+                                    height_check=height_check)
         else:
             self.tile = load_tile(
                 self.path,

@@ -1,6 +1,6 @@
-"""``train.py`` for latent-grid maps: ``python train.py --config configs/latent_map.yaml``.
+"""``train.py latent``: latent-grid maps, ``python train.py latent --config configs/latent_map.yaml``.
 
-A config (or the command line) with ``learn: latent`` trains
+It trains
 :class:`~neuralmap.training.latent_module.LatentFitModule` on
 :class:`~neuralmap.training.latent_datamodule.LatentDataModule` with the same CLI habits as
 the blockwise map fit (``--trainer.*``, ``--experiment``, ``--runs_dir``, ``--threads``,
@@ -25,7 +25,7 @@ __all__ = ["main_latent"]
 
 
 def _latent_cli_class() -> Any:
-    from neuralmap.training.cli import NeuralMapCLI
+    from neuralmap.training.cli_base import NeuralMapCLI
 
     class LatentCLI(NeuralMapCLI):
         """NeuralMapCLI with ``--learn`` (always ``latent`` here)."""
@@ -44,8 +44,9 @@ def main_latent(args: list[str] | None = None) -> Path | None:
     Raises:
         SystemExit: 2 on bad input (message on stderr), 1 when no map was exported.
     """
+    from neuralmap.training.callbacks.epoch_lines import EpochLines
     from neuralmap.training.callbacks.latent_report import LatentMapReport
-    from neuralmap.training.cli import EXIT_BAD_INPUT, EXIT_NO_MAP
+    from neuralmap.training.cli_base import EXIT_BAD_INPUT, EXIT_NO_MAP
     from neuralmap.training.latent_datamodule import LatentDataModule
     from neuralmap.training.latent_module import LatentFitModule
 
@@ -60,7 +61,7 @@ def main_latent(args: list[str] | None = None) -> Path | None:
                 save_config_kwargs={"overwrite": True},
                 parser_kwargs={"description": "Fit a latent-grid neural map (entropy-coded "
                                               "latents + tiny decoder) to a DEM tile."},
-                trainer_defaults={"callbacks": [checkpoint, report]},
+                trainer_defaults={"callbacks": [checkpoint, report, EpochLines()]},
             )
         cli.trainer.fit(cli.model, datamodule=cli.datamodule,
                         ckpt_path=cli.config.get("ckpt_path"))

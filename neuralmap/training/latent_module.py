@@ -36,7 +36,8 @@ class LatentFitModule(pl.LightningModule):
 
     Args:
         levels: Latent levels (knots ``2^l`` nodes apart).
-        hidden: MLP hidden units (0 = linear synthesis).
+        hidden: MLP hidden units (0 = linear synthesis, the default: queries at grid speed;
+            8 = the tanh residual MLP, about 7x slower queries, see ``bench_filter.py`` (f)).
         rate_weight: ``lambda``, m² per bit per node (> 0); larger = smaller map.
         between_weight: Weight of the between-node MSE (0 = nodes only).
         between_points: Random between-node points per step.
@@ -49,7 +50,7 @@ class LatentFitModule(pl.LightningModule):
         NeuralMapError: ``rate_weight`` <= 0, or other out-of-range settings.
     """
 
-    def __init__(self, levels: int = 6, hidden: int = 8, rate_weight: float = 3.0,
+    def __init__(self, levels: int = 6, hidden: int = 0, rate_weight: float = 3.0,
                  between_weight: float = 0.5, between_points: int = 8192, lr: float = 0.01,
                  init_step: float = 1.0, ste_fraction: float = 0.2, seed: int = 0) -> None:
         super().__init__()

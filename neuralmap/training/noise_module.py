@@ -1,7 +1,7 @@
 """NoiseLearningModule: learn the TAN filter's Q and R from flights with Lightning.
 
-``python train.py --config configs/learn_noise.yaml`` trains it (the config's
-``learn: noise`` selects this module and :class:`~neuralmap.training.flight_datamodule.FlightDataModule`).
+``python train.py noise --config configs/learn_noise.yaml`` trains it on
+:class:`~neuralmap.training.flight_datamodule.FlightDataModule` (:mod:`neuralmap.training.noise_cli`).
 Each training batch of flights is cut into windows of ``tbptt_steps`` filter steps
 (truncated back-propagation through time, manual optimisation: one optimiser step per
 window, the filter state carried detached). The loss is the negative innovation

@@ -50,6 +50,79 @@ from neuralmap.terrain.sharded import shard_block_ranges, write_shard_index
 __all__ = ["RegionBatches", "RegionData", "fit_region", "splitmix64", "train_shard"]
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+#: Lightning Fabric strategies the region fit runs under (None = chosen from the world size).
+STRATEGIES = (None, "auto", "ddp", "ddp_spawn")
+
+
+def check_spacing(spacing: Any, *, where: str) -> tuple[float, float]:
+    """``(dx, dy)`` from one number or a pair, each finite and > 0.
+
+    Raises:
+        NeuralMapError: Text, a wrong count, or a value that is not finite and positive.
+    """
+    try:
+        values = np.asarray(spacing, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        values = np.array([])
+    if values.size not in (1, 2) or isinstance(spacing, (str, bytes)) or not (
+            np.isfinite(values).all() and (values > 0).all()):
+        raise NeuralMapError(
+            f"{where} must be one number or [dx, dy] of metres > 0, got {spacing!r}.")
+    dx, dy = np.broadcast_to(values, (2,))
+    return float(dx), float(dy)
+
+
+def check_fit_options(*, block_nodes: int | None, overlap_nodes: float,
+                      shard_blocks: tuple[int, int], steps: int, points_per_block: int,
+                      lr: float, devices: int, num_nodes: int, strategy: str | None,
+                      threads: int) -> None:
+    """Refuses region-fit settings that would fit nothing or fail in a worker.
+
+    Raises:
+        NeuralMapError: Naming the option (as ``train.py region`` spells it) and the fix.
+    """
+    counts = {"--model.steps": steps, "--model.points_per_block": points_per_block,
+              "--trainer.devices": devices, "--trainer.num_nodes": num_nodes,
+              "--threads": threads}
+    for option, value in counts.items():
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 1:
+            raise NeuralMapError(
+                f"{option} must be a whole number >= 1, got {value!r} (with 0 nothing is "
+                "trained and an untrained map would be published).")
+    if block_nodes is not None and (not isinstance(block_nodes, (int, np.integer))
+                                    or block_nodes < 2):
+        raise NeuralMapError(f"--model.block_nodes must be >= 2 (or null), got {block_nodes!r}.")
+    if not (isinstance(overlap_nodes, (int, float)) and math.isfinite(overlap_nodes)
+            and overlap_nodes >= 0):
+        raise NeuralMapError(f"--model.overlap_nodes must be finite and >= 0, got {overlap_nodes!r}.")
+    if len(tuple(shard_blocks)) != 2 or any(int(b) < 1 for b in shard_blocks):
+        raise NeuralMapError(
+            f"--model.shard_blocks must be two whole numbers >= 1 (blocks per shard in x and "
+            f"y), got {list(shard_blocks)!r}.")
+    if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
+        raise NeuralMapError(f"--model.lr must be a finite number > 0, got {lr!r}; try 0.01.")
+    if strategy not in STRATEGIES:
+        raise NeuralMapError(
+            f"--trainer.strategy must be one of {', '.join(str(s) for s in STRATEGIES)}, "
+            f"got {strategy!r} (ddp_spawn from Python, ddp from a script or torchrun).")
+
+
+def check_has_data(data: RegionData, *, rows_per_chunk: int = 256) -> int:
+    """Counts the finite heights of a region, a band of rows at a time (bounded memory).
+
+    Raises:
+        NeuralMapError: No finite height at all (an all-void region fits nothing).
+    """
+    ny = data.shape[0]
+    finite = 0
+    for i in range(0, ny, rows_per_chunk):
+        finite += int(np.isfinite(np.asarray(data.heights[i:i + rows_per_chunk])).sum())
+    if finite == 0:
+        raise NeuralMapError(
+            f"region '{data.path or data.name}' ({data.shape[0]} x {data.shape[1]} nodes) "
+            "holds no finite height (every node is void/NaN); there is nothing to fit. "
+            "Check the source files and their no-data value.")
+    return finite
 
 
 def splitmix64(x: np.ndarray) -> np.ndarray:
@@ -100,17 +173,38 @@ class RegionData:
         if not path.is_file():
             raise NeuralMapError(f"region file not found: '{path}'; give a 2-D .npy of heights.")
         sidecar = Path(str(path) + ".json")
-        info = json.loads(sidecar.read_text()) if sidecar.is_file() else {}
-        heights = np.load(path, mmap_mode=None if in_memory else "r")
+        info: dict[str, Any] = {}
+        if sidecar.is_file():
+            try:
+                info = json.loads(sidecar.read_text(encoding="utf-8"))
+            except (ValueError, UnicodeDecodeError) as exc:
+                raise NeuralMapError(
+                    f"region '{path}': its sidecar '{sidecar.name}' is not JSON ({exc}); fix "
+                    "or delete it (then give the spacing in metres).") from None
+            if not isinstance(info, dict):
+                raise NeuralMapError(
+                    f"region '{path}': its sidecar '{sidecar.name}' must hold a JSON object "
+                    f"(with \"spacing\": [dx, dy]), got {type(info).__name__}.")
+        try:
+            heights = np.load(path, mmap_mode=None if in_memory else "r", allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise NeuralMapError(
+                f"region '{path}' is not a NumPy .npy array ({exc}); write the heights with "
+                "numpy.save or neuralmap.dem.write_mosaic.") from None
         if heights.ndim != 2:
             raise NeuralMapError(f"region '{path}': heights must be 2-D, got {heights.shape}.")
+        if not np.issubdtype(heights.dtype, np.number) or np.iscomplexobj(heights):
+            raise NeuralMapError(
+                f"region '{path}': heights must be real numbers, got dtype {heights.dtype}.")
+        source = "given"
         if spacing is None:
             if "spacing" not in info:
                 raise NeuralMapError(
-                    f"region '{path}': no spacing in '{sidecar.name}'; pass spacing=<metres>."
+                    f"region '{path}': no spacing in '{sidecar.name}'; give it in metres "
+                    "(--data.spacing 100, or spacing=100 from Python)."
                 )
-            spacing = tuple(info["spacing"])  # type: ignore[assignment]
-        pair = tuple(float(s) for s in np.broadcast_to(np.asarray(spacing, float), (2,)))
+            spacing, source = info["spacing"], f"of the sidecar '{sidecar.name}'"
+        pair = check_spacing(spacing, where=f"region '{path}': the spacing {source}")
         return cls(heights=heights, spacing=pair, name=name or path.stem,  # type: ignore[arg-type]
                    path=str(path), info=info)
 
@@ -373,8 +467,12 @@ def fit_region(
     threads: int = 1,
     shard_ids: list[int] | None = None,
     net_options: dict[str, Any] | None = None,
+    record_path: str | None = None,
 ) -> dict[str, Any]:
     """Fits a region shard by shard on ``devices × num_nodes`` CPU processes.
+
+    Writes into ``out_dir`` directly; to publish whole (as ``train.py region`` does), build
+    inside ``with neuralmap.io.replacing_dir(out) as build: fit_region(data, build)``.
 
     Args:
         data: The region (:meth:`RegionData.open` for a memory-mapped ``.npy``).
@@ -392,20 +490,26 @@ def fit_region(
         threads: Torch threads per process.
         shard_ids: Train only these shards (benchmarks); the index is then not written.
         net_options: Architecture options of :class:`BlockwiseTerrainNet`.
+        record_path: Region path recorded in the index (default ``data.path``; the command
+            line gives the published path when it builds under a hidden name).
 
     Returns:
         Summary: ``index`` path (or None), ``layout``, ``shards``, ``per_rank`` points,
         seconds, CPU seconds and peak RSS, ``points_per_s`` (total points / slowest rank's
         seconds), ``points_per_cpu_s`` (total points / summed CPU seconds: the rate each
         process would keep on a free core).
+
+    Raises:
+        NeuralMapError: Bad settings (:func:`check_fit_options`), a region without any
+            finite height, shard ids outside the layout.
     """
     from lightning.fabric import Fabric
 
-    if int(devices) < 1 or int(num_nodes) < 1 or int(steps) < 1:
-        raise NeuralMapError(
-            f"fit_region: devices, num_nodes and steps must be >= 1, got {devices}, "
-            f"{num_nodes}, {steps}."
-        )
+    check_fit_options(block_nodes=block_nodes, overlap_nodes=overlap_nodes,
+                      shard_blocks=shard_blocks, steps=steps,
+                      points_per_block=points_per_block, lr=lr, devices=devices,
+                      num_nodes=num_nodes, strategy=strategy, threads=threads)
+    check_has_data(data)
     out = Path(out_dir)
     (out / "shards").mkdir(parents=True, exist_ok=True)
     layout = plan_layout(data, block_nodes=block_nodes, overlap_nodes=overlap_nodes,
@@ -447,12 +551,14 @@ def fit_region(
         "wall_s": wall,
         "mean_final_loss": result["mean_loss"],
     }
-    if shard_ids is None:
+    if shard_ids is None and fabric.global_rank == 0:
         files = [f"shards/shard_{i:05d}.pt" for i in range(len(ranges))]
         info = {"name": data.name, "region": {"shape": list(data.shape),
                                               "spacing": list(data.spacing),
-                                              "origin": list(data.origin), "path": data.path},
-                "training": {k: v for k, v in plan.items() if k not in ("data", "layout")},
+                                              "origin": list(data.origin),
+                                              "path": record_path or data.path},
+                "training": {k: v for k, v in plan.items()
+                             if k not in ("data", "layout", "out_dir")},
                 "metrics": {"points": total_points}}
         summary["index"] = str(write_shard_index(out / "map_index.json", layout=layout,
                                                  shard_blocks=shard_blocks, files=files,

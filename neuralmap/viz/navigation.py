@@ -7,7 +7,7 @@ no display needed) and can save it atomically as PNG.
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,8 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 120) ->
 
 
 def _curve(values: object, n: int, what: str) -> np.ndarray:
+    if isinstance(values, (list, tuple)):  # results.json curves hold None for no data
+        values = [np.nan if v is None else v for v in values]
     array = np.asarray(values, dtype=np.float64).reshape(-1)
     if array.shape != (n,):
         raise NeuralMapError(f"{what}: expected {n} values (one per time step), got {array.size}.")
@@ -35,20 +37,27 @@ def _curve(values: object, n: int, what: str) -> np.ndarray:
 def plot_error_vs_time(
     t: object,
     curves: Mapping[str, object],
-    pcrb_pos: object,
+    pcrb_pos: object | None,
     *,
     converged_curves: Mapping[str, object] | None = None,
+    references: Collection[str] = (),
+    xlabel: str = "time [s]",
     ylabel: str = "horizontal position RMSE [m]",
     title: str = "Horizontal position error vs time",
 ) -> Figure:
-    """RMSE curves of every method with the horizontal PCRB (log scale).
+    """RMSE curves with the horizontal PCRB (log scale): the one error-vs-time figure of
+    every study.
 
     Args:
-        t: ``(K+1,)`` seconds.
-        curves: Method -> ``(K+1,)`` RMSE over all on-map runs (solid lines).
-        pcrb_pos: ``(K+1,)`` horizontal PCRB, metres (black dashed).
-        converged_curves: Method -> ``(K+1,)`` RMSE over the non-diverged runs (dotted,
+        t: ``(K+1,)`` seconds (or steps, with ``xlabel``).
+        curves: Label -> ``(K+1,)`` RMSE over all on-map runs (solid lines; None entries
+            are gaps).
+        pcrb_pos: ``(K+1,)`` horizontal PCRB, metres (black dashed); None = no bound.
+        converged_curves: Label -> ``(K+1,)`` RMSE over the non-diverged runs (dotted,
             same colour), optional.
+        references: Labels of ``curves`` drawn as black dash-dot reference lines (e.g. the
+            clean-data run).
+        xlabel: X axis label.
         ylabel: Y axis label.
         title: Figure title.
 
@@ -62,7 +71,8 @@ def plot_error_vs_time(
     colors = [f"C{i}" for i in range(10)]
     for i, (name, values) in enumerate(curves.items()):
         color = colors[i % len(colors)]
-        ax.plot(time, _curve(values, n, f"curve '{name}'"), color=color, lw=1.4, label=name)
+        style = {"color": "k", "ls": "-."} if name in references else {"color": color}
+        ax.plot(time, _curve(values, n, f"curve '{name}'"), lw=1.4, label=name, **style)
         if converged_curves and name in converged_curves:
             ax.plot(
                 time,
@@ -71,11 +81,14 @@ def plot_error_vs_time(
                 lw=1.0,
                 ls=":",
             )
-    ax.plot(time, _curve(pcrb_pos, n, "pcrb_pos"), color="k", lw=1.6, ls="--", label="PCRB")
-    positive = [np.asarray(v, dtype=np.float64) for v in [*curves.values(), pcrb_pos]]
-    if any((v > 0).any() for v in positive):
+    lines = [_curve(v, n, f"curve '{k}'") for k, v in curves.items()]
+    if pcrb_pos is not None:
+        bound = _curve(pcrb_pos, n, "pcrb_pos")
+        ax.plot(time, bound, color="k", lw=1.6, ls="--", label="PCRB")
+        lines.append(bound)
+    if any((v > 0).any() for v in lines):
         ax.set_yscale("log")
-    ax.set_xlabel("time [s]")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_title(title + ("  (dotted: non-diverged runs)" if converged_curves else ""))
     ax.grid(True, which="both", alpha=0.3)

@@ -2,17 +2,16 @@
 
 Tags: ``rmse_pos/<method>``, ``rmse_pos_converged/<method>``, ``rmse_vel/<method>`` and
 ``pcrb_pos`` against the time step; ``final_pos_error/<method>`` histograms;
-``summary/<metric>/<method>`` scalars; figures under ``figures/<name>``.
+``summary/<metric>/<method>`` scalars (figures: :meth:`StudyOutputs.add_figure`).
 """
 
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
-from matplotlib.figure import Figure
 
 _CURVE_TAGS: dict[str, str] = {
     "rmse_pos_curve": "rmse_pos",
@@ -22,55 +21,47 @@ _CURVE_TAGS: dict[str, str] = {
 
 
 def log_navigation(
-    log_dir: str | os.PathLike[str],
+    writer: Any,
     *,
     curves: Mapping[str, Mapping[str, object]],
     pcrb_pos: object,
     final_errors: Mapping[str, object],
     summary: Mapping[str, Mapping[str, object]] | None = None,
-    figures: Mapping[str, Figure] | None = None,
 ) -> None:
-    """Writes the evaluation's curves, histograms, summary scalars and figures.
+    """Writes the evaluation's curves, histograms and summary scalars into ``writer`` (the
+    study's one writer, :meth:`StudyOutputs.writer`; figures go through
+    :meth:`StudyOutputs.add_figure`).
 
     Non-finite values are skipped (TensorBoard cannot plot them).
 
     Args:
-        log_dir: Folder for the event file (created if missing).
+        writer: A ``torch.utils.tensorboard.SummaryWriter`` (kept open).
         curves: Method -> {``rmse_pos_curve`` | ``rmse_pos_converged_curve`` |
             ``rmse_vel_curve`` -> ``(K+1,)``}.
         pcrb_pos: ``(K+1,)`` horizontal PCRB, metres.
         final_errors: Method -> ``(N,)`` final horizontal error, metres.
         summary: Method -> {metric name -> scalar}, logged as ``summary/<metric>/<method>``.
-        figures: Name -> matplotlib figure.
     """
-    from torch.utils.tensorboard import SummaryWriter
-
-    writer = SummaryWriter(log_dir=str(log_dir))
-    try:
-        for method, method_curves in curves.items():
-            for key, values in method_curves.items():
-                tag = _CURVE_TAGS.get(key)
-                if tag is None:
-                    continue
-                for step, value in enumerate(np.asarray(values, dtype=np.float64).reshape(-1)):
-                    if math.isfinite(value):
-                        writer.add_scalar(f"{tag}/{method}", value, global_step=step)
-        for step, value in enumerate(np.asarray(pcrb_pos, dtype=np.float64).reshape(-1)):
-            if math.isfinite(value):
-                writer.add_scalar("pcrb_pos", value, global_step=step)
-        for method, values in final_errors.items():
-            array = np.asarray(values, dtype=np.float64).reshape(-1)
-            array = array[np.isfinite(array)]
-            if array.size:
-                writer.add_histogram(f"final_pos_error/{method}", array, global_step=0)
-        for method, metrics in (summary or {}).items():
-            for key, value in metrics.items():
-                if isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(
-                    float(value)
-                ):
-                    writer.add_scalar(f"summary/{key}/{method}", float(value), global_step=0)
-        for name, fig in (figures or {}).items():
-            writer.add_figure(f"figures/{name}", fig, global_step=0, close=False)
-        writer.flush()
-    finally:
-        writer.close()
+    for method, method_curves in curves.items():
+        for key, values in method_curves.items():
+            tag = _CURVE_TAGS.get(key)
+            if tag is None:
+                continue
+            for step, value in enumerate(np.asarray(values, dtype=np.float64).reshape(-1)):
+                if math.isfinite(value):
+                    writer.add_scalar(f"{tag}/{method}", value, global_step=step)
+    for step, value in enumerate(np.asarray(pcrb_pos, dtype=np.float64).reshape(-1)):
+        if math.isfinite(value):
+            writer.add_scalar("pcrb_pos", value, global_step=step)
+    for method, values in final_errors.items():
+        array = np.asarray(values, dtype=np.float64).reshape(-1)
+        array = array[np.isfinite(array)]
+        if array.size:
+            writer.add_histogram(f"final_pos_error/{method}", array, global_step=0)
+    for method, metrics in (summary or {}).items():
+        for key, value in metrics.items():
+            if isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(
+                float(value)
+            ):
+                writer.add_scalar(f"summary/{key}/{method}", float(value), global_step=0)
+    writer.flush()

@@ -44,7 +44,8 @@ class WindSimConfig:
             clockwise (90 = towards east).
         shear_step: Size of a step in the mean wind (m/s); 0 = no shear.
         shear_time: Sample index of the shear step.
-        shear_direction_deg: Direction of the shear step (as ``mean_direction_deg``).
+        shear_direction_deg: Direction of the shear step (as ``mean_direction_deg``;
+            default north, across the default eastward mean wind, as the wind study).
         gust_amplitude: Peak of a "1 − cos" discrete gust (m/s); 0 = no gust.
         gust_time: First sample of the gust.
         gust_length: Gust duration in samples.
@@ -62,7 +63,7 @@ class WindSimConfig:
     mean_direction_deg: float = 90.0
     shear_step: float = 0.0
     shear_time: int = 0
-    shear_direction_deg: float = 90.0
+    shear_direction_deg: float = 0.0
     gust_amplitude: float = 0.0
     gust_time: int = 0
     gust_length: int = 20

@@ -22,6 +22,7 @@ from neuralmap.filters.policies import (
     RobustAdaptive,
     SageHusa,
     VariationalAdaptive,
+    WindowedInflation,
     YangAdaptive,
     make_policy,
     policy_label,
@@ -41,6 +42,8 @@ EXPECTED = {
     "raf_quality": Compose,
     "quality_inflation": Compose,
     "quality_gnss_inflation": Compose,
+    "windowed_inflation": WindowedInflation,
+    "quality_gnss_windowed": Compose,
     "sage_husa": SageHusa,
     "variational": VariationalAdaptive,
 }
@@ -69,6 +72,8 @@ def test_every_name_builds_a_fresh_policy_of_its_class_that_runs() -> None:
         assert policy_label(name) != name and len(policy_label(name)) > 5
         if policy is not None:
             assert make_policy(name) is not policy  # per-sample state: never shared
+            if "windowed" in name:  # default block: position + velocity of the 15-state
+                policy = make_policy(name, {"block": [0, 1], "window": 1})
             P = _one_update(policy)
             assert torch.isfinite(P).all() and torch.linalg.eigvalsh(P).min() > 0, name
 

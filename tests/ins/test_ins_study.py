@@ -25,14 +25,17 @@ def _load(name: str, path: Path) -> ModuleType:
 
 @pytest.fixture(scope="module")
 def evaluate() -> ModuleType:
-    return _load("evaluate_gnss_ins_under_test", REPO_ROOT / "evaluate.py")
+    """The study command line behind ``evaluate.py`` (its ``main``)."""
+    import neuralmap.studies.cli as cli
+
+    return cli
 
 
 def test_study_end_to_end(evaluate: ModuleType, tmp_path: Path,
                           capsys: pytest.CaptureFixture[str]) -> None:
     code = evaluate.main(["--config", str(TINY), "--runs_dir", str(tmp_path), "--n_runs", "4",
                           "--duration_s", "20", "--imu_rate_hz", "10", "--experiment", "e2e",
-                          "--variants", "[plain,quality_inflation,raf]"])
+                          "--variants", "[plain,quality_inflation,quality_windowed]"])
     out = capsys.readouterr()
     assert code == 0, out.err
     folder = tmp_path / "e2e" / "version_0"
@@ -42,7 +45,7 @@ def test_study_end_to_end(evaluate: ModuleType, tmp_path: Path,
     assert list(folder.glob("events.out.tfevents*"))
     results = json.loads((folder / "results.json").read_text())
     assert results["study"] == "gnss_ins"
-    assert list(results["variants"]) == ["plain", "quality_inflation", "raf"]
+    assert list(results["variants"]) == ["plain", "quality_inflation", "quality_windowed"]
     for entry in results["variants"].values():
         assert entry["n_runs"] == 4
         assert entry["counts"]["skipped_epochs"] == results["gnss"]["outage_epochs"]
@@ -67,6 +70,12 @@ def test_bad_options_exit_2(evaluate: ModuleType, capsys: pytest.CaptureFixture[
     assert "unknown IMU grade" in capsys.readouterr().err
     assert evaluate.main(["--config", str(TINY), "--dtype", "float32"]) == 2
     assert "float64" in capsys.readouterr().err
+    assert evaluate.main(["--config", str(TINY), "--window", "3"]) == 2
+    assert "window" in capsys.readouterr().err
+    assert evaluate.main(["--config", str(TINY), "--inflate_block", "[0,15]"]) == 2
+    assert "inflate_block" in capsys.readouterr().err
+    assert evaluate.main(["--config", str(TINY), "--alpha_cap", "0.5"]) == 2
+    assert "alpha_cap" in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -74,6 +83,6 @@ def test_bench_ins_quick(capsys: pytest.CaptureFixture[str]) -> None:
     bench = _load("bench_ins_under_test", REPO_ROOT / "benchmarks" / "bench_ins.py")
     assert bench.main(["--quick"]) == 0
     out = capsys.readouterr().out
-    assert "NumPy loop" in out and "torch batched" in out
+    assert "NumPy loop" in out and "block filter" in out and "per-sample filter" in out
     deviation = float(out.split("max difference ")[1].split(" m")[0])
     assert deviation < 1e-6  # same algorithm, same inputs, float64

@@ -1,4 +1,4 @@
-"""``python train.py --config configs/learn_noise.yaml``: the noise-learning mode of train.py."""
+"""``python train.py noise --config configs/learn_noise.yaml``: the noise-learning mode."""
 
 from __future__ import annotations
 
@@ -7,27 +7,30 @@ from pathlib import Path
 import pytest
 import torch
 
-from neuralmap.exceptions import NeuralMapError
 from neuralmap.nav.scenario import load_scenario
 from neuralmap.training.cli import main
-from neuralmap.training.noise_cli import learn_mode
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
-def test_learn_switch_keeps_the_default_map_fit() -> None:
-    assert learn_mode([]) == "map"
-    assert learn_mode(["--config", str(REPO_ROOT / "configs" / "train.yaml")]) == "map"
-    assert learn_mode(["--config", str(REPO_ROOT / "configs" / "learn_noise.yaml")]) == "noise"
-    assert learn_mode(["--learn=noise"]) == "noise"
-    with pytest.raises(NeuralMapError, match="learn"):
-        learn_mode(["--learn", "weights"])
+def test_mode_is_the_first_word(capsys: pytest.CaptureFixture[str]) -> None:
+    """The first word picks the mode; an unknown one is a clear error."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["weights", "--config", str(REPO_ROOT / "configs" / "learn_noise.yaml")])
+    assert exit_info.value.code == 2
+    assert "mode 'weights' is unknown" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_info:
+        main(["noise", "--config", str(REPO_ROOT / "configs" / "learn_noise.yaml"),
+              "--print_config"])
+    assert exit_info.value.code == 0
+    printed = capsys.readouterr().out
+    assert "scenario: jacksboro" in printed and "q_kind: log_diagonal" in printed
 
 
 @pytest.mark.slow
 def test_tiny_noise_learning_writes_a_scenario_evaluate_can_use(tmp_path: Path) -> None:
     torch.manual_seed(0)
-    path = main(["--config", str(REPO_ROOT / "configs" / "learn_noise_tiny.yaml"),
+    path = main(["noise", "--config", str(REPO_ROOT / "configs" / "learn_noise_tiny.yaml"),
                  "--runs_dir", str(tmp_path), "--trainer.max_epochs", "2"])
     assert path is not None and path.name == "learned_scenario.yaml"
     learned = load_scenario(path)
@@ -40,7 +43,7 @@ def test_tiny_noise_learning_writes_a_scenario_evaluate_can_use(tmp_path: Path) 
 
 def test_noise_mode_bad_option_exits_2(tmp_path: Path, capsys) -> None:  # noqa: ANN001
     with pytest.raises(SystemExit) as exit_info:
-        main(["--config", str(REPO_ROOT / "configs" / "learn_noise_tiny.yaml"),
+        main(["noise", "--config", str(REPO_ROOT / "configs" / "learn_noise_tiny.yaml"),
               "--runs_dir", str(tmp_path), "--model.q_kind", "cholesky"])
     assert exit_info.value.code == 2
     assert "q_kind" in capsys.readouterr().err
@@ -103,10 +106,19 @@ def test_flight_logs_that_cannot_teach_anything_exit_2_and_leave_no_run_folder(
         expect = "time step" if case == "other_dt" else "uses tile"
     runs = tmp_path / "runs"
     with pytest.raises(SystemExit) as exit_info:
-        main(["--config", str(REPO_ROOT / "configs" / "learn_noise_tiny.yaml"),
+        main(["noise", "--config", str(REPO_ROOT / "configs" / "learn_noise_tiny.yaml"),
               "--runs_dir", str(runs), "--data.log_path", str(log), "--data.n_val_flights", "1",
               "--trainer.max_epochs", "1", *extra])
     err = capsys.readouterr().err
     assert exit_info.value.code == 2, err[-2000:]
     assert "error:" in err and expect in err and "Traceback" not in err
     assert not list(runs.glob("*/version_*"))  # no folder holding only an event file
+
+
+def test_a_good_flight_log_is_learned_from(tiny_log: Path, tmp_path: Path) -> None:
+    """The checks above refuse nothing usable: the tiny log (dt 1 s, on the tile) trains."""
+    path = main(["noise", "--config", str(REPO_ROOT / "configs" / "learn_noise_tiny.yaml"),
+                 "--runs_dir", str(tmp_path), "--data.log_path", str(tiny_log),
+                 "--data.n_val_flights", "1", "--trainer.max_epochs", "1"])
+    assert path is not None and path.is_file() and path.name == "learned_scenario.yaml"
+    assert load_scenario(path).dt == 1.0

@@ -196,7 +196,7 @@ def test_voids_under_the_flight_path_are_counted() -> None:
     import numpy as np
 
     from neuralmap.dem.tile import DemTile
-    from neuralmap.studies.tan import void_exposure
+    from neuralmap.studies.setup import void_exposure
 
     heights = np.zeros((20, 20))
     heights[10, 10] = np.nan
@@ -231,6 +231,11 @@ def test_newest_map_of_the_scenarios_tile_is_preferred(tmp_path: Path, tiny_map:
     fingerprint = scenario_tile(load_scenario("tiny")).fingerprint()
     assert find_latest_map(tmp_path) == other
     assert find_latest_map(tmp_path, tile_fingerprint=fingerprint) == own
+    # the map-size study discovers maps the same way (it read another key of the file)
+    from neuralmap.studies.map_size import find_neural_maps
+
+    assert find_neural_maps(str(tmp_path), fingerprint) == [own]
+    assert find_neural_maps(str(tmp_path), other_tile.fingerprint()) == [other]
 
 
 def test_empty_scenario_file_is_refused(tmp_path: Path) -> None:
@@ -245,3 +250,27 @@ def test_empty_scenario_file_is_refused(tmp_path: Path) -> None:
     text = (REPO_ROOT / "configs" / "scenarios" / "tiny.yaml").read_text()
     exponent.write_text(text.replace("R_m2: 9.0", "R_m2: 9e0"))
     assert load_scenario(exponent).R_m2 == 9.0
+
+
+def test_console_entry_imports_nothing_heavy_and_handles_early_ctrl_c(monkeypatch,
+                                                                      capsys) -> None:  # noqa: ANN001
+    """``neuralmap-evaluate`` imported the whole study layer (torch) before any handler."""
+    import ast
+    import builtins
+
+    from neuralmap import entry
+
+    tree = ast.parse(Path(entry.__file__).read_text())
+    top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
+    assert all((getattr(n, "module", None) or n.names[0].name) in ("__future__", "sys")
+               for n in top)
+    real_import = builtins.__import__
+
+    def interrupted(name, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        if name == "neuralmap.studies.cli":
+            raise KeyboardInterrupt
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", interrupted)
+    assert entry.evaluate(["--help"]) == 130
+    assert "interrupted" in capsys.readouterr().err

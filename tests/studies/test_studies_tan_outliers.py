@@ -16,8 +16,20 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_every_policy_builds_fresh_and_unknown_is_refused() -> None:
-    built = {name: study_policy(name, R=106.0) for name in POLICIES}
-    assert built["ekf"] is None and all(p is not None for n, p in built.items() if n != "ekf")
+    """The study's policies are the registry's (same class and tuning), fresh per call,
+    Sage-Husa clamped to R/4 … 100 R (the old test only checked "not None")."""
+    from neuralmap.filters.policies import POLICIES as REGISTRY
+    from neuralmap.filters.policies import make_policy
+
+    for name in POLICIES:
+        built = study_policy(name, R=106.0)
+        reference = make_policy(name, {"R_min": 26.5, "R_max": 10600.0}
+                                if name == "sage_husa" else None)
+        assert type(built) is type(reference), name
+        assert POLICIES[name] == REGISTRY[name].label
+    sh = study_policy("sage_husa", R=106.0)
+    assert (float(sh.R_min), float(sh.R_max)) == (26.5, 10600.0)
+    assert study_policy("ekf", R=1.0) is None
     assert study_policy("raf", R=1.0) is not study_policy("raf", R=1.0)
     with pytest.raises(NeuralMapError, match="unknown policy"):
         study_policy("kalman", R=1.0)

@@ -18,7 +18,7 @@ from neuralmap.studies.tan_report import (
     build_results,
     check_claims,
     format_table,
-    render_report,
+    report_text,
 )
 
 K1 = 11  # samples (K + 1)
@@ -205,14 +205,31 @@ def test_tables_and_report_text() -> None:
     assert "n/a" in lines[3] and lines[-1].startswith("PCRB")
     md = format_table(results, markdown=True)
     assert md.splitlines()[1].startswith("|---|")
-    report = render_report(
-        results, claims=check_claims(results), figures={"Error vs time": "error_vs_time.png"}
-    )
+    report = report_text(results)
     assert "A run diverged when ..." in report
-    assert "![Error vs time](error_vs_time.png)" in report
-    assert "position error < 50 m (1σ)" in report and "**holds**" in report
     assert "1 truth trajectories left the tile" in report
     assert "nan" not in report.lower().replace("mean", "")
+
+
+def test_tan_report_goes_through_the_one_outputs_writer(tmp_path: Path) -> None:
+    """The TAN study wrote its PNGs itself, opened a second TensorBoard writer and replaced
+    the report; now sections, figures and claims go through StudyOutputs."""
+    import matplotlib.figure
+
+    from neuralmap.studies.outputs import StudyOutputs
+
+    results = _results()
+    with StudyOutputs(tmp_path, config={"study": "tan"}, title="TAN", echo=False,
+                      tensorboard=False) as outputs:
+        outputs.add_text(report_text(results))
+        for check in check_claims(results):
+            outputs.add_claim("SEEDS 004", check.claim, check.measured, check.verdict,
+                              detail=check.detail)
+        outputs.add_figure("error_vs_time", matplotlib.figure.Figure(), "Error vs time")
+        report = outputs.render()
+    assert report.startswith("# TAN") and "![Error vs time](error_vs_time.png)" in report
+    assert "position error < 50 m (1σ)" in report and "**holds**" in report
+    assert "| how |" in report
 
 
 def test_plots_and_tensorboard(tmp_path: Path) -> None:
@@ -245,15 +262,19 @@ def test_plots_and_tensorboard(tmp_path: Path) -> None:
     with pytest.raises(NeuralMapError, match="shape"):
         plot_trajectories(tile, truth, {"neural": truth[:, :-1]})
 
+    from torch.utils.tensorboard import SummaryWriter
+
     log_dir = tmp_path / "tb"
+    writer = SummaryWriter(log_dir=str(log_dir))
     log_navigation(
-        log_dir,
+        writer,
         curves={m: {"rmse_pos_curve": v, "nees_curve": v} for m, v in curves.items()},
         pcrb_pos=np.linspace(40, 4, K1),
         final_errors=finals,
         summary={"neural": {"rmse_pos_m": 3.0, "pcrb_ratio": None}},
-        figures={"err": fig1},
     )
+    writer.add_figure("figures/err", fig1)  # as StudyOutputs.add_figure does
+    writer.close()
     acc = EventAccumulator(str(log_dir), size_guidance={"scalars": 0, "images": 0}).Reload()
     tags = acc.Tags()
     assert {"rmse_pos/neural", "rmse_pos/bilinear", "pcrb_pos", "summary/rmse_pos_m/neural"} <= set(
@@ -286,3 +307,20 @@ def test_numerical_failures_count_against_the_claims() -> None:
     assert checks[0].verdict == "holds"  # 58 converged runs still give the 1σ claims
     assert checks[3].verdict.startswith("does not hold (40 of 98 runs failed numerically")
     assert checks[4].verdict == "does not hold" and "40.8%" in checks[4].measured
+
+
+def test_one_error_vs_time_figure_for_every_study() -> None:
+    """tan, tan_outliers and learned draw through viz.navigation.plot_error_vs_time:
+    None gaps (results.json curves), no bound, a dash-dot reference."""
+    from neuralmap.viz.navigation import plot_error_vs_time
+
+    fig = plot_error_vs_time(np.arange(4), {"clean": [3.0, 2.0, None, 1.0], "raf": [4, 3, 2, 1]},
+                             None, references=["clean"], xlabel="time step")
+    ax = fig.axes[0]
+    assert [line.get_label() for line in ax.lines] == ["clean", "raf"]
+    assert ax.lines[0].get_linestyle() == "-." and math.isnan(ax.lines[0].get_ydata()[2])
+    assert ax.get_yscale() == "log" and ax.get_xlabel() == "time step"
+    import neuralmap.studies.learned as learned
+    import neuralmap.studies.tan_outliers as tan_outliers
+
+    assert learned.plot_error_vs_time is tan_outliers.plot_error_vs_time is plot_error_vs_time

@@ -13,7 +13,7 @@ from neuralmap.terrain.latent import LatentTerrainMap
 from neuralmap.training.cli import main
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
-BASE = ["--config", str(CONFIGS / "latent_map.yaml"), "--config", str(CONFIGS / "latent_map_tiny.yaml")]
+BASE = ["latent", "--config", str(CONFIGS / "latent_map.yaml"), "--config", str(CONFIGS / "latent_map_tiny.yaml")]
 
 
 def test_tiny_config_trains_and_exports(tmp_path: Path, capsys):
@@ -39,3 +39,12 @@ def test_nonpositive_rate_weight_is_a_clear_error(tmp_path: Path, capsys, lam: s
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "error: latent map: the rate weight lambda (model.rate_weight) must be" in err
+
+
+def test_config_learn_key_picks_the_latent_mode(tmp_path: Path) -> None:
+    """``train.py --config configs/latent_map.yaml`` (no mode word) runs the latent mode."""
+    from neuralmap.training.cli import config_mode
+
+    assert config_mode(["--config", str(CONFIGS / "latent_map.yaml")]) == "latent"
+    assert config_mode(["--config", str(CONFIGS / "train.yaml")]) == "map"
+    assert config_mode(["--config", str(tmp_path / "missing.yaml")]) == "map"

@@ -92,7 +92,7 @@ def test_plain_grid_without_crs(tmp_path: Path) -> None:
     path = tmp_path / "grid.npy"
     np.save(path, heights)
     tile = load_tile(path, spacing=10.0)
-    out = write_map_geotiffs(GridTerrain(tile), tile, tmp_path / "out", layers=("height",))
+    out = GridTerrain(tile).to_geotiff(tmp_path / "out", tile, layers=("height",))
     with rasterio.open(out["height"]) as ds:
         assert ds.crs is None and tuple(ds.transform)[:6] == (10.0, 0.0, -5.0, 0.0, -10.0, 395.0)
         np.testing.assert_allclose(np.flipud(ds.read(1)), heights, atol=1e-4)
@@ -147,3 +147,21 @@ def test_write_failure_leaves_nothing(tmp_path: Path, monkeypatch) -> None:  # n
     with pytest.raises(NeuralMapError, match="cannot write .*disk full"):
         write_map_geotiffs(GridTerrain(tile), tile, tmp_path / "out", layers=("height",))
     assert list((tmp_path / "out").iterdir()) == []
+
+
+def test_map_of_the_embedded_sample(tmp_path: Path) -> None:
+    """A map of the jacksboro sample: the DEM is found from the map's record; the grid is the
+    sample's 3-arc-second lon/lat grid (cell edges: its west and north bounds)."""
+    import matplotlib.cbook as cbook
+
+    tile = load_tile("jacksboro")
+    net = BlockwiseTerrainNet.from_tile(tile, block_nodes=128, hidden=4, n_frequencies=2)
+    map_path = save_map(net, tmp_path / "neural_map.pt")
+    main([str(map_path), "--layers", "[residual]"])
+    sample = cbook.get_sample_data("jacksboro_fault_dem.npz")  # an NpzFile
+    with rasterio.open(tmp_path / "geotiff" / "neural_map_residual.tif") as ds:
+        assert ds.crs == "EPSG:4326" and ds.shape == tile.shape
+        np.testing.assert_allclose(
+            tuple(ds.transform)[:6],
+            (float(sample["dx"]), 0.0, float(sample["xmin"]), 0.0, -float(sample["dy"]),
+             max(float(sample["ymin"]), float(sample["ymax"]))), rtol=0, atol=1e-9)

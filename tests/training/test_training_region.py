@@ -157,37 +157,49 @@ def test_two_processes_equal_one(region_path: Path, tmp_path: Path) -> None:
     np.testing.assert_allclose(h2.numpy(), h1.numpy(), atol=1e-4, rtol=0)
 
 
-def test_cli_trains_a_two_tile_mosaic(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from neuralmap.training.region_cli import main
-
+def _two_tiles(folder: Path, *, disagree: float = 0.0) -> np.ndarray:
+    """Two adjacent 25 x 25 UTM .asc tiles of a plane (+ noise); returns the whole grid."""
     rng = np.random.default_rng(0)
     yy, xx = np.mgrid[0:25, 0:50]
     whole = 400 + 3.0 * xx + 2.0 * yy + rng.normal(0, 0.1, (25, 50))
-    for name, part, x0 in (("a", whole[:, :25], 0.0), ("b", whole[:, 25:], 25 * 30.0)):
+    folder.mkdir(parents=True, exist_ok=True)
+    # b starts one node early: its first column overlaps a's last one
+    for name, part, x0 in (("a", whole[:, :25], 0.0),
+                           ("b", whole[:, 24:49] + disagree, 24 * 30.0)):
         rows = "\n".join(" ".join(f"{v:.2f}" for v in r) for r in np.flipud(part))
-        (tmp_path / f"{name}.asc").write_text(
+        (folder / f"{name}.asc").write_text(
             f"ncols 25\nnrows 25\nxllcenter {500000 + x0}\nyllcenter 4000000\ncellsize 30\n"
-            + rows
-            + "\n"
-        )
-        (tmp_path / f"{name}.prj").write_text('PROJCS["WGS 84 / UTM zone 16N"]')
-    code = main(
-        [
-            str(tmp_path / "*.asc"),
-            "--out",
-            str(tmp_path / "out"),
-            "--steps",
-            "80",
-            "--block_nodes",
-            "12",
-            "--overlap_nodes",
-            "2",
-            "--lr",
-            "1e-2",
-        ]
-    )
-    assert code == 0, capsys.readouterr().err
+            + rows + "\n")
+        (folder / f"{name}.prj").write_text('PROJCS["WGS 84 / UTM zone 16N"]')
+    return whole[:, :49]
+
+
+FAST_REGION = ["--model.steps", "80", "--model.block_nodes", "12", "--model.overlap_nodes", "2",
+               "--model.lr", "1e-2"]
+
+
+def _region(args: list[str]) -> Path | None:
+    from neuralmap.training.cli import main
+
+    return main(["region", *args])
+
+
+def _region_fails(args: list[str], capsys: pytest.CaptureFixture[str], code: int = 2) -> str:
+    with pytest.raises(SystemExit) as info:
+        _region(args)
+    err = capsys.readouterr().err
+    assert info.value.code == code, err[-2000:]
+    assert "Traceback" not in err and err.count("error:") == 1, err
+    return err
+
+
+def test_cli_trains_a_two_tile_mosaic(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    whole = _two_tiles(tmp_path / "tiles")
+    index = _region(["--data.path", str(tmp_path / "tiles" / "*.asc"),
+                     "--out", str(tmp_path / "out"), *FAST_REGION])
+    assert index == tmp_path / "out" / "map_index.json" and index.is_file()
     model = load_map(tmp_path / "out")
+    assert model.info["region"]["path"] == str(tmp_path / "out" / "region.npy")
     stored = np.load(tmp_path / "out" / "region.npy")
     np.testing.assert_allclose(stored, np.round(whole, 2), atol=1e-4)
     xy = torch.tensor([[30.0 * 30, 10 * 30.0], [10 * 30.0, 20 * 30.0]])
@@ -195,3 +207,183 @@ def test_cli_trains_a_two_tile_mosaic(tmp_path: Path, capsys: pytest.CaptureFixt
         h = model(xy)
     expected = torch.tensor([whole[10, 30], whole[20, 10]], dtype=torch.float32)
     assert float((h - expected).abs().max()) < 5.0  # a 3 m/node plane, fitted in 80 steps
+    # nothing but the published folder is left beside it
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "tiles"]
+
+
+@pytest.fixture(scope="module")
+def published(tmp_path_factory: pytest.TempPathFactory, region_path: Path) -> Path:
+    """A complete region output (2 x 3 shards of one block) to rerun into."""
+    out = tmp_path_factory.mktemp("pub") / "out"
+    _region(["--data.path", str(region_path), "--out", str(out), "--model.steps", "5",
+             "--model.shard_blocks", "[1, 1]", "--model.points_per_block", "32"])
+    return out
+
+
+def _snapshot(out: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(out)): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize("case", ["points_0", "points_neg", "all_nan", "spacing_0", "lr_nan",
+                                  "threads_0", "strategy", "out_file", "sidecar_not_json",
+                                  "sidecar_text_spacing", "text_npy", "mosaic_refused",
+                                  "out_foreign", "no_spacing"])
+def test_region_bad_input_exits_2_and_leaves_the_output_as_it_was(
+    case: str, published: Path, region_path: Path, tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    before = _snapshot(published)
+    source, out, extra = str(region_path), published, []
+    if case in ("sidecar_not_json", "sidecar_text_spacing", "text_npy", "all_nan",
+                "no_spacing"):
+        source = str(tmp_path / "r.npy")
+        if case == "text_npy":
+            Path(source).write_text("not an array\n")
+        elif case == "no_spacing":
+            np.save(source, np.load(region_path))
+        else:
+            values = np.load(region_path)
+            np.save(source, np.full_like(values, np.nan) if case == "all_nan" else values)
+            sidecar = {"sidecar_not_json": "{spacing: [100, 100]",
+                       "sidecar_text_spacing": '{"spacing": "100 m"}',
+                       "all_nan": '{"spacing": [100, 100]}'}[case]
+            Path(source + ".json").write_text(sidecar)
+    if case == "mosaic_refused":
+        _two_tiles(tmp_path / "tiles", disagree=50.0)  # the shared column disagrees by 50 m
+        source = str(tmp_path / "tiles" / "*.asc")
+    if case == "out_file":
+        out = region_path
+    if case == "out_foreign":
+        out = tmp_path / "mine"
+        out.mkdir()
+        (out / "notes.txt").write_text("keep me")
+    extra, expect = {
+        "points_0": (["--model.points_per_block", "0"], "--model.points_per_block must be"),
+        "points_neg": (["--model.points_per_block", "-5"], "--model.points_per_block must be"),
+        "all_nan": ([], "holds no finite height"),
+        "spacing_0": (["--data.spacing", "0"], "--data.spacing must be"),
+        "lr_nan": (["--model.lr", "nan"], "model.lr"),
+        "threads_0": (["--threads", "0"], "--threads must be"),
+        "strategy": (["--trainer.strategy", "foo"], "--trainer.strategy must be one of"),
+        "out_file": ([], "is a file"),
+        "sidecar_not_json": ([], "is not JSON"),
+        "sidecar_text_spacing": ([], "must be one number or [dx, dy]"),
+        "text_npy": ([], "is not a NumPy .npy array"),
+        "mosaic_refused": ([], "disagree"),
+        "out_foreign": ([], "holding other files"),
+        # the region trainer's own option (was: the Python keyword spacing=)
+        "no_spacing": ([], "give it in metres (--data.spacing 100"),
+    }[case]
+    err = _region_fails(["--data.path", source, "--out", str(out), "--model.steps", "2",
+                         *extra], capsys)
+    assert expect in err, err
+    assert _snapshot(published) == before  # the earlier output is untouched
+    if case == "out_foreign":
+        assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+    hidden = [p.name for p in published.parent.iterdir() if p.name.startswith(".")]
+    assert hidden == []  # no staging folder or lock left
+
+
+def test_region_rerun_that_fails_midway_keeps_the_old_output(
+    published: Path, region_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """A rerun failing (or Ctrl-C) after some shards were written leaves the old map whole."""
+    import neuralmap.training.region as region
+
+    before = _snapshot(published)
+    original, calls = region.train_shard, []
+
+    def fail_on_third(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(region, "train_shard", fail_on_third)
+    err = _region_fails(["--data.path", str(region_path), "--out", str(published),
+                         "--model.steps", "5", "--model.shard_blocks", "[1, 1]",
+                         "--model.points_per_block", "32", "--model.seed", "7"], capsys, code=1)
+    assert "interrupted; nothing was published" in err
+    assert _snapshot(published) == before
+    assert not [p for p in published.parent.iterdir() if p.name.startswith(".")]
+
+
+def test_region_rerun_killed_with_sigkill_keeps_the_old_output(
+    published: Path, region_path: Path, tmp_path: Path,
+) -> None:
+    """kill -9 after two new shards: the old index and shards stay, whole and unmixed."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    out = tmp_path / "out"
+    shutil.copytree(published, out)
+    before = _snapshot(out)
+    script = (
+        "import os, signal, sys\n"
+        "import neuralmap.training.region as region\n"
+        "original, calls = region.train_shard, []\n"
+        "def kill_on_third(*a, **k):\n"
+        "    calls.append(1)\n"
+        "    if len(calls) == 3:\n"
+        "        os.kill(os.getpid(), signal.SIGKILL)\n"
+        "    return original(*a, **k)\n"
+        "region.train_shard = kill_on_third\n"
+        "from neuralmap.training.cli import main\n"
+        "main(sys.argv[1:])\n")
+    env = {**os.environ, "OMP_NUM_THREADS": "1",
+           "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+    proc = subprocess.run(
+        [sys.executable, "-c", script, "region", "--data.path", str(region_path), "--out",
+         str(out), "--model.steps", "5", "--model.shard_blocks", "[1, 1]",
+         "--model.points_per_block", "32", "--model.seed", "7"],
+        env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == -9, proc.stderr[-2000:]
+    assert _snapshot(out) == before
+    # the next run cleans the killed run's hidden build and publishes whole
+    _region(["--data.path", str(region_path), "--out", str(out), "--model.steps", "5",
+             "--model.shard_blocks", "[1, 1]", "--model.points_per_block", "32"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert _snapshot(out) == before  # same settings, same seed: the same map, bit for bit
+
+
+def test_second_region_run_into_the_same_out_is_refused_while_one_runs(
+    published: Path, region_path: Path, capsys: pytest.CaptureFixture[str],
+) -> None:
+    from neuralmap.io import replacing_dir
+
+    before = _snapshot(published)
+    with pytest.raises(RuntimeError, match="the other run fails"):
+        with replacing_dir(published):  # another run holds the output, then fails
+            err = _region_fails(["--data.path", str(region_path), "--out", str(published),
+                                 "--model.steps", "2"], capsys)
+            raise RuntimeError("the other run fails")
+    assert "another run is writing this output now" in err
+    assert _snapshot(published) == before
+
+
+def test_train_py_map_mode_takes_a_glob_of_tiles(tmp_path: Path) -> None:
+    """``train.py --data.path "tiles/*.asc"`` fits the stitched mosaic (was: file not found)."""
+    import io
+    from contextlib import redirect_stdout
+
+    from neuralmap.training.cli import main
+
+    whole = _two_tiles(tmp_path / "tiles")
+    threads = torch.get_num_threads()
+    try:
+        with redirect_stdout(io.StringIO()):
+            path = main(["--data.path", str(tmp_path / "tiles" / "*.asc"),
+                         "--runs_dir", str(tmp_path / "runs"), "--experiment", "mosaic",
+                         "--trainer.max_epochs", "2", "--model.block_nodes", "12",
+                         "--model.hidden", "8", "--model.n_frequencies", "4",
+                         "--data.batch_size", "512", "--data.refit_epochs", "0",
+                         "--trainer.enable_progress_bar", "false"])
+    finally:
+        torch.set_num_threads(threads)
+    model = load_map(path)
+    assert model.tile_info["shape"] == [25, 49]
+    assert model.tile_name.startswith("mosaic_a_2")
+    assert whole.shape == (25, 49)

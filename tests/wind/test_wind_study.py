@@ -88,7 +88,8 @@ def test_bad_option_from_the_command_line_exits_2(tmp_path: Path,
         (104.0, 19.3, "partly"),        # halves, but meets neither of the paper's bounds
         (104.0, 80.0, "does not hold"),
         (8.0, 3.9, "holds"),            # < 10 m -> < 5 m
-        (8.0, 5.5, "partly"),
+        (8.0, 5.5, "does not hold"),  # neither below 5 m nor halved
+        (12.0, 4.5, "partly"),        # below 5 m and halved, but the paper started < 10 m
         (float("nan"), 3.0, "not measured (non-finite track error)"),
     ],
 )

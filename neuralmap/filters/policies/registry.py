@@ -25,6 +25,7 @@ from neuralmap.filters.policies.quality import QualityR
 from neuralmap.filters.policies.robust_adaptive import RobustAdaptive
 from neuralmap.filters.policies.sage_husa import SageHusa
 from neuralmap.filters.policies.variational import VariationalAdaptive
+from neuralmap.filters.policies.windowed_inflation import POSITION_VELOCITY, WindowedInflation
 from neuralmap.filters.policies.yang import YangAdaptive
 from neuralmap.filters.policy import FilterPolicy
 
@@ -74,6 +75,11 @@ POLICIES: dict[str, PolicyInfo] = {
     "raf": PolicyInfo("RAF: IGG-III + Yang (c0 = 1.5, c1 = 8.5)", _raf, dict(RAF_ARGS)),
     "inflation": PolicyInfo("innovation inflation (c0 = 1.2)", InnovationInflation,
                             {"c0": 1.2}),
+    "windowed_inflation": PolicyInfo(
+        "windowed adaptive factor (c0 = 1.2, 10 epochs, position + velocity, cap 10)",
+        lambda c0, window, block, cap: WindowedInflation(c0, window=window, block=block,
+                                                         cap=cap),
+        {"c0": 1.2, "window": 10, "block": list(POSITION_VELOCITY), "cap": 10.0}),
     "quality": PolicyInfo("quality R (altimeter)", _quality_altimeter,
                           {"kappa": 0.5, "eta": 0.2}),
     "quality_gnss": PolicyInfo("quality R (GNSS)", _quality_gnss, {"weight": 0.3}),
@@ -90,6 +96,12 @@ POLICIES: dict[str, PolicyInfo] = {
         "quality R (GNSS), then innovation inflation",
         lambda weight, c0: Compose(_quality_gnss(weight), InnovationInflation(c0)),
         {"weight": 0.3, "c0": 1.2}),
+    "quality_gnss_windowed": PolicyInfo(
+        "quality R (GNSS), then the windowed adaptive factor",
+        lambda weight, c0, window, block, cap: Compose(
+            _quality_gnss(weight), WindowedInflation(c0, window=window, block=block, cap=cap)),
+        {"weight": 0.3, "c0": 1.2, "window": 10, "block": list(POSITION_VELOCITY),
+         "cap": 10.0}),
     "sage_husa": PolicyInfo("Sage-Husa (b = 0.97)", SageHusa,
                             {"b": 0.97, "R_min": 1e-6, "R_max": 1e6, "adapt_Q": False,
                              "diagonal": True}),

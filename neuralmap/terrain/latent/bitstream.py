@@ -97,7 +97,7 @@ def write_latent_map(latent_map: LatentTerrainMap, path: str | os.PathLike[str])
 def _damaged(where: str, what: str) -> NeuralMapError:
     return NeuralMapError(
         f"{where}: latent map file is damaged ({what}). Export it again with "
-        "`python train.py --config configs/latent_map.yaml`."
+        "`python train.py latent --config configs/latent_map.yaml`."
     )
 
 
@@ -117,7 +117,7 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
         raise NeuralMapError(
             f"{where}: checksum mismatch (CRC32 {zlib.crc32(body):08x} != stored {crc:08x}): "
             "the latent map file is truncated or corrupted. Copy it again or re-export it "
-            "with `python train.py --config configs/latent_map.yaml`."
+            "with `python train.py latent --config configs/latent_map.yaml`."
         )
     version, header_len = struct.unpack("<HI", body[len(MAGIC) : _FIXED])
     if version > FORMAT_VERSION:

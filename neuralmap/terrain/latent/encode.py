@@ -40,7 +40,7 @@ def fit_latent_map(
     rate_weight: float,
     steps: int = 1500,
     levels: int = 6,
-    hidden: int = 8,
+    hidden: int = 0,
     lr: float = 0.01,
     init_step: float = 1.0,
     between_weight: float = 0.5,

@@ -85,7 +85,7 @@ class LatentGrid(nn.Module):
             ``init_step`` <= 0.
     """
 
-    def __init__(self, tile: DemTile, *, levels: int = 6, hidden: int = 8,
+    def __init__(self, tile: DemTile, *, levels: int = 6, hidden: int = 0,
                  init_step: float = 1.0, seed: int = 0) -> None:
         super().__init__()
         ny, nx = tile.shape

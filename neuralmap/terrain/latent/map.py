@@ -29,6 +29,44 @@ from neuralmap.terrain.latent.pyramid import level_shapes, node_lattice
 from neuralmap.terrain.latent.synthesis import Synthesis
 
 
+def _horner(r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``r[:, 0] t^3 + r[:, 1] t^2 + r[:, 2] t + r[:, 3]`` for ``r (M, 4, K)``, ``t (M, 1)``."""
+    out = torch.addcmul(r[:, 1], r[:, 0], t)
+    out = torch.addcmul(r[:, 2], out, t)
+    return torch.addcmul(r[:, 3], out, t)
+
+
+def _horner_derivative(r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``d/dt`` of :func:`_horner`: ``3 r[:, 0] t^2 + 2 r[:, 1] t + r[:, 2]``."""
+    out = torch.addcmul(r[:, 1], r[:, 0], 1.5 * t)
+    return torch.addcmul(r[:, 2], out, 2.0 * t)
+
+
+def polynomial_table(coeffs: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+    """The spline of every cell as bicubic polynomial coefficients (exact piecewise form).
+
+    On cell ``(i, j)``, ``g_k(tu, tv) = sum_cd P[c, d, k] tv^(3-c) tu^(3-d)`` with
+    ``P[c, d] = sum_ab S[a, c] S[b, d] C[i + a, j + b]`` and ``S`` the B-spline weight rows
+    over ``[t^3, t^2, t, 1]`` (the pp-form of the same spline, as scipy's ``PPoly``).
+
+    Args:
+        coeffs: ``(ny + 2, nx + 2, K)`` node-lattice coefficients (float64).
+        shape: ``(ny, nx)`` nodes.
+
+    Returns:
+        ``((ny - 1) (nx - 1), 4 * 4 * K)`` rows laid out ``[d (tu power), c (tv power), k]``.
+    """
+    ny, nx = shape
+    s = bspline_matrix(coeffs)[:4]  # (a, c)
+    table = coeffs.new_zeros(ny - 1, nx - 1, 4, 4, coeffs.shape[-1])  # (i, j, d, c, k)
+    for a in range(4):
+        for b in range(4):
+            patch = coeffs[a : a + ny - 1, b : b + nx - 1]  # (i, j, K)
+            weight = s[b][:, None] * s[a][None, :]  # (d, c)
+            table += weight[None, None, :, :, None] * patch[:, :, None, None, :]
+    return table.reshape((ny - 1) * (nx - 1), -1)
+
+
 class LatentTerrainMap(TerrainModel):
     """A latent-grid neural map decoded from its stored form.
 
@@ -104,10 +142,8 @@ class LatentTerrainMap(TerrainModel):
         self.register_buffer("bias", bias.to(dtype))
         self.register_buffer("inner_bias", inner_bias.to(dtype))
         self.register_buffer("outer", outer.to(dtype))
-        px = nx + 2
-        offsets = (torch.arange(4)[:, None] * px + torch.arange(4)[None, :]).reshape(16)
-        self.register_buffer("_offsets", offsets, persistent=False)
-        self._matrix_cache: dict[tuple[torch.dtype, torch.device], torch.Tensor] = {}
+        table = polynomial_table(coeffs, self.shape)  # type: ignore[arg-type]
+        self.register_buffer("poly", table.to(dtype).contiguous(), persistent=False)
 
     def extra_repr(self) -> str:
         """Short description for ``print(model)``."""
@@ -129,53 +165,44 @@ class LatentTerrainMap(TerrainModel):
             )
         return xy if xy.is_floating_point() else xy.to(self.coeffs.dtype)
 
-    def _matrix(self, like: torch.Tensor) -> torch.Tensor:
-        key = (like.dtype, like.device)
-        mat = self._matrix_cache.get(key)
-        if mat is None:
-            mat = bspline_matrix(like)
-            self._matrix_cache[key] = mat
-        return mat
-
     def _evaluate(self, xy: torch.Tensor, *, with_slope: bool
                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Heights ``(M,)`` and optional slopes ``(M, 2)`` of ``(M, 2)`` points."""
+        """Heights ``(M,)`` and optional slopes ``(M, 2)`` of ``(M, 2)`` points.
+
+        One row of the piecewise-polynomial table per point (:func:`polynomial_table`),
+        then Horner's rule in ``tu`` and ``tv`` over all channels at once (differentiable
+        in ``xy``).
+        """
         ny, nx = self.shape
         (x0, y0), (dx, dy) = self.origin, self.spacing
         u = (xy[:, 0] - x0) * (1.0 / dx)
         v = (xy[:, 1] - y0) * (1.0 / dy)
         j, tu, in_u = cell_position(u, nx - 1)
         i, tv, in_v = cell_position(v, ny - 1)
-        index = (i * (nx + 2) + j).unsqueeze(-1) + self._offsets  # (M, 16)
         k = self.coeffs.shape[1]
         dt = xy.dtype
-        vals = self.coeffs.index_select(0, index.view(-1)).to(dt).view(-1, 16, k)
-        mat = self._matrix(tu)
-        rows = 8 if with_slope else 4
-        wx = mat[:rows] @ torch.stack([tu * tu * tu, tu * tu, tu, torch.ones_like(tu)])
-        wy = mat[:rows] @ torch.stack([tv * tv * tv, tv * tv, tv, torch.ones_like(tv)])
-        value = (wy[:4].T.unsqueeze(-1) * wx[:4].T.unsqueeze(1)).reshape(-1, 1, 16)
+        rows = self.poly.index_select(0, i * (nx - 1) + j).to(dt).view(-1, 4, 4 * k)
+        tu, tv = tu.unsqueeze(-1), tv.unsqueeze(-1)
+        # Horner in tu over d, for every (c, k) at once: (M, 4 K), then in tv over c
+        r0 = _horner(rows, tu).view(-1, 4, k)
+        val = _horner(r0, tv)  # (M, K)
         if with_slope:
-            gx = (wy[:4].T.unsqueeze(-1) * wx[4:].T.unsqueeze(1)).reshape(-1, 1, 16)
-            gy = (wy[4:].T.unsqueeze(-1) * wx[:4].T.unsqueeze(1)).reshape(-1, 1, 16)
-            weights = torch.cat([value, gx, gy], dim=1)  # (M, 3, 16)
-        else:
-            weights = value
-        g = torch.bmm(weights, vals)  # (M, rows, K)
-        bias = self.bias.to(dt)
-        height = g[:, 0, 0] + bias
+            gu = _horner(_horner_derivative(rows, tu).view(-1, 4, k), tv)
+            gv = _horner_derivative(r0, tv)
+        height = val[:, 0] + self.bias.to(dt)
         if self.hidden:
-            z = torch.tanh(g[:, 0, 1:] + self.inner_bias.to(dt))
             outer = self.outer.to(dt)
+            z = torch.tanh(val[:, 1:] + self.inner_bias.to(dt))
             height = height + z @ outer
         if not with_slope:
             return height, None
-        grad = g[:, 1:, 0]  # (M, 2) in node units
+        gx, gy = gu[:, 0], gv[:, 0]
         if self.hidden:
-            grad = grad + (g[:, 1:, 1:] * ((1.0 - z * z) * outer).unsqueeze(1)).sum(-1)
-        scale = torch.tensor([1.0 / dx, 1.0 / dy], dtype=dt, device=xy.device)
-        inside = torch.stack([in_u, in_v], dim=-1)
-        return height, grad * scale * inside
+            w = (1.0 - z * z) * outer
+            gx = gx + (gu[:, 1:] * w).sum(-1)
+            gy = gy + (gv[:, 1:] * w).sum(-1)
+        slope = torch.stack([gx * (1.0 / dx) * in_u, gy * (1.0 / dy) * in_v], dim=-1)
+        return height, slope
 
     def forward(self, xy: torch.Tensor) -> torch.Tensor:
         """Heights, differentiable in ``xy``.

@@ -1,0 +1,237 @@
+"""Rate-distortion of latent-grid neural maps against JPEG 2000, on three tiles.
+
+For each tile (jacksboro; matplotlib's real ``topobathy.npz`` sample DEM; the synthetic
+region generator's terrain) and each rate weight ``lambda``, a latent-grid map is fitted
+(:func:`neuralmap.terrain.latent.encode.fit_latent_map`) and its bitstream encoded; the
+file size is what is counted. JPEG 2000 in the same run:
+
+* ``jpeg2k (PSNR sweep)``: imagecodecs JPEG 2000 (irreversible wavelet) on heights
+  quantised to 16 bits (5 cm step, or coarser when the span needs it), over a sweep of
+  target PSNRs: the RMSE-optimised use of the codec, the strongest JPEG 2000 baseline;
+* ``jpeg2k (max error)``: :func:`neuralmap.terrain.codecs.compress_grid` (the toolkit's
+  error-bounded JPEG 2000, as the map-size study uses it), over a sweep of bounds.
+
+Each stream is charged :data:`neuralmap.terrain.codecs.HEADER_BYTES`. Distortion is the
+RMSE at the tile's nodes; the BD-rate (Bjøntegaard) of the latent map against each JPEG
+2000 curve is the mean log-rate difference at equal log-RMSE over the overlap of the
+curves within 0.5-5 m (cubic fits; fewer points, lower degree). Between the nodes, every
+map is compared with the subgrid truth terrain (:func:`neuralmap.nav.truth_terrain.true_terrain`,
+bicubic DEM on a 4x finer grid plus fractal detail continuing the tile's spectrum) at
+random points: the latent map itself, bicubic of the DEM, and bicubic of the latent map's
+own node values.
+
+Usage:
+    python benchmarks/bench_latent_rd.py                 # all three tiles
+    python benchmarks/bench_latent_rd.py --quick         # smoke test
+    python benchmarks/bench_latent_rd.py --tiles synthetic --steps 400
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import types
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(REPO_ROOT))
+
+from neuralmap.dem import load_tile  # noqa: E402
+from neuralmap.dem.tile import DemTile  # noqa: E402
+from neuralmap.terrain.codecs import HEADER_BYTES, compress_grid  # noqa: E402
+from neuralmap.terrain.grid import GridTerrain  # noqa: E402
+from neuralmap.terrain.latent.bitstream import encode_latent_map  # noqa: E402
+from neuralmap.terrain.latent.encode import fit_latent_map  # noqa: E402
+from neuralmap.terrain.latent.quality import between_points  # noqa: E402
+
+RMSE_RANGE = (0.5, 5.0)
+
+
+def topobathy_tile() -> DemTile:
+    """matplotlib's ``topobathy.npz`` (2-arcminute grid, Pacific Northwest) as a metric tile."""
+    import matplotlib.cbook as cbook
+
+    data = cbook.get_sample_data("topobathy.npz")
+    lon, lat = np.asarray(data["longitude"], float), np.asarray(data["latitude"], float)
+    dx = float(np.mean(np.diff(lon))) * 111_320.0 * np.cos(np.radians(lat.mean()))
+    dy = float(np.mean(np.diff(lat))) * 110_574.0
+    return DemTile(np.asarray(data["topo"], float), spacing=(dx, dy), name="topobathy",
+                   source="matplotlib sample_data/topobathy.npz")
+
+
+def get_tile(name: str) -> DemTile:
+    return topobathy_tile() if name == "topobathy" else load_tile(name)
+
+
+def node_rmse(decoded: np.ndarray, tile: DemTile) -> float:
+    valid = tile.valid_mask
+    return float(np.sqrt(np.mean((decoded[valid] - tile.heights[valid]) ** 2)))
+
+
+def jpeg2k_psnr_sweep(tile: DemTile, levels: list[float]) -> list[dict[str, Any]]:
+    """JPEG 2000 at target PSNRs on 16-bit quantised heights: ``[{bytes, rmse_m, ...}]``."""
+    import imagecodecs
+
+    from neuralmap.terrain.grid import fill_voids_nearest
+
+    heights = fill_voids_nearest(tile.heights, tile.spacing)
+    offset = float(heights.min())
+    step = max(0.05, (float(heights.max()) - offset) / 60000.0)
+    q = np.round((heights - offset) / step).astype(np.uint16)
+    out = []
+    for level in levels:
+        stream = bytes(imagecodecs.jpeg2k_encode(q, level=level))
+        back = np.asarray(imagecodecs.jpeg2k_decode(stream), float) * step + offset
+        out.append({"bytes": len(stream) + HEADER_BYTES, "rmse_m": node_rmse(back, tile),
+                    "decoded": back, "what": f"PSNR {level:g} dB, step {step:.3g} m"})
+    return out
+
+
+def jpeg2k_bounded_sweep(tile: DemTile, bounds: list[float]) -> list[dict[str, Any]]:
+    """:func:`compress_grid` JPEG 2000 at max-error bounds."""
+    out = []
+    for bound in bounds:
+        grid = compress_grid(tile, codec="jpeg2k", max_error=bound)
+        decoded = grid.tile.heights
+        out.append({"bytes": grid.nbytes, "rmse_m": node_rmse(decoded, tile), "decoded": decoded,
+                    "what": f"max error {bound:g} m"})
+    return out
+
+
+def bd_rate(test: list[tuple[float, float]], ref: list[tuple[float, float]],
+            lo: float = RMSE_RANGE[0], hi: float = RMSE_RANGE[1]) -> float:
+    """Bjøntegaard delta rate of ``test`` vs ``ref`` (lists of ``(bytes, rmse)``), in %.
+
+    Fits ``log(bytes)`` as a polynomial of ``log(rmse)`` per curve (degree ≤ 3, < points)
+    and averages the difference over the overlap of both RMSE ranges within ``[lo, hi]``.
+    NaN when the curves do not overlap there.
+    """
+    def fit(points: list[tuple[float, float]]) -> tuple[np.ndarray, float, float]:
+        pts = sorted((np.log(r), np.log(b)) for b, r in points if r > 0)
+        x, y = np.array([p[0] for p in pts]), np.array([p[1] for p in pts])
+        return np.polyfit(x, y, min(3, len(x) - 1)), float(x.min()), float(x.max())
+
+    if len(test) < 2 or len(ref) < 2:
+        return float("nan")
+    pt, tlo, thi = fit(test)
+    pr, rlo, rhi = fit(ref)
+    a, b = max(tlo, rlo, np.log(lo)), min(thi, rhi, np.log(hi))
+    if not b > a:
+        return float("nan")
+    it, ir = np.polyint(pt), np.polyint(pr)
+    diff = (np.polyval(it, b) - np.polyval(it, a) - np.polyval(ir, b) + np.polyval(ir, a)) / (b - a)
+    return float((np.exp(diff) - 1.0) * 100.0)
+
+
+def between_truth(tile: DemTile, n_points: int) -> tuple[Any, np.ndarray, np.ndarray]:
+    """Subgrid truth heights at random between-node points: ``(truth model, xy, heights)``."""
+    from neuralmap.nav.truth_terrain import true_terrain
+
+    scenario = types.SimpleNamespace(truth_model="subgrid", subgrid_factor=4,
+                                     dem_error_sigma_m=0.0, dem_error_corr_m=0.0)
+    truth = true_terrain(scenario, tile, seed=0)
+    xy = between_points(tile, n_points, seed=7)
+    with torch.no_grad():
+        heights = truth.model(torch.from_numpy(xy)).numpy()
+    return truth, xy, heights
+
+
+def bicubic_of(tile: DemTile, heights: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    grid = GridTerrain(DemTile(heights, spacing=tile.spacing, origin=tile.origin, name=tile.name),
+                       method="bicubic")
+    with torch.no_grad():
+        return grid(torch.from_numpy(xy)).numpy()
+
+
+def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
+    tile = get_tile(name)
+    print(f"# tile {tile.name}: {tile.shape[0]} x {tile.shape[1]} nodes, spacing "
+          f"{tile.spacing[0]:.1f} x {tile.spacing[1]:.1f} m, height std "
+          f"{np.nanstd(tile.heights):.1f} m", flush=True)
+    _, xy, truth = between_truth(tile, args.n_between)
+    rms = lambda a: float(np.sqrt(np.mean((a - truth) ** 2)))  # noqa: E731
+    bicubic_dem = rms(bicubic_of(tile, tile.heights, xy))
+    rows: list[dict[str, Any]] = []
+    for lam in args.lambdas:
+        clock = time.perf_counter()
+        latent_map, _ = fit_latent_map(tile, rate_weight=lam, steps=args.steps, hidden=args.hidden,
+                                       levels=args.levels)
+        nodes = latent_map.node_heights().numpy()
+        with torch.no_grad():
+            own = latent_map(torch.from_numpy(xy).float()).double().numpy()
+        rows.append({"kind": "latent", "what": f"lambda {lam:g}", "bytes": len(encode_latent_map(latent_map)),
+                     "rmse_m": node_rmse(nodes, tile), "between_truth_m": rms(own),
+                     "bicubic_nodes_truth_m": rms(bicubic_of(tile, nodes, xy)),
+                     "fit_s": time.perf_counter() - clock})
+        print(f"#   latent lambda {lam:g}: {rows[-1]['bytes']} B, RMSE {rows[-1]['rmse_m']:.3f} m, "
+              f"{rows[-1]['fit_s']:.0f} s", flush=True)
+    for kind, sweep in (("jpeg2k (PSNR sweep)", jpeg2k_psnr_sweep(tile, args.psnr_levels)),
+                        ("jpeg2k (max error)", jpeg2k_bounded_sweep(tile, args.bounds))):
+        for r in sweep:
+            rows.append({"kind": kind, "what": r["what"], "bytes": r["bytes"], "rmse_m": r["rmse_m"],
+                         "between_truth_m": rms(bicubic_of(tile, r["decoded"], xy)),
+                         "bicubic_nodes_truth_m": float("nan"), "fit_s": float("nan")})
+    latent = [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == "latent"]
+    bd = {kind: bd_rate(latent, [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == kind])
+          for kind in ("jpeg2k (PSNR sweep)", "jpeg2k (max error)")}
+    return {"tile": tile, "rows": rows, "bd": bd, "bicubic_dem_truth_m": bicubic_dem}
+
+
+def format_tile(result: dict[str, Any]) -> str:
+    tile = result["tile"]
+    lines = [f"### {tile.name} ({tile.shape[0]} x {tile.shape[1]} nodes; bicubic of the DEM vs "
+             f"truth between nodes: {result['bicubic_dem_truth_m']:.3f} m RMSE)", "",
+             "| map | setting | bytes | bits/node | node RMSE (m) | between-node RMSE vs truth (m) "
+             "| bicubic of its nodes vs truth (m) |", "|---|---|---:|---:|---:|---:|---:|"]
+    n = tile.shape[0] * tile.shape[1]
+    for r in result["rows"]:
+        if not (0.2 <= r["rmse_m"] <= 8.0) and r["kind"] != "latent":
+            continue
+        own = "" if np.isnan(r["bicubic_nodes_truth_m"]) else f"{r['bicubic_nodes_truth_m']:.3f}"
+        lines.append(f"| {r['kind']} | {r['what']} | {r['bytes']:,} | {8 * r['bytes'] / n:.3f} | "
+                     f"{r['rmse_m']:.3f} | {r['between_truth_m']:.3f} | {own} |")
+    for kind, value in result["bd"].items():
+        lines.append(f"\nBD-rate latent vs {kind} (node RMSE {RMSE_RANGE[0]}-{RMSE_RANGE[1]} m): "
+                     f"{value:+.1f} %")
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--tiles", nargs="+", default=["jacksboro", "topobathy", "synthetic"])
+    parser.add_argument("--lambdas", nargs="+", type=float, default=[0.1, 0.5, 2.0, 8.0, 32.0])
+    parser.add_argument("--steps", type=int, default=1500)
+    parser.add_argument("--levels", type=int, default=6)
+    parser.add_argument("--hidden", type=int, default=0)
+    parser.add_argument("--psnr_levels", nargs="+", type=float,
+                        default=[40, 45, 50, 55, 60, 65, 70, 75, 80, 85, 90])
+    parser.add_argument("--bounds", nargs="+", type=float, default=[1, 2, 4, 8, 16])
+    parser.add_argument("--n_between", type=int, default=20000)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.tiles, args.lambdas, args.steps = ["synthetic"], [1.0, 8.0], 30
+        args.psnr_levels, args.bounds, args.n_between = [50, 60, 70], [2, 8], 2000
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    torch.set_num_threads(args.threads)
+    print(f"# bench_latent_rd: torch {torch.__version__}, {torch.get_num_threads()} thread(s); "
+          f"{args.steps} steps, levels {args.levels}, hidden {args.hidden}, lambdas {args.lambdas}")
+    for name in args.tiles:
+        print(format_tile(run_tile(name, args)), flush=True)
+        print()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

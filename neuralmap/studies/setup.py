@@ -1,0 +1,171 @@
+"""The one setup every TAN-family study shares (tan, tan_outliers, tan_scale, learned):
+scenario, tile, neural map, truth terrain and linearisation methods, frozen, built from
+explicit arguments (:func:`prepare_tan`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from neuralmap.linearize.factory import TERRAIN_MODEL_METHODS, make_linearizer
+from neuralmap.nav.map_error import measure_map_error
+from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
+from neuralmap.nav.truth_terrain import true_terrain
+from neuralmap.studies.maps import check_map_tile, resolve_map_path
+from neuralmap.terrain.export import load_map
+
+__all__ = ["TanSetup", "build_methods", "prepare_tan", "void_exposure"]
+
+
+def build_methods(
+    names: list[str],
+    *,
+    tile: Any,
+    terrain_map: Any,
+    device: torch.device,
+    fit_variance: float = 0.0,
+) -> dict[str, Any]:
+    """One linearizer per method name (``neural*`` = the map with autograd).
+
+    Args:
+        names: Method names (:data:`neuralmap.linearize.factory.LINEARIZER_NAMES`).
+        tile: The scenario's DEM tile (grid and plane-fit methods).
+        terrain_map: The loaded neural map (None when no neural method is asked for).
+        device: Device the filters run on.
+        fit_variance: The neural map's error variance (m²), its linearisation variance.
+
+    Returns:
+        Method name -> :class:`~neuralmap.linearize.base.Linearizer`, in ``names`` order.
+    """
+    methods: dict[str, Any] = {}
+    for name in names:
+        if name in TERRAIN_MODEL_METHODS:
+            linearizer = make_linearizer(
+                name, tile=tile, terrain=terrain_map, fit_variance=fit_variance
+            )
+        else:
+            linearizer = make_linearizer(name, tile=tile)
+        methods[name] = linearizer.to(device)
+    return methods
+
+
+@dataclass(frozen=True)
+class TanSetup:
+    """What a TAN study flies: scenario, tile, truth terrain, map and methods.
+
+    Attributes:
+        scenario: The validated scenario.
+        tile: Its DEM tile.
+        seed: The seed used.
+        truth_terrain: The truth terrain (one world per seed).
+        terrain_map: The neural map (None when no method needs it).
+        map_path: Its file.
+        map_error: Its error against the truth between nodes (empty without a map).
+        fit_variance: The extra R of the neural methods, m².
+        methods: Method name -> linearizer.
+    """
+
+    scenario: Any
+    tile: Any
+    seed: int
+    truth_terrain: Any
+    terrain_map: Any
+    map_path: Path | None
+    map_error: dict[str, Any]
+    fit_variance: float
+    methods: dict[str, Any]
+
+    def pin(self, config: Any) -> None:
+        """Records the map and seed actually used in ``config`` (its ``map`` and ``seed``),
+        so that the saved config.yaml reruns exactly this study."""
+        if self.map_path is not None:
+            config.map = str(self.map_path)
+        config.seed = self.seed
+
+    def map_info(self) -> dict[str, Any]:
+        """The map's description for results.json."""
+        terrain_map = self.terrain_map
+        return {
+            "path": str(self.map_path) if self.map_path else None,
+            "tile_name": getattr(terrain_map, "tile_name", ""),
+            "tile_fingerprint": getattr(terrain_map, "tile_fingerprint", ""),
+            "model": type(terrain_map).__name__ if terrain_map is not None else None,
+            "num_parameters": int(sum(p.numel() for p in terrain_map.parameters()))
+            if terrain_map is not None else None,
+            "fit_metrics": dict(getattr(terrain_map, "metrics", None) or {}),
+            "error_vs_truth": self.map_error,
+            "neural_extra_variance_m2": self.fit_variance,
+        }
+
+
+def prepare_tan(
+    *,
+    scenario: str | Scenario,
+    methods: Sequence[str],
+    map_path: str | None,
+    runs_dir: str,
+    seed: int | None,
+    neural_fit_variance: float | None,
+    map_error_points: int,
+    device: torch.device,
+) -> TanSetup:
+    """The one setup of every TAN-family study: scenario, tile, map, truth terrain and
+    linearisation methods, from explicit arguments.
+
+    Args:
+        scenario: Scenario name, YAML path, or an already built :class:`Scenario`.
+        methods: Linearisation method names.
+        map_path: Neural map file; None = the newest map of the scenario's tile under
+            ``runs_dir`` (only read when a method needs a terrain model).
+        runs_dir: Where trained maps are searched.
+        seed: Seed of the truth terrain (None = the scenario's).
+        neural_fit_variance: Extra R of the neural methods (m²); None = measured: the
+            map's MSE against the truth between nodes minus the scenario's fit variance.
+        map_error_points: Seeded random points of that measurement.
+        device: Device of the linearizers.
+
+    Returns:
+        The frozen :class:`TanSetup` (record its map and seed with :meth:`TanSetup.pin`).
+
+    Raises:
+        NeuralMapError: Bad scenario, no map, a map of another tile.
+    """
+    scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
+    tile = scenario_tile(scenario)
+    found: Path | None = None
+    terrain_map = None
+    if any(m in TERRAIN_MODEL_METHODS for m in methods):
+        found = resolve_map_path(map_path, runs_dir, tile_fingerprint=tile.fingerprint())
+        terrain_map = load_map(found)
+        check_map_tile(terrain_map, tile, map_path=found, scenario_name=scenario.name)
+    seed = scenario.seed if seed is None else int(seed)
+    truth_terrain = true_terrain(scenario, tile, seed=seed)
+    map_error: dict[str, Any] = {}
+    if terrain_map is not None:
+        map_error = measure_map_error(terrain_map, truth_terrain.model, tile,
+                                      n_points=map_error_points, seed=seed)
+    if neural_fit_variance is None:
+        mse = map_error.get("mse_m2", 0.0) or 0.0
+        fit_variance = max(float(mse) - scenario.fit_variance_m2, 0.0)
+    else:
+        fit_variance = float(neural_fit_variance)
+    built = build_methods(list(methods), tile=tile, terrain_map=terrain_map, device=device,
+                          fit_variance=fit_variance)
+    return TanSetup(scenario, tile, seed, truth_terrain, terrain_map, found, map_error,
+                    fit_variance, built)
+
+
+def void_exposure(tile: Any, truth: Any) -> dict[str, int]:
+    """Truth samples (and runs) whose terrain height is read from a DEM void.
+
+    Under a void the truth terrain is the grid's nearest-node fill, not real terrain; the
+    count goes into the report so that a study over voids is never silently wrong.
+    """
+    if tile.n_void == 0:
+        return {"samples": 0, "runs": 0}
+    under = tile.void_under(truth.pos[..., :2].detach().cpu().double().numpy(), halo=1)
+    return {"samples": int(under.sum()), "runs": int(under.any(axis=1).sum())}

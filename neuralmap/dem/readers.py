@@ -47,7 +47,7 @@ from neuralmap.dem.tile import DemTile, ProjectedReference, broadcast_pair
 from neuralmap.exceptions import NeuralMapError
 
 #: Built-in tile names accepted by :func:`load_tile` (see :mod:`neuralmap.dem.samples`).
-SAMPLE_NAMES = ("jacksboro", "synthetic")
+SAMPLE_NAMES = ("jacksboro", "topobathy", "synthetic")
 #: File extensions accepted by :func:`load_tile` (case-insensitive).
 SUPPORTED_EXTENSIONS = (".npz", ".npy", ".hgt", ".asc", ".tif", ".tiff")
 #: Keys of a matplotlib-style geographic .npz (``jacksboro_fault_dem.npz``).

@@ -161,7 +161,7 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
     for lam in args.lambdas:
         clock = time.perf_counter()
         latent_map, _ = fit_latent_map(tile, rate_weight=lam, steps=args.steps, hidden=args.hidden,
-                                       levels=args.levels)
+                                       levels=args.levels, init_sweeps=args.init_sweeps)
         nodes = latent_map.node_heights().numpy()
         with torch.no_grad():
             own = latent_map(torch.from_numpy(xy).float()).double().numpy()
@@ -209,6 +209,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--steps", type=int, default=1500)
     parser.add_argument("--levels", type=int, default=6)
     parser.add_argument("--hidden", type=int, default=0)
+    parser.add_argument("--init_sweeps", type=int, default=12)
     parser.add_argument("--psnr_levels", nargs="+", type=float,
                         default=[40, 45, 50, 55, 60, 65, 70, 75, 80, 85, 90])
     parser.add_argument("--bounds", nargs="+", type=float, default=[1, 2, 4, 8, 16])
@@ -226,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     print(f"# bench_latent_rd: torch {torch.__version__}, {torch.get_num_threads()} thread(s); "
-          f"{args.steps} steps, levels {args.levels}, hidden {args.hidden}, lambdas {args.lambdas}")
+          f"{args.steps} steps, levels {args.levels}, hidden {args.hidden}, init sweeps "
+          f"{args.init_sweeps}, lambdas {args.lambdas}")
     for name in args.tiles:
         print(format_tile(run_tile(name, args)), flush=True)
         print()

@@ -14,7 +14,8 @@ import torch
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TINY_CONFIG = REPO_ROOT / "configs" / "tan_tiny.yaml"
-METHODS = ["neural", "bilinear", "nine_point", "mean_point", "lsq_adaptive", "lsq_min"]
+METHODS = ["neural", "bilinear", "nine_point", "mean_point", "lsq_adaptive", "lsq_min",
+           "point_mass_tracker"]
 
 
 def _load_module(name: str, path: Path) -> ModuleType:

@@ -293,6 +293,7 @@ class PointMassTracker:
                 f"PointMassTracker: E, F, c must have shapes (2, {nz}), ({nz}, {nz}), ({nz},); "
                 f"got {tuple(self.E.shape)}, {tuple(self.F.shape)}, {tuple(self.c.shape)}.")
         self._off = torch.arange(self.cells, **kw) - self.half
+        self._f_identity = bool(torch.equal(self.F, torch.eye(nz, **kw)))
         self.recoveries = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.regrids = torch.zeros_like(self.recoveries)
         self.widenings = torch.zeros_like(self.recoveries)
@@ -490,13 +491,14 @@ class PointMassTracker:
         self._set(*self._matched(self._state(), mean[:, :2], cov[:, :2, :2], mean[:, 2:],
                                  cov[:, 2:, 2:], cov[:, 2:, :2]))
 
-    def _refit_thin(self) -> None:
+    def _refit_thin(self) -> _Moments:
         """Runs whose masses sit in too few cells (``MIN_CELL_VARIANCE``): their Gaussian
-        fit, with the cells' own spread ``A Aᵀ / 12`` added, on a fresh lattice."""
+        fit, with the cells' own spread ``A Aᵀ / 12`` added, on a fresh lattice; returns the
+        lattice moments of the state."""
         lm = _Moments(self.weights, self.lin_mean, self._off)
         thin = torch.linalg.eigvalsh(lm.cu)[:, 0] < MIN_CELL_VARIANCE
         if not bool(thin.any()):
-            return
+            return lm
         idx = thin.nonzero().reshape(-1)
         axes = self.axes.index_select(0, idx)
         cu = lm.cu.index_select(0, idx) + torch.eye(2, dtype=self.dtype,
@@ -512,6 +514,7 @@ class PointMassTracker:
                                strict=True):
             getattr(self, name).index_copy_(0, idx, value)
         self.regrids += thin.long()
+        return _Moments(self.weights, self.lin_mean, self._off)
 
     # ------------------------------------------------------------------ predict
     def predict(self, *, Q_s: torch.Tensor, Q_z: torch.Tensor,
@@ -527,9 +530,8 @@ class PointMassTracker:
         kw = {"dtype": self.dtype, "device": self.device}
         qs = torch.as_tensor(Q_s, **kw).expand(n, 2, 2)
         qz = torch.as_tensor(Q_z, **kw).expand(n, nz, nz)
-        self._refit_thin()
+        lm = self._refit_thin()
         w, mu, P, centre, axes = self._state()
-        lm = _Moments(w, mu, self._off)
         ms, css, mz, czz, czs = self._state_moments(lm, P, centre, axes)
         E, F = self.E, self.F
         # exact predicted moments
@@ -567,12 +569,12 @@ class PointMassTracker:
             eps = (1e-13 * chans[:, :1].amax((2, 3), keepdim=True)).clamp_min(
                 torch.finfo(self.dtype).tiny)
             mu_new = chans[:, 1:] / (chans[:, :1].clamp_min(0.0) + eps) + affine
-        mu_new = torch.einsum("yz,nzij->nyij", F, mu_new) if nz > 1 or bool(
-            (F != 1).any()) else mu_new
+        if not self._f_identity:
+            mu_new = torch.einsum("yz,nzij->nyij", F, mu_new)
         state = self._matched((w_new, mu_new, P, centre_new, axes_new), ms_t, css_t, mz_t,
                               czz_t, czs_t)
         self._set(*state)
-        self._guard()
+        self._guard(torch.isfinite(ms_t).all(1) & _cholesky_ok(css_t) & _cholesky_ok(czz_t))
         self._q_next = torch.diagonal(qs + E @ P @ E.T, dim1=1, dim2=2)
 
     # ------------------------------------------------------------------ update
@@ -613,20 +615,27 @@ class PointMassTracker:
         yhat_cell = gval + torch.einsum("z,nzij->nij", c, mu)
         nu = y[:, None, None] - yhat_cell
         finite_cell = torch.isfinite(nu)
-        yhat_c = torch.where(finite_cell, yhat_cell, 0.0)
-        w_ok = torch.where(finite_cell, w, 0.0)
-        mass_ok = w_ok.sum((1, 2)).clamp_min(torch.finfo(self.dtype).tiny)
-        yhat = (w_ok * yhat_c).sum((1, 2)) / mass_ok
-        s_y = (w_ok * (yhat_c - yhat[:, None, None]) ** 2).sum((1, 2)) / mass_ok + s_run
+        all_finite = bool(finite_cell.all())
+        if all_finite:
+            yhat = (w * yhat_cell).sum((1, 2))
+            s_y = (w * (yhat_cell - yhat[:, None, None]) ** 2).sum((1, 2)) + s_run
+        else:
+            yhat_c = torch.where(finite_cell, yhat_cell, 0.0)
+            w_ok = torch.where(finite_cell, w, 0.0)
+            mass_ok = w_ok.sum((1, 2)).clamp_min(torch.finfo(self.dtype).tiny)
+            yhat = (w_ok * yhat_c).sum((1, 2)) / mass_ok
+            s_y = (w_ok * (yhat_c - yhat[:, None, None]) ** 2).sum((1, 2)) / mass_ok + s_run
+            nu = torch.where(finite_cell, nu, 0.0)
         innov = y - yhat
         nis = innov * innov / s_y
         if cell_variance is None:
-            s_cell = s_run[:, None, None].expand_as(nu)
+            loglik = nu * nu * (-0.5 / s_run)[:, None, None]
         else:
             s_cell = torch.as_tensor(cell_variance).to(**kw).clamp_min(0.0) + s_run[:, None, None]
-        loglik = -0.5 * (nu * nu / s_cell + torch.log(s_cell / s_run[:, None, None]))
-        loglik = torch.where(finite_cell, loglik, -math.inf)
-        logw = w.clamp_min(0.0).log() + loglik
+            loglik = -0.5 * (nu * nu / s_cell + torch.log(s_cell / s_run[:, None, None]))
+        if not all_finite:
+            loglik = torch.where(finite_cell, loglik, -math.inf)
+        logw = w.log() + loglik
         peak = logw.amax((1, 2), keepdim=True)
         fin = torch.isfinite(peak).reshape(n)
         wn = (logw - torch.where(torch.isfinite(peak), peak, 0.0)).exp()
@@ -644,13 +653,15 @@ class PointMassTracker:
             wn = wn.clamp_min(self.config.weight_floor * wn.amax((1, 2), keepdim=True))
             wn = wn / wn.sum((1, 2), keepdim=True)
         gain = pc / s_run[:, None]  # (N, nz)
-        nu0 = torch.where(finite_cell, nu, 0.0)
-        mu_new = mu + gain[:, :, None, None] * nu0[:, None]
+        mu_new = mu + gain[:, :, None, None] * nu[:, None]
         P_new = _sym(P - gain[:, :, None] * gain[:, None, :] * s_run[:, None, None])
-        a3, a4 = active[:, None, None], active[:, None, None, None]
-        self.weights = torch.where(a3, wn, w)
-        self.lin_mean = torch.where(a4, mu_new, mu)
-        self.lin_cov = torch.where(a3, P_new, P)
+        if bool(active.all()):
+            self.weights, self.lin_mean, self.lin_cov = wn, mu_new, P_new
+        else:
+            a3, a4 = active[:, None, None], active[:, None, None, None]
+            self.weights = torch.where(a3, wn, w)
+            self.lin_mean = torch.where(a4, mu_new, mu)
+            self.lin_cov = torch.where(a3, P_new, P)
         widened = self._lost_test(nis, active)
         if regrid:
             self.regrid()
@@ -698,9 +709,8 @@ class PointMassTracker:
             ``(N,)`` bool, runs moved.
         """
         cfg = self.config
-        self._refit_thin()
+        lm = self._refit_thin()
         w, mu, P, centre, axes = self._state()
-        lm = _Moments(w, mu, self._off)
         inv_a = torch.linalg.inv(axes)
         u, k = lm.u, lm.cu  # mean and covariance in cells
         sig = torch.diagonal(k, dim1=1, dim2=2).clamp_min(0.0).sqrt()
@@ -763,14 +773,14 @@ class PointMassTracker:
         self.regrids += move.long()
         return move
 
-    def _guard(self) -> None:
-        """Runs whose moments stopped being finite are lost: reset to a wide Gaussian."""
-        mean, cov = self.moments()
-        bad = ~(torch.isfinite(mean).all(1) & _cholesky_ok(cov)) & ~self.lost
+    def _guard(self, healthy: torch.Tensor) -> None:
+        """Runs whose moments stopped being finite (``healthy (N,)`` False) are lost: reset
+        to a wide Gaussian around the origin, flagged in :attr:`lost`, never NaN."""
+        bad = ~healthy & ~self.lost
         if bool(bad.any()):
-            d = cov.shape[-1]
-            eye = torch.eye(d, dtype=cov.dtype, device=cov.device)
-            safe_mean = torch.where(torch.isfinite(mean), mean, 0.0)
-            wide = eye.expand_as(cov) * max(self.config.widen_min_sigma, 1.0) ** 2
-            self._set_rows(bad, *self._gaussian_state(safe_mean, wide))
+            d = 2 + self.nz
+            eye = torch.eye(d, dtype=self.dtype, device=self.device)
+            wide = eye.expand(self.n_runs, d, d) * max(self.config.widen_min_sigma, 1.0) ** 2
+            zero = torch.zeros(self.n_runs, d, dtype=self.dtype, device=self.device)
+            self._set_rows(bad, *self._gaussian_state(zero, wide))
             self.lost |= bad

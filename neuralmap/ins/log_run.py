@@ -16,6 +16,12 @@ at the IMU record nearest in time. Run 0 processes the log as recorded from the 
 initial state; with ``n_runs > 1`` the other runs draw an initial error from ``P0``, white
 IMU noise at the configured ARW/VRW and GNSS noise at the reported σ (a Monte Carlo of the
 spread the noise model implies), all batched.
+
+The log is processed in blocks between GNSS epochs: the mechanisation of all the block's
+increments and the covariance propagation over its propagation points (every
+``propagate_every`` records from the block start and at the epoch) run in compiled loops
+(:mod:`neuralmap.ins.increment_kernels`), giving the numbers of a record-by-record loop
+(the tests check them against stored ones to 1e-9 relative).
 """
 
 from __future__ import annotations
@@ -30,17 +36,15 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters import BatchedEKF
 from neuralmap.ins.earth import position_offset_ned, radii
 from neuralmap.ins.error_model import (
-    continuous_noise,
-    discretize,
-    error_dynamics,
     process_noise_density,
 )
 from neuralmap.ins.error_state import correct, inject, total_attitude_error
 from neuralmap.ins.imu_model import ImuGrade
+from neuralmap.ins.increment_kernels import mechanize_increments, propagate_with_sigma
+from neuralmap.ins.kernels import propagate_block
 from neuralmap.ins.kfgins import GnssLog, ImuLog, NavLog
 from neuralmap.ins.loosely_coupled import LooselyCoupledConfig, initial_covariance
 from neuralmap.ins.measurement import antenna_velocity, check_lever_arm, gnss_measurement_model
-from neuralmap.ins.mechanization import strapdown_step
 from neuralmap.ins.rotation import dcm_from_quat, euler_from_dcm, quat_from_euler
 
 __all__ = ["LogSolution", "compare_with_reference", "run_on_log"]
@@ -234,27 +238,65 @@ def run_on_log(
         update(epoch_of[0], rate_g[0] - bg_hat)
     if 0 in slot:
         record(0)
-    since = 0.0
-    n_since = 0
+    rec_index = np.asarray(rec)
+    every = filter_config.propagate_every
+    noisy = n > 1
     with torch.no_grad():
-        for k in range(1, n_imu):
-            dt = float(steps[k - 1])
-            noise = torch.randn(n, 6, generator=gen, **kw) * draw
-            w = rate_g[k] + noise[:, :3] * (white_g / math.sqrt(dt)) - bg_hat
-            f = rate_a[k] + noise[:, 3:] * (white_a / math.sqrt(dt)) - ba_hat
-            y = strapdown_step(y, w, f, w, f, dt)
-            since += dt
-            n_since += 1
-            j = epoch_of.get(k)
-            if n_since == filter_config.propagate_every or j is not None:
-                F = error_dynamics(y, f, gyro_corr_time=tau_g, accel_corr_time=tau_a)
-                phi, qd = discretize(F, continuous_noise(y, qc), since)
+        # One block per stretch between GNSS epochs: mechanisation of all its IMU
+        # intervals, then the covariance over its propagation points (every
+        # ``propagate_every`` intervals from the block start and at the epoch), in compiled
+        # loops (neuralmap.ins.increment_kernels); the same numbers as one record at a time.
+        ends = sorted(k for k in epoch_of if k > 0)
+        if not ends or ends[-1] != n_imu - 1:
+            ends.append(n_imu - 1)
+        begin = 0
+        for end in ends:
+            length = end - begin
+            dts = steps[begin:end]
+            gyro = rate_g[begin + 1:end + 1].expand(n, length, 3)
+            accel = rate_a[begin + 1:end + 1].expand(n, length, 3)
+            if noisy:
+                noise = torch.randn(n, length, 6, generator=gen, **kw) * draw[:, :, None]
+                root = dts.sqrt()[None, :, None]
+                gyro = gyro + noise[..., :3] * (white_g / root)
+                accel = accel + noise[..., 3:] * (white_a / root)
+            j = epoch_of.get(end)
+            points = list(range(every, length + 1, every))
+            if j is not None and (not points or points[-1] != length):
+                points.append(length)
+            lo_r, hi_r = np.searchsorted(rec_index, [begin + 1, end + 1])
+            rec_steps = (rec_index[lo_r:hi_r] - begin).tolist()
+            stops = sorted(set(points) | set(rec_steps))
+            states, y = mechanize_increments(y, gyro, accel, bg_hat, ba_hat, dts, stops)
+            var = ekf.P.diagonal(dim1=-2, dim2=-1)[:, None]  # (N, 1, 15) at the block start
+            if points:
+                at = [stops.index(s) for s in points]
+                f_points = accel[:, [s - 1 for s in points]] - ba_hat[:, None]
+                cum = torch.cat([dts.new_zeros(1), torch.cumsum(dts, 0)])
+                intervals = [float(cum[b] - cum[a]) for a, b in zip([0, *points], points,
+                                                                   strict=False)]
+                P, var_mid = propagate_with_sigma(ekf.P, ekf.healthy, states[:, at[:-1]],
+                                                  f_points[:, :-1], intervals[:-1], qc,
+                                                  tau_g, tau_a)
+                _, phi, qd = propagate_block(P, ekf.healthy, states[:, at[-1:]],
+                                             f_points[:, -1:], intervals[-1:], qc, tau_g,
+                                             tau_a)
+                ekf.P = P
                 ekf.predict(phi, qd)
-                since, n_since = 0.0, 0
+                var = torch.cat([var, var_mid, ekf.P.diagonal(dim1=-2, dim2=-1)[:, None]], 1)
+            if rec_steps:
+                slots = torch.as_tensor([slot[begin + s] for s in rec_steps])
+                pos = torch.as_tensor([stops.index(s) for s in rec_steps])
+                which = torch.as_tensor(np.searchsorted(points, rec_steps, side="right"))
+                out_states[:, slots] = states[:, pos]
+                out_std[:, slots] = var[:, which].sqrt()
+                out_bg[:, slots] = bg_hat[:, None]
+                out_ba[:, slots] = ba_hat[:, None]
             if j is not None:
-                update(j, w)
-            if k in slot:
-                record(k)
+                update(j, gyro[:, -1] - bg_hat)
+                if end in slot:
+                    record(end)
+            begin = end
     if not bool(torch.isfinite(out_states).all()):
         raise NeuralMapError(
             "run_on_log: the solution became non-finite; check the initial state (initpos, "

@@ -71,8 +71,10 @@ __all__ = [
 ]
 
 #: ``ekf`` (the TAN EKF alone), ``bank`` (EKF bank), ``point_mass`` (grid all the way),
-#: ``point_mass_ekf`` (grid, hand-off to the EKF, fall-back on lost lock).
-ACQUISITION_METHODS = ("ekf", "bank", "point_mass", "point_mass_ekf")
+#: ``point_mass_ekf`` (grid, hand-off to the EKF, fall-back on lost lock),
+#: ``point_mass_tracker`` (the Rao-Blackwellised tracker whose grid follows the posterior,
+#: :mod:`neuralmap.nav.tracking`, the whole flight).
+ACQUISITION_METHODS = ("ekf", "bank", "point_mass", "point_mass_ekf", "point_mass_tracker")
 
 
 @dataclass
@@ -414,12 +416,41 @@ def run_acquisition(
         )
     if method.startswith("point_mass") and terrain is None:
         raise NeuralMapError(f"run_acquisition: method {method!r} needs a terrain model.")
+    if method == "point_mass_tracker":
+        _check_start(inputs)
+        return _run_tracker(inputs, terrain, cfg, name or method)
     if method != "point_mass" and linearizer is None:
         raise NeuralMapError(f"run_acquisition: method {method!r} needs a linearizer.")
     _check_start(inputs)
     if method == "bank":
         return _run_bank(inputs, linearizer, cfg, name or method)
     return _run_grid(inputs, method, terrain, linearizer, cfg, name or method)
+
+
+def _run_tracker(inputs: TanInputs, terrain: Any, cfg: AcquisitionConfig,
+                 name: str) -> AcquisitionResult:
+    """The point-mass tracker (:func:`neuralmap.nav.tracking.run_tracker`) from the prior:
+    ``cfg.cells`` (or 64) cells per axis, likelihood flattening while cells are coarse."""
+    from types import SimpleNamespace
+
+    from neuralmap.nav.tracking import TrackerOptions, run_tracker
+
+    k1 = inputs.radar.shape[1]
+    truth = SimpleNamespace(ins_pos=inputs.ins_pos, radar=inputs.radar,
+                            ins_error=inputs.ins_error, on_map=inputs.on_map,
+                            extent=inputs.extent,
+                            t=torch.arange(k1, dtype=inputs.radar.dtype) * inputs.dt)
+    options = TrackerOptions(cells=int(cfg.cells or 64), dtype=cfg.dtype,
+                             flatten_likelihood=cfg.flatten_likelihood)
+    res = run_tracker(truth, terrain, P0=inputs.P0, Q=inputs.Q, R=inputs.R, dt=inputs.dt,
+                      options=options, method=name)
+    n = inputs.radar.shape[0]
+    return AcquisitionResult(
+        run=res.run, handoff_step=torch.full((n,), -1), n_fallbacks=res.widenings.clone(),
+        recoveries=res.recoveries.clone(),
+        acquiring=torch.ones(n, k1, dtype=torch.bool), elapsed_s=res.run.elapsed_s,
+        cell_updates=res.cell_updates, extra={"lost": int(res.lost.sum())},
+    )
 
 
 def _outputs(n: int, k_steps: int, dtype: torch.dtype, device: torch.device) -> dict[str, Any]:

@@ -34,7 +34,7 @@ from neuralmap.filters.kalman import add_information
 from neuralmap.filters.validation import check_covariance, check_finite, shape_error
 from neuralmap.nav.model import TanModel
 
-__all__ = ["pcrb", "pcrb_position", "pcrb_recursion", "terrain_information"]
+__all__ = ["map_aware_pcrb", "pcrb", "pcrb_position", "pcrb_recursion", "terrain_information"]
 
 #: Points per terrain query when computing slopes (bounds memory for neural maps).
 SLOPE_CHUNK = 65536
@@ -320,3 +320,78 @@ def pcrb(
         info[1:],
         initial_info=info[0] if update_at_step0 else None,
     )
+
+
+def map_aware_pcrb(
+    truth: Any,
+    scenario: Any,
+    map_terrain: Any,
+    *,
+    map_error_var: float,
+    map_error_corr: float = 0.0,
+    runs: torch.Tensor | None = None,
+    R_m2: float | None = None,
+) -> torch.Tensor:
+    """PCRB of a filter that knows the map (the DEM), not the true terrain.
+
+    The measurement is ``y = t_map(p) + e_map(p) + δh − v``: the information comes from the
+    slopes of ``map_terrain`` (what such a filter can linearise) at the true positions, and
+    the map's error ``e_map`` is noise of variance ``map_error_var`` (measured against the
+    truth terrain, e.g. :func:`neuralmap.nav.map_error.measure_map_error`). With
+    ``map_error_corr = ρ > 0`` (the correlation of the map error between successive
+    samples, e.g. :func:`neuralmap.nav.map_error.map_error_correlation` at the distance
+    flown per step) the map error is a first-order Gauss-Markov state appended to the
+    5-state model: ``e_{k+1} = ρ e_k + w``, ``Var w = (1 − ρ²) σ²``, ``e_0 ~ N(0, σ²)``,
+    ``H = [−t_x, −t_y, 1, 0, 0, 1]``, ``R = R_altimeter`` (state augmentation for
+    coloured measurement noise); with ``ρ = 0``, ``R = R_altimeter + σ²`` on the 5 states.
+    Same recursion, prior and process noise as :func:`pcrb` (``model="truth"``).
+
+    Args:
+        truth: Simulation result (``pos (N, K+1, 3)``, optionally ``on_map``).
+        scenario: The scenario (as for :func:`pcrb`).
+        map_terrain: The map the filter knows (grid or neural; ``forward(xy)``).
+        map_error_var: Map error variance σ², m² (≥ 0).
+        map_error_corr: Correlation ρ of the map error between successive samples, [0, 1).
+        runs: ``(N,)`` bool, trajectories to include.
+        R_m2: Altimeter variance override (default: the truth's, ``altimeter_sigma_m²``).
+
+    Returns:
+        ``(K + 1, 5, 5)`` bound covariances of the navigation states (float64).
+
+    Raises:
+        NeuralMapError: A negative or non-finite variance, ρ outside [0, 1), bad shapes.
+    """
+    where = "map_aware_pcrb"
+    if not (map_error_var >= 0.0 and map_error_var < float("inf")):
+        raise NeuralMapError(f"{where}: map_error_var must be finite and >= 0 m², got "
+                             f"{map_error_var!r}.")
+    if not 0.0 <= map_error_corr < 1.0:
+        raise NeuralMapError(f"{where}: map_error_corr must be in [0, 1), got {map_error_corr!r}.")
+    tan = TanModel.from_scenario(scenario)
+    r_alt = tan.truth_R if R_m2 is None else float(R_m2)
+    if map_error_corr == 0.0 or map_error_var == 0.0:
+        return pcrb(truth, scenario, map_terrain, R_m2=r_alt + map_error_var, runs=runs)
+    pos = truth.pos
+    n, steps = pos.shape[0], pos.shape[1]
+    on_map = getattr(truth, "on_map", None)
+    on_map = (torch.ones(n, steps, dtype=torch.bool, device=pos.device) if on_map is None
+              else torch.as_tensor(on_map, device=pos.device).to(torch.bool))
+    if runs is not None:
+        on_map = on_map & torch.as_tensor(runs, device=pos.device).to(torch.bool)[:, None]
+    slope = _terrain_slopes(map_terrain, pos[..., :2].detach().reshape(-1, 2).double())
+    slope = slope.reshape(n, steps, 2)
+    valid = on_map & torch.isfinite(slope).all(-1)
+    slope = torch.where(valid.unsqueeze(-1), slope, 0.0)
+    rows = torch.cat([TanModel.jacobian(slope.reshape(-1, 2)).reshape(n, steps, 5),
+                      torch.ones(n, steps, 1, dtype=torch.float64, device=pos.device)], -1)
+    w = valid.to(torch.float64)
+    count = w.sum(0).clamp_min(1.0)
+    info = torch.einsum("nk,nki,nkj->kij", w, rows, rows) / (count[:, None, None] * r_alt)
+    rho, var = float(map_error_corr), float(map_error_var)
+    P0 = torch.block_diag(tan.bound_prior(), torch.tensor([[var]], dtype=torch.float64))
+    Q = torch.block_diag(tan.truth_process_noise(),
+                         torch.tensor([[(1.0 - rho * rho) * var]], dtype=torch.float64))
+    F = torch.block_diag(tan.transition(), torch.tensor([[rho]], dtype=torch.float64))
+    device = info.device
+    bound = pcrb_recursion(P0.to(device), F.to(device), Q.to(device), info[1:])
+    return bound[:, :5, :5]

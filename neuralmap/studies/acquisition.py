@@ -42,7 +42,8 @@ class AcquisitionStudyConfig(StudyConfig):
         scenario: Scenario name or YAML path (its flight, noise and filter tuning).
         sigmas_m: Initial horizontal errors σ0 per axis, m (P0 matched).
         n_runs: Monte Carlo runs per σ0 (the same truth for every method and map).
-        methods: Subset of ``ekf``, ``bank``, ``point_mass``, ``point_mass_ekf``.
+        methods: Subset of ``ekf``, ``bank``, ``point_mass``, ``point_mass_ekf``,
+            ``point_mass_tracker``.
         maps: ``grid`` (bilinear DEM: point-mass likelihood and ``bilinear`` EKF) and/or
             ``neural`` (the neural map: likelihood by its batched forward, EKF with
             ``neural_region``).
@@ -175,6 +176,14 @@ def scenario_at_sigma(scenario: Any, sigma: float, extent: tuple[float, ...]) ->
                                duration_s=max(duration, 10.0 * scenario.dt)).validate()
 
 
+def _runs_on_map(inputs: Any, kept: torch.Tensor) -> Any:
+    """The :class:`~neuralmap.nav.acquisition.TanInputs` of the runs ``kept (N,)`` only."""
+    idx = kept.nonzero().reshape(-1)
+    return dataclasses.replace(
+        inputs, ins_pos=inputs.ins_pos[idx], radar=inputs.radar[idx],
+        ins_error=inputs.ins_error[idx], on_map=inputs.on_map[idx])
+
+
 def _flat_tile(tile: Any) -> Any:
     """A plane of the tile's size, spacing and origin at its mean height."""
     from neuralmap.dem.tile import DemTile
@@ -259,6 +268,7 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     from neuralmap.nav.scenario import load_scenario, scenario_tile
     from neuralmap.nav.simulator import simulate
     from neuralmap.nav.truth_terrain import true_terrain
+    from neuralmap.terrain.base import inside_extent
 
     started = time.perf_counter()
     device, dtype = config.torch_device, config.torch_dtype
@@ -280,11 +290,13 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     results: dict[str, Any] = {"sigmas": {}, "notes": notes,
                                "divergence_rule": divergence_rule(config.pcrb_factor,
                                                                   config.divergence_sigma)}
-    headers = ["sigma0 m", "map", "method", "runs", "diverged", "RMSE m", "PCRB m",
+    headers = ["sigma0 m", "map", "method", "runs", "off-map", "diverged", "RMSE m", "PCRB m",
                "RMSE/PCRB", "conv. RMSE/PCRB", "acquired", "t_acq median s", "hand-off s",
                "fall-backs", "recoveries", "wall s", "cell-upd/s"]
     rows: list[list[Any]] = []
     curves: dict[str, Any] = {}
+    off_map: dict[str, Any] = {}
+    results["off_map"] = off_map
     for sigma in config.sigmas_m:
         scenario = scenario_at_sigma(base, float(sigma), tile.extent)
         per_sigma: dict[str, Any] = {}
@@ -293,21 +305,39 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                 config.n_runs, config.n_runs_neural)
             truth = simulate(scenario, tile, n_runs=n, seed=seed, dtype=dtype, device=device,
                              truth_terrain=truth_terrain)
-            kept = truth.on_map.all(dim=1)
+            # runs whose truth leaves the map (or whose INS starts off it: draws beyond the
+            # ±3σ0 the start keeps on the tile) are counted and excluded, as in `tan`
+            kept = truth.on_map.all(dim=1) & inside_extent(truth.ins_pos[:, 0, :2],
+                                                           truth.extent)
+            n_off = int((~kept).sum())
+            off_map[f"{sigma:g}/{kind}"] = {"runs": n, "off_map": n_off}
+            if n_off:
+                print(f"acquisition: sigma0 {sigma:g} m, {kind}: {n_off} of {n} runs leave the "
+                      "map (or start off it); excluded and counted", flush=True)
+            if not bool(kept.any()):
+                notes.append(f"sigma0 {sigma:g} m, {kind}: all {n} runs leave the map; no rows.")
+                continue
             bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
-                                       runs=kept if bool(kept.any()) else None)).to("cpu")
-            inputs = tan_inputs(truth, scenario)
+                                       runs=kept)).to("cpu")
+            inputs = _runs_on_map(tan_inputs(truth, scenario), kept)
             inputs = dataclasses.replace(inputs, R=inputs.R + extra_r)
             for method in config.methods:
                 cfg = acq_cfg
                 if method == "point_mass" and config.adaptive_point_mass:
                     cfg = dataclasses.replace(acq_cfg, adaptive=True)
-                res = run_acquisition(inputs, method=method, terrain=terrain, linearizer=lin,
-                                      config=cfg, name=f"{method}/{kind}")
+                try:
+                    res = run_acquisition(inputs, method=method, terrain=terrain,
+                                          linearizer=lin, config=cfg, name=f"{method}/{kind}")
+                except NeuralMapError as exc:  # keep every finished stage; report this one
+                    notes.append(f"sigma0 {sigma:g} m, {kind}, {method} failed: {exc}")
+                    print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method} failed: {exc}",
+                          flush=True)
+                    continue
                 m = _row_metrics(res, bound, config, scenario.dt)
+                m["n_off_map"] = n_off
                 per_sigma[f"{kind}/{method}"] = m
                 curves[f"{sigma:g}/{kind}/{method}"] = m["rmse_pos_curve"]
-                rows.append([sigma, kind, method, m["n_included"], m["n_diverged"],
+                rows.append([sigma, kind, method, m["n_included"], n_off, m["n_diverged"],
                              m["rmse_pos_m"], m["pcrb_pos_m"], m["pcrb_ratio_all"],
                              m["pcrb_ratio_converged"], m["acquired_fraction"],
                              m["time_to_acquire_median_s"], m["handoff_median_s"],
@@ -318,7 +348,12 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                       f"{_fmt(m['pcrb_ratio_all'])}, wall {m['wall_s']:.1f} s", flush=True)
             curves[f"{sigma:g}/pcrb"] = bound.tolist()
         results["sigmas"][f"{sigma:g}"] = per_sigma
-    flat = _flat_leg(config, base, tile, acq_cfg, device, dtype, seed) if config.flat_leg else None
+    flat = None
+    if config.flat_leg:
+        try:
+            flat = _flat_leg(config, base, tile, acq_cfg, device, dtype, seed)
+        except NeuralMapError as exc:  # the finished stages stay; the leg is reported
+            notes.append(f"flat-terrain leg failed: {exc}")
     results["flat_leg"] = flat
     results["curves"] = curves
     results["timing_s"] = {"total": time.perf_counter() - started}

@@ -1,24 +1,103 @@
-"""The one setup every TAN-family study shares (tan, tan_outliers, tan_scale, learned):
+"""The one setup every TAN-family study shares (tan, tan_outliers, tan_scale, learned,
+dem_errors):
 scenario, tile, neural map, truth terrain and linearisation methods, frozen, built from
 explicit arguments (:func:`prepare_tan`)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from neuralmap.linearize.factory import TERRAIN_MODEL_METHODS, make_linearizer
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS, make_linearizer
 from neuralmap.nav.map_error import measure_map_error
 from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
 from neuralmap.nav.truth_terrain import true_terrain
+from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.maps import check_map_tile, resolve_map_path
 from neuralmap.terrain.export import load_map
 
-__all__ = ["TanSetup", "build_methods", "prepare_tan", "void_exposure"]
+__all__ = ["DEFAULT_METHODS", "TanOptions", "TanSetup", "build_methods", "prepare_tan",
+           "void_exposure"]
+
+#: Methods evaluated when ``--methods`` is not given.
+DEFAULT_METHODS: tuple[str, ...] = (
+    "neural",
+    "neural_region",
+    "bilinear",
+    "nine_point",
+    "mean_point",
+    "lsq_adaptive",
+    "lsq_min",
+)
+
+
+@dataclass
+class TanOptions(StudyConfig):
+    """Options every Monte Carlo TAN study shares (``tan``, ``tan_scale``, ``tan_outliers``): what
+    :func:`prepare_tan` needs and the divergence rule.
+
+    Attributes:
+        map: Exported neural map (``neural_map.pt``); ``None`` = the newest
+            ``<runs_dir>/*/version_*/neural_map.pt`` of the scenario's tile.
+        scenario: Scenario name (``configs/scenarios/<name>.yaml``) or a YAML path.
+        n_runs: Monte Carlo trajectories (the same truth for every method).
+        methods: Linearisation methods to compare; ``neural`` uses the map with autograd.
+        neural_fit_variance: Extra variance (m²) the neural methods add to R for the map
+            error. ``None`` = measured: the map's mean squared error against the
+            scenario's truth terrain at seeded random points between the nodes, less the
+            scenario's ``fit_variance_m2`` that every method gets.
+        map_error_points: Random points for that measurement.
+        pcrb_factor: Divergence when the final error exceeds this times the final PCRB.
+        divergence_sigma: Divergence when the final error exceeds this many times the
+            filter's own 1σ horizontal bound ``sqrt(P_xx + P_yy)`` (9 = 3 × the 3σ bound).
+    """
+
+    map: str | None = None
+    scenario: str = "jacksboro"
+    n_runs: int = 1000
+    methods: list[str] = field(default_factory=lambda: list(DEFAULT_METHODS))
+    neural_fit_variance: float | None = None
+    map_error_points: int = 20000
+    pcrb_factor: float = 5.0
+    divergence_sigma: float = 9.0
+
+    def validate(self) -> None:
+        """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
+        super().validate()
+        if self.n_runs < 1:
+            raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
+        if not self.methods:
+            raise NeuralMapError(
+                f"--methods is empty; pick one or more of {', '.join(LINEARIZER_NAMES)}."
+            )
+        unknown = [m for m in self.methods if m not in LINEARIZER_NAMES]
+        if unknown:
+            raise NeuralMapError(
+                f"--methods: unknown method(s) {unknown}; known: {', '.join(LINEARIZER_NAMES)}."
+            )
+        if len(set(self.methods)) != len(self.methods):
+            raise NeuralMapError(f"--methods lists a method twice: {self.methods}.")
+        if self.neural_fit_variance is not None and not self.neural_fit_variance >= 0:
+            raise NeuralMapError(
+                f"--neural_fit_variance must be >= 0 m^2 (or null), got {self.neural_fit_variance}."
+            )
+        if self.map_error_points < 100:
+            raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
+        if not (self.pcrb_factor > 0 and self.divergence_sigma > 0):
+            raise NeuralMapError(
+                f"--pcrb_factor and --divergence_sigma must be > 0, got {self.pcrb_factor}, "
+                f"{self.divergence_sigma}."
+            )
+
+    @property
+    def needs_map(self) -> bool:
+        """Whether any method needs the neural map."""
+        return any(m in TERRAIN_MODEL_METHODS for m in self.methods)
 
 
 def build_methods(
@@ -112,6 +191,7 @@ def prepare_tan(
     neural_fit_variance: float | None,
     map_error_points: int,
     device: torch.device,
+    measure_map: bool = True,
 ) -> TanSetup:
     """The one setup of every TAN-family study: scenario, tile, map, truth terrain and
     linearisation methods, from explicit arguments.
@@ -127,6 +207,9 @@ def prepare_tan(
             map's MSE against the truth between nodes minus the scenario's fit variance.
         map_error_points: Seeded random points of that measurement.
         device: Device of the linearizers.
+        measure_map: Measure the map's error against the truth (``map_error``); False
+            for a study that gives ``neural_fit_variance`` and reports no map error
+            (``dem_errors``), so that no time goes into it.
 
     Returns:
         The frozen :class:`TanSetup` (record its map and seed with :meth:`TanSetup.pin`).
@@ -145,10 +228,15 @@ def prepare_tan(
     seed = scenario.seed if seed is None else int(seed)
     truth_terrain = true_terrain(scenario, tile, seed=seed)
     map_error: dict[str, Any] = {}
-    if terrain_map is not None:
+    if terrain_map is not None and measure_map:
         map_error = measure_map_error(terrain_map, truth_terrain.model, tile,
                                       n_points=map_error_points, seed=seed)
     if neural_fit_variance is None:
+        if not measure_map:
+            raise NeuralMapError(
+                "prepare_tan: measure_map=False needs neural_fit_variance (the extra R of the "
+                "neural methods comes from the measured map error otherwise)."
+            )
         mse = map_error.get("mse_m2", 0.0) or 0.0
         fit_variance = max(float(mse) - scenario.fit_variance_m2, 0.0)
     else:

@@ -23,13 +23,12 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics
 from neuralmap.nav.monte_carlo import run_monte_carlo
-from neuralmap.nav.pcrb import pcrb, pcrb_position
-from neuralmap.studies.base import StudyConfig
+from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
+from neuralmap.nav.tracking import TRACKER_METHOD
 from neuralmap.studies.outputs import StudyOutputs
-from neuralmap.studies.setup import prepare_tan, void_exposure
+from neuralmap.studies.setup import DEFAULT_METHODS, TanOptions, prepare_tan, void_exposure
 from neuralmap.studies.tan_report import (
     build_results,
     check_claims,
@@ -46,17 +45,6 @@ from neuralmap.viz.tensorboard_nav import log_navigation
 
 __all__ = ["DEFAULT_METHODS", "TanStudyConfig", "run"]
 
-#: Methods evaluated when ``--methods`` is not given.
-DEFAULT_METHODS: tuple[str, ...] = (
-    "neural",
-    "neural_region",
-    "bilinear",
-    "nine_point",
-    "mean_point",
-    "lsq_adaptive",
-    "lsq_min",
-)
-
 _FIGURES = {
     "error_vs_time": "Horizontal position RMSE vs time, with the PCRB",
     "trajectories": "Trajectories over the tile (truth and estimates)",
@@ -65,73 +53,42 @@ _FIGURES = {
 
 
 @dataclass
-class TanStudyConfig(StudyConfig):
-    """Options of the TAN Monte Carlo study (``study: tan``).
+class TanStudyConfig(TanOptions):
+    """Options of the TAN Monte Carlo study (``study: tan``): the shared TAN options
+    (:class:`~neuralmap.studies.setup.TanOptions`) plus the plots.
 
     Attributes:
-        map: Exported neural map (``neural_map.pt``); ``None`` = the newest
-            ``<runs_dir>/*/version_*/neural_map.pt`` of the scenario's tile.
-        scenario: Scenario name (``configs/scenarios/<name>.yaml``) or a YAML path.
-        n_runs: Monte Carlo trajectories (the same truth for every method).
-        methods: Linearisation methods to compare; ``neural`` uses the map with autograd.
-        neural_fit_variance: Extra variance (m²) the neural methods add to R for the map
-            error. ``None`` = measured: the map's mean squared error against the
-            scenario's truth terrain at seeded random points between the nodes, less the
-            scenario's ``fit_variance_m2`` that every method gets.
-        map_error_points: Random points for that measurement.
         n_plot_trajectories: Trajectories drawn over the hillshade.
-        pcrb_factor: Divergence when the final error exceeds this times the final PCRB.
-        divergence_sigma: Divergence when the final error exceeds this many times the
-            filter's own 1σ horizontal bound ``sqrt(P_xx + P_yy)`` (9 = 3 × the 3σ bound).
+        methods: The shared linearisation methods plus ``point_mass_tracker`` (the point-mass
+            tracker on the bilinear DEM for the whole flight, :mod:`neuralmap.nav.tracking`).
+        tracker_cells: Lattice cells per axis of ``point_mass_tracker`` (cell = σ/3.1).
     """
 
     experiment: str = "evaluate"
-    map: str | None = None
-    scenario: str = "jacksboro"
-    n_runs: int = 1000
-    methods: list[str] = field(default_factory=lambda: list(DEFAULT_METHODS))
-    neural_fit_variance: float | None = None
-    map_error_points: int = 20000
     n_plot_trajectories: int = 5
-    pcrb_factor: float = 5.0
-    divergence_sigma: float = 9.0
+    methods: list[str] = field(default_factory=lambda: [*DEFAULT_METHODS, TRACKER_METHOD])
+    tracker_cells: int = 32
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
-        super().validate()
-        if self.n_runs < 1:
-            raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
-        if not self.methods:
-            raise NeuralMapError(
-                f"--methods is empty; pick one or more of {', '.join(LINEARIZER_NAMES)}."
-            )
-        unknown = [m for m in self.methods if m not in LINEARIZER_NAMES]
-        if unknown:
-            raise NeuralMapError(
-                f"--methods: unknown method(s) {unknown}; known: {', '.join(LINEARIZER_NAMES)}."
-            )
-        if len(set(self.methods)) != len(self.methods):
-            raise NeuralMapError(f"--methods lists a method twice: {self.methods}.")
-        if self.neural_fit_variance is not None and not self.neural_fit_variance >= 0:
-            raise NeuralMapError(
-                f"--neural_fit_variance must be >= 0 m^2 (or null), got {self.neural_fit_variance}."
-            )
-        if self.map_error_points < 100:
-            raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
+        methods = list(self.methods)
+        if methods.count(TRACKER_METHOD) > 1:
+            raise NeuralMapError(f"--methods lists a method twice: {methods}.")
+        linearized = [m for m in methods if m != TRACKER_METHOD]
+        # the shared checks know the linearisation methods only
+        self.methods = linearized or (["bilinear"] if TRACKER_METHOD in methods else [])
+        try:
+            super().validate()
+        finally:
+            self.methods = methods
+        if isinstance(self.tracker_cells, bool) or not isinstance(self.tracker_cells, int) or (
+                self.tracker_cells < 8):
+            raise NeuralMapError(f"--tracker_cells must be an integer >= 8, got "
+                                 f"{self.tracker_cells!r}.")
         if self.n_plot_trajectories < 0:
             raise NeuralMapError(
                 f"--n_plot_trajectories must be >= 0, got {self.n_plot_trajectories}."
             )
-        if not (self.pcrb_factor > 0 and self.divergence_sigma > 0):
-            raise NeuralMapError(
-                f"--pcrb_factor and --divergence_sigma must be > 0, got {self.pcrb_factor}, "
-                f"{self.divergence_sigma}."
-            )
-
-    @property
-    def needs_map(self) -> bool:
-        """Whether any method needs the neural map."""
-        return any(m in TERRAIN_MODEL_METHODS for m in self.methods)
 
 
 def _final_horizontal_errors(run: Any) -> np.ndarray:
@@ -197,7 +154,8 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     started = time.perf_counter()
     timing: dict[str, float] = {}
     device, dtype = config.torch_device, config.torch_dtype
-    setup = prepare_tan(scenario=config.scenario, methods=config.methods, map_path=config.map,
+    linearized = [m for m in config.methods if m != TRACKER_METHOD]
+    setup = prepare_tan(scenario=config.scenario, methods=linearized, map_path=config.map,
                         runs_dir=config.runs_dir, seed=config.seed,
                         neural_fit_variance=config.neural_fit_variance,
                         map_error_points=config.map_error_points, device=config.torch_device)
@@ -213,10 +171,18 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     )
     timing["setup"] = time.perf_counter() - started
 
-    truth, runs = run_monte_carlo(
-        scenario, methods, n_runs=config.n_runs, seed=seed, progress=config.progress,
-        device=device, dtype=dtype, tile=tile, truth_terrain=truth_terrain,
-    )
+    if methods:
+        truth, runs = run_monte_carlo(
+            scenario, methods, n_runs=config.n_runs, seed=seed, progress=config.progress,
+            device=device, dtype=dtype, tile=tile, truth_terrain=truth_terrain,
+        )
+    else:
+        from neuralmap.nav.simulator import simulate
+
+        truth, runs = simulate(scenario, tile, n_runs=config.n_runs, seed=seed, dtype=dtype,
+                               device=device, truth_terrain=truth_terrain), {}
+    dem_bound = _dem_map_error(scenario, tile, truth_terrain, config)
+    tracker_info = _run_tracker(config, scenario, truth, dem_bound, runs)
     for name, filter_run in runs.items():
         timing[f"filter_{name}"] = float(filter_run.elapsed_s)
     voids = void_exposure(tile, truth)
@@ -236,6 +202,9 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     tick = time.perf_counter()
     bound = pcrb(truth, scenario, truth_terrain.model, runs=kept)
     pcrb_pos = pcrb_position(bound).detach().to("cpu", torch.float64).numpy()
+    pcrb_map_pos = pcrb_position(map_aware_pcrb(
+        truth, scenario, dem_bound["terrain"], map_error_var=dem_bound["mse_m2"],
+        map_error_corr=dem_bound["corr"], runs=kept)).detach().to("cpu", torch.float64).numpy()
     timing["pcrb"] = time.perf_counter() - tick
 
     method_metrics = {
@@ -263,9 +232,14 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         truth_model={**truth_terrain.summary(), "void_exposure": voids},
         pcrb_kind=scenario.pcrb_kind(),
     )
-    claims = check_claims(results)
+    _add_map_aware_bound(results, pcrb_map_pos, dem_bound)
+    if tracker_info:
+        results["tracker"] = tracker_info
+    claims = check_claims(results) + _tracker_claims(results)
     print()
     print(format_table(results))
+    print(f"bounds: {results['pcrb_map_aware']['label']} {results['pcrb_map_aware']['pos_m']:.1f} m, "
+          f"true-terrain PCRB {results.get('pcrb_pos_m', float('nan')):.1f} m (RMS, last half)")
     print()
     print(
         f"off-map runs (excluded from the metrics): truth left the tile in {n_truth_off} of "
@@ -284,3 +258,104 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     write_trajectories(outputs.dir, tile, truth.t.cpu().numpy(),
                        {name: v.detach().cpu().numpy() for name, v in tracks.items()})
     outputs.results.update(results)
+
+
+def _dem_map_error(scenario: Any, tile: Any, truth_terrain: Any, config: Any) -> dict[str, Any]:
+    """The bilinear DEM as a map: its error variance against the truth between the nodes and
+    the error's correlation over one step's flight (the map-aware PCRB's noise)."""
+    from neuralmap.nav.map_error import map_error_correlation, measure_map_error
+    from neuralmap.terrain.grid import GridTerrain
+
+    grid = GridTerrain(tile, method="bilinear")
+    err = measure_map_error(grid, truth_terrain.model, tile, n_points=config.map_error_points,
+                            seed=config.seed)
+    lag = float(scenario.speed_mps) * float(scenario.dt)
+    corr = map_error_correlation(grid, truth_terrain.model, tile, lag_m=lag,
+                                 n_points=config.map_error_points, seed=config.seed)
+    return {"terrain": grid, "mse_m2": float(err.get("mse_m2", 0.0)), "corr": corr, "lag_m": lag}
+
+
+def _run_tracker(config: Any, scenario: Any, truth: Any, dem: dict[str, Any],
+                 runs: dict[str, Any]) -> dict[str, Any]:
+    """Runs the point-mass tracker (when asked for) on the bilinear DEM, R = altimeter
+    variance + the DEM's measured error variance; adds its run in ``config.methods`` order."""
+    from neuralmap.nav.model import TanModel
+    from neuralmap.nav.tracking import TrackerOptions, run_tracker
+
+    if TRACKER_METHOD not in config.methods:
+        return {}
+    model = TanModel.from_scenario(scenario)
+    R = float(scenario.R_m2) + dem["mse_m2"]
+    result = run_tracker(truth, dem["terrain"], P0=model.filter_prior(),
+                         Q=model.filter_process_noise(), R=R, dt=scenario.dt,
+                         options=TrackerOptions(cells=config.tracker_cells))
+    ordered = {}
+    for name in config.methods:
+        if name == TRACKER_METHOD:
+            ordered[name] = result.run
+        elif name in runs:
+            ordered[name] = runs[name]
+    runs.clear()
+    runs.update(ordered)
+    elapsed = max(result.run.elapsed_s, 1e-9)
+    print(f"{TRACKER_METHOD}: {config.tracker_cells}² cells, R {R:.1f} m² (altimeter + DEM error "
+          f"{dem['mse_m2']:.2f} m² measured) | {result.cell_updates / elapsed:.3g} cell-updates/s | "
+          f"regrids/run {float(result.regrids.double().mean()):.1f}, widened "
+          f"{int((result.widenings > 0).sum())}, lost {int(result.lost.sum())} runs", flush=True)
+    return {"cells": config.tracker_cells, "R_m2": R, "elapsed_s": result.run.elapsed_s,
+            "cell_updates_per_s": result.cell_updates / elapsed,
+            "regrids_per_run": float(result.regrids.double().mean()),
+            "runs_widened": int((result.widenings > 0).sum()), "runs_lost": int(result.lost.sum()),
+            "recoveries": int(result.recoveries.sum())}
+
+
+def _add_map_aware_bound(results: dict[str, Any], bound: np.ndarray, dem: dict[str, Any]) -> None:
+    """The map-aware PCRB beside the true-terrain one, and each method's ratio to it."""
+    tail = bound[len(bound) // 2:]
+    rms = float(np.sqrt(np.mean(tail[np.isfinite(tail)] ** 2)))
+    results["pcrb_map_aware"] = {
+        "label": "map-aware PCRB (DEM slopes, DEM error as noise)",
+        "pos_m": rms, "pos_final_m": float(bound[-1]), "curve": bound.tolist(),
+        "map_error_m2": dem["mse_m2"], "map_error_corr": dem["corr"],
+        "map_error_corr_lag_m": dem["lag_m"],
+    }
+    results["pcrb_label"] = "true-terrain PCRB (truth slopes, altimeter noise only)"
+    for entry in results["methods"].values():
+        rmse = entry.get("rmse_pos_m")
+        entry["pcrb_map_ratio_all"] = rmse / rms if rmse is not None and rms > 0 else None
+
+
+def _tracker_claims(results: dict[str, Any]) -> list[Any]:
+    """The point-mass tracker's targets against both bounds (toolkit targets)."""
+    from neuralmap.studies.tan_report import ClaimCheck
+
+    entry = results["methods"].get(TRACKER_METHOD)
+    if not entry:
+        return []
+    n_on = entry.get("n_runs", 0) - entry.get("n_off_map", 0)
+    if n_on < 30:
+        return [ClaimCheck("toolkit target: point-mass tracker at the bound",
+                           f"{n_on} runs on the map",
+                           f"not enough converged runs ({n_on} on the map; a verdict needs >= 30)",
+                           "needs >= 30 runs on the map")]
+
+    def verdict(ok: bool) -> str:
+        return "holds" if ok else "does not hold"
+
+    map_ratio, true_ratio = entry.get("pcrb_map_ratio_all"), entry.get("pcrb_ratio_all")
+    rate, nees_band = entry.get("divergence_rate") or 0.0, entry.get("nees_in_band")
+    rule = "all-run RMSE (last half) / bound (RMS, last half)"
+    return [
+        ClaimCheck("toolkit target: point-mass tracker RMSE <= 1.05x the map-aware PCRB",
+                   f"{map_ratio:.3f}x", verdict(map_ratio is not None and map_ratio <= 1.05), rule),
+        ClaimCheck("toolkit target: point-mass tracker RMSE <= 1.10x the true-terrain PCRB",
+                   f"{true_ratio:.3f}x", verdict(true_ratio is not None and true_ratio <= 1.10),
+                   rule),
+        ClaimCheck("toolkit target: point-mass tracker diverges in 0 runs",
+                   f"{entry.get('n_diverged', 0)} of {n_on}", verdict(rate == 0.0),
+                   "the study's divergence rule"),
+        ClaimCheck("toolkit target: point-mass tracker NEES in its 95 % band in >= 90 % of steps",
+                   f"{nees_band:.1%}" if nees_band is not None else "n/a",
+                   verdict(nees_band is not None and nees_band >= 0.9),
+                   "run-averaged NEES of the 5 states vs the two-sided chi2 band"),
+    ]

@@ -27,7 +27,7 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies.registry import POLICY_NAMES, make_policy, policy_label
 from neuralmap.filters.policy import FilterPolicy
-from neuralmap.linearize.factory import LINEARIZER_NAMES, method_label
+from neuralmap.linearize.factory import method_label
 from neuralmap.nav.altimeter import FAULT_CODES
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics
 from neuralmap.nav.model import TanModel
@@ -36,9 +36,8 @@ from neuralmap.nav.pcrb import pcrb, pcrb_position
 from neuralmap.nav.scenario import load_scenario
 from neuralmap.nav.simulator import simulate
 from neuralmap.progress import progress_bar
-from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
-from neuralmap.studies.setup import prepare_tan
+from neuralmap.studies.setup import TanOptions, prepare_tan
 from neuralmap.viz.navigation import plot_error_vs_time
 
 __all__ = ["POLICIES", "TanOutliersConfig", "run", "study_policy"]
@@ -65,14 +64,12 @@ def study_policy(name: str, *, R: float) -> FilterPolicy | None:
 
 
 @dataclass
-class TanOutliersConfig(StudyConfig):
-    """Options of the altimeter-fault study (``study: tan_outliers``).
+class TanOutliersConfig(TanOptions):
+    """Options of the altimeter-fault study (``study: tan_outliers``): the shared TAN
+    options (:class:`~neuralmap.studies.setup.TanOptions`; the scenario's own fault
+    settings are replaced by the ones below) plus the faults, policies and targets.
 
     Attributes:
-        map: Neural map file (``None`` = newest of the scenario's tile in ``runs_dir``).
-        scenario: Base scenario (its own fault settings are replaced by the ones below).
-        n_runs: Monte Carlo runs (the same draws for every policy).
-        methods: Linearisation methods.
         policies: Update policies, registry names (default :data:`POLICIES`); ``ekf`` is the
             plain filter.
         spike_prob: Probability per epoch of an isolated spike.
@@ -84,19 +81,12 @@ class TanOutliersConfig(StudyConfig):
         patch_bias_min_m: Most negative patch bias, m.
         patch_bias_max_m: Least negative patch bias, m.
         lock_loss_prob: Probability per epoch of a loss of lock.
-        neural_fit_variance: Extra R of the neural method (None = measured against truth).
-        map_error_points: Points of that measurement.
-        pcrb_factor: Divergence threshold in final PCRBs.
-        divergence_sigma: Divergence threshold in the filter's own 1σ.
         target_divergence: Target divergence of the best robust policy.
         target_rmse_ratio: Target all-run RMSE of the best policy over the clean run's.
     """
 
     study: str = "tan_outliers"
     experiment: str = "tan_outliers"
-    map: str | None = None
-    scenario: str = "jacksboro"
-    n_runs: int = 1000
     methods: list[str] = field(default_factory=lambda: ["neural_region", "nine_point"])
     policies: list[str] = field(default_factory=lambda: list(POLICIES))
     spike_prob: float = 0.05
@@ -108,23 +98,12 @@ class TanOutliersConfig(StudyConfig):
     patch_bias_min_m: float = -40.0
     patch_bias_max_m: float = -10.0
     lock_loss_prob: float = 0.02
-    neural_fit_variance: float | None = None
-    map_error_points: int = 20000
-    pcrb_factor: float = 5.0
-    divergence_sigma: float = 9.0
     target_divergence: float = 0.01
     target_rmse_ratio: float = 1.3
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
         super().validate()
-        if self.n_runs < 1:
-            raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
-        unknown = [m for m in self.methods if m not in LINEARIZER_NAMES]
-        if not self.methods or unknown:
-            raise NeuralMapError(
-                f"--methods: give one or more of {', '.join(LINEARIZER_NAMES)}; unknown {unknown}."
-            )
         bad = [p for p in self.policies if p not in POLICY_NAMES]
         if not self.policies or bad:
             raise NeuralMapError(
@@ -134,10 +113,6 @@ class TanOutliersConfig(StudyConfig):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise NeuralMapError(f"--{key} must be a probability in [0, 1], got "
                                      f"{getattr(self, key)}.")
-        if self.map_error_points < 100:
-            raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
-        if not (self.pcrb_factor > 0 and self.divergence_sigma > 0):
-            raise NeuralMapError("--pcrb_factor and --divergence_sigma must be > 0.")
 
     def faults(self) -> dict[str, float]:
         """The scenario fields of the fault model."""

@@ -74,6 +74,7 @@ _TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("final_pos_m", "final pos [m]", "{:.1f}"),
     ("pcrb_ratio_all", "RMSE/PCRB all", "{:.2f}"),
     ("pcrb_ratio_converged", "RMSE/PCRB conv", "{:.2f}"),
+    ("pcrb_map_ratio_all", "RMSE/map PCRB", "{:.2f}"),
     ("divergence_rate", "diverged", "{:.1%}"),
     ("numerical_failure_rate", "num. failed", "{:.1%}"),
     ("nees_time_avg", "NEES time-avg", "{:.2f}"),

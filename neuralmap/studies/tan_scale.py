@@ -21,15 +21,14 @@ from dataclasses import dataclass, field
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.nav.chunked import BATCH_RUNS, SEED_BLOCK_RUNS, peak_rss_mb, run_monte_carlo_chunked
 from neuralmap.studies.outputs import StudyOutputs
-from neuralmap.studies.setup import prepare_tan
-from neuralmap.studies.tan import TanStudyConfig
+from neuralmap.studies.setup import TanOptions, prepare_tan
 
 __all__ = ["TanScaleConfig", "run"]
 
 
 @dataclass
-class TanScaleConfig(TanStudyConfig):
-    """Options of the chunked TAN study (those of ``study: tan`` plus the chunking).
+class TanScaleConfig(TanOptions):
+    """Options of the chunked TAN study (the shared TAN options plus the chunking).
 
     Attributes:
         chunk_runs: Runs per chunk (whole filter batches), the unit dealt to a worker.

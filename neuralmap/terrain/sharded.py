@@ -11,6 +11,11 @@ so a filter flying over a corner of a 361 km map never reads the rest.
 Blending is global: the weights of the (up to four) blocks that see a point come from the
 global layout (the C2 partition of unity of :mod:`neuralmap.terrain.block_layout`), so
 height and slope stay continuous across shard borders exactly as across block borders.
+
+A shard whose area holds no finite height (a void of the source DEM: sea, a data gap) is
+stored as void — ``"file": null, "void": true`` in the index, no network — and queries
+there return NaN, as a grid does over void nodes; so does the blend band along its border,
+where a void block carries weight (NaN is never blended into a height).
 """
 
 from __future__ import annotations
@@ -56,7 +61,7 @@ def write_shard_index(
     *,
     layout: BlockLayout,
     shard_blocks: tuple[int, int],
-    files: list[str],
+    files: list[str | None],
     info: dict[str, Any] | None = None,
 ) -> Path:
     """Writes the index of a sharded map (JSON, atomically).
@@ -65,7 +70,8 @@ def write_shard_index(
         path: Destination (conventionally ``map_index.json`` next to the shard files).
         layout: The global block layout.
         shard_blocks: ``(sbx, sby)`` blocks per shard.
-        files: Shard file names relative to the index, in :func:`shard_block_ranges` order.
+        files: Shard file names relative to the index, in :func:`shard_block_ranges` order;
+            None for a void shard (no finite height: stored as void, queries give NaN).
         info: Region description, training settings, metrics.
     """
     ranges = shard_block_ranges(layout.num_blocks, shard_blocks)
@@ -79,7 +85,9 @@ def write_shard_index(
         "layout": {"extent": list(layout.extent), "num_blocks": list(layout.num_blocks),
                    "blend_width": list(layout.blend_width)},
         "shard_blocks": [int(shard_blocks[0]), int(shard_blocks[1])],
-        "shards": [{"file": f, "blocks": list(r)} for f, r in zip(files, ranges, strict=True)],
+        "shards": [{"file": f, "blocks": list(r)} if f is not None
+                   else {"file": None, "blocks": list(r), "void": True}
+                   for f, r in zip(files, ranges, strict=True)],
         "info": dict(info or {}),
     }
     path = Path(path)
@@ -136,8 +144,8 @@ class ShardedTerrainMap(TerrainModel):
         self.max_loaded = max(1, int(max_loaded))
         self._loaded: OrderedDict[int, BlockwiseTerrainNet] = OrderedDict()
         self.loads = 0
-        missing = [s["file"] for s in self.shards
-                   if not (self.index_path.parent / s["file"]).is_file()]
+        missing = [s["file"] for s in self.shards if s.get("file") is not None
+                   and not (self.index_path.parent / s["file"]).is_file()]
         if missing:
             raise NeuralMapError(
                 f"sharded map '{index_path}': shard file(s) {missing[:3]} are missing "
@@ -148,6 +156,11 @@ class ShardedTerrainMap(TerrainModel):
     def num_shards(self) -> int:
         """Number of shard files."""
         return len(self.shards)
+
+    @property
+    def void_shards(self) -> list[int]:
+        """Ids of the void shards (no network; queries there give NaN)."""
+        return [i for i, s in enumerate(self.shards) if s.get("file") is None]
 
     @property
     def loaded_shards(self) -> list[int]:
@@ -184,7 +197,8 @@ class ShardedTerrainMap(TerrainModel):
             xy: ``(..., 2)`` metres (computed in float32, returned in ``xy``'s dtype).
 
         Returns:
-            ``(...)`` heights in metres (NaN at non-finite points).
+            ``(...)`` heights in metres (NaN at non-finite points and where a void shard's
+            block has weight).
         """
         if xy.shape[-1] != 2:
             raise NeuralMapError(f"xy must have shape (..., 2), got {tuple(xy.shape)}.")
@@ -204,8 +218,13 @@ class ShardedTerrainMap(TerrainModel):
         shard = torch.div(by, sby, rounding_mode="floor") * nsx + torch.div(
             bx, sbx, rounding_mode="floor")
         metres = torch.zeros_like(weight)
+        void = torch.zeros(flat.shape[0], dtype=torch.bool)
         for shard_id in torch.unique(shard).tolist():
             sel = torch.nonzero(shard == shard_id).squeeze(1)
+            if self.shards[shard_id].get("file") is None:  # void: NaN where it has weight
+                hit = sel[weight.index_select(0, sel).detach() > 0]
+                void = void.index_fill(0, point.index_select(0, hit), True)
+                continue
             bx0, bx1, by0, by1 = self.shards[shard_id]["blocks"]
             local = (by.index_select(0, sel) - by0) * (bx1 - bx0) + (
                 bx.index_select(0, sel) - bx0)
@@ -214,7 +233,7 @@ class ShardedTerrainMap(TerrainModel):
             metres = metres.index_put((sel,), values)
         height = torch.zeros(flat.shape[0], dtype=flat.dtype).index_add(
             0, point, weight * metres)
-        height = torch.where(finite, height, torch.full_like(height, float("nan")))
+        height = torch.where(finite & ~void, height, torch.full_like(height, float("nan")))
         return height.reshape(lead).to(xy.dtype)
 
 

@@ -125,6 +125,34 @@ def check_has_data(data: RegionData, *, rows_per_chunk: int = 256) -> int:
     return finite
 
 
+def void_shards(data: RegionData, layout: BlockLayout,
+                ranges: list[tuple[int, int, int, int]], *, rows_per_chunk: int = 256) -> list[int]:
+    """Shards whose core area holds no finite height (read a band of rows at a time).
+
+    Such a shard has nothing to fit; the region map stores it as void (queries there return
+    NaN, as a grid does over void nodes; :mod:`neuralmap.terrain.sharded`).
+
+    Args:
+        data: The region.
+        layout: The global block layout.
+        ranges: Block ranges of the shards (:func:`~neuralmap.terrain.sharded.
+            shard_block_ranges`).
+        rows_per_chunk: Rows read at once.
+
+    Returns:
+        Ids of the void shards, increasing.
+    """
+    (cx, cy), (xmin, _, ymin, _) = layout.core_size, layout.extent
+    out = []
+    for shard_id, (bx0, bx1, by0, by1) in enumerate(ranges):
+        core = np.array([xmin + bx0 * cx, xmin + bx1 * cx, ymin + by0 * cy, ymin + by1 * cy])
+        i0, i1, j0, j1 = data.node_window(core).tolist()
+        if not any(np.isfinite(np.asarray(data.heights[i:min(i + rows_per_chunk, i1), j0:j1])).any()
+                   for i in range(i0, i1, rows_per_chunk)):
+            out.append(shard_id)
+    return out
+
+
 def splitmix64(x: np.ndarray) -> np.ndarray:
     """The splitmix64 finaliser (Steele et al. 2014) on uint64 arrays (wrapping arithmetic)."""
     z = np.asarray(x, dtype=np.uint64) + _GOLDEN
@@ -424,7 +452,8 @@ def _worker(fabric: Any, plan: dict[str, Any]) -> dict[str, Any]:
     out = Path(plan["out_dir"])
     ranges = shard_block_ranges(layout.num_blocks, plan["shard_blocks"])
     todo = plan["shard_ids"] if plan["shard_ids"] is not None else list(range(len(ranges)))
-    mine = todo[rank::world]
+    void = set(plan["void_shards"])  # nothing to fit: stored as void in the index
+    mine = [i for i in todo if i not in void][rank::world]
     points, seconds, losses = 0.0, 0.0, []
     cpu_start = time.process_time()
     from neuralmap.terrain.export import save_map
@@ -471,6 +500,9 @@ def fit_region(
 ) -> dict[str, Any]:
     """Fits a region shard by shard on ``devices × num_nodes`` CPU processes.
 
+    A shard whose area holds no finite height is not trained: the index stores it as void
+    and the map returns NaN there, as a grid does over voids (:func:`void_shards`).
+
     Writes into ``out_dir`` directly; to publish whole (as ``train.py region`` does), build
     inside ``with neuralmap.io.replacing_dir(out) as build: fit_region(data, build)``.
 
@@ -494,7 +526,9 @@ def fit_region(
             line gives the published path when it builds under a hidden name).
 
     Returns:
-        Summary: ``index`` path (or None), ``layout``, ``shards``, ``per_rank`` points,
+        Summary: ``index`` path (or None), ``layout``, ``shards``, ``void_shards`` (ids of
+        the shards without any finite height in their area: not trained, stored as void,
+        queries there give NaN), ``per_rank`` points,
         seconds, CPU seconds and peak RSS, ``points_per_s`` (total points / slowest rank's
         seconds), ``points_per_cpu_s`` (total points / summed CPU seconds: the rate each
         process would keep on a free core).
@@ -509,12 +543,14 @@ def fit_region(
                       shard_blocks=shard_blocks, steps=steps,
                       points_per_block=points_per_block, lr=lr, devices=devices,
                       num_nodes=num_nodes, strategy=strategy, threads=threads)
-    check_has_data(data)
-    out = Path(out_dir)
-    (out / "shards").mkdir(parents=True, exist_ok=True)
     layout = plan_layout(data, block_nodes=block_nodes, overlap_nodes=overlap_nodes,
                          num_blocks=num_blocks)
     ranges = shard_block_ranges(layout.num_blocks, shard_blocks)
+    void = void_shards(data, layout, ranges)
+    if len(void) == len(ranges):
+        check_has_data(data)  # says so when the region holds no finite height at all
+    out = Path(out_dir)
+    (out / "shards").mkdir(parents=True, exist_ok=True)
     if shard_ids is not None and any(not 0 <= int(i) < len(ranges) for i in shard_ids):
         raise NeuralMapError(
             f"fit_region: shard_ids {shard_ids} name shards outside 0..{len(ranges) - 1} "
@@ -528,7 +564,7 @@ def fit_region(
     plan = {"data": data, "layout": layout_dict, "out_dir": str(out), "shard_blocks": shard_blocks,
             "shard_ids": shard_ids, "steps": int(steps), "points_per_block": int(points_per_block),
             "lr": float(lr), "seed": int(seed), "net_options": dict(net_options or {}),
-            "threads": int(threads)}
+            "threads": int(threads), "void_shards": void}
     fabric = Fabric(accelerator="cpu", devices=int(devices), num_nodes=int(num_nodes),
                     strategy=strategy)
     started = time.perf_counter()
@@ -541,7 +577,9 @@ def fit_region(
         "layout": {"extent": list(layout.extent), "num_blocks": list(layout.num_blocks),
                    "blend_width": list(layout.blend_width)},
         "shards": len(ranges),
-        "trained_shards": len(shard_ids) if shard_ids is not None else len(ranges),
+        "trained_shards": len(set(shard_ids if shard_ids is not None else range(len(ranges)))
+                              - set(void)),
+        "void_shards": void,
         "world_size": world,
         "per_rank": result["per_rank"],
         "points": total_points,
@@ -552,14 +590,15 @@ def fit_region(
         "mean_final_loss": result["mean_loss"],
     }
     if shard_ids is None and fabric.global_rank == 0:
-        files = [f"shards/shard_{i:05d}.pt" for i in range(len(ranges))]
+        files = [None if i in set(void) else f"shards/shard_{i:05d}.pt"
+                 for i in range(len(ranges))]
         info = {"name": data.name, "region": {"shape": list(data.shape),
                                               "spacing": list(data.spacing),
                                               "origin": list(data.origin),
                                               "path": record_path or data.path},
                 "training": {k: v for k, v in plan.items()
-                             if k not in ("data", "layout", "out_dir")},
-                "metrics": {"points": total_points}}
+                             if k not in ("data", "layout", "out_dir", "void_shards")},
+                "metrics": {"points": total_points}, "void_shards": void}
         summary["index"] = str(write_shard_index(out / "map_index.json", layout=layout,
                                                  shard_blocks=shard_blocks, files=files,
                                                  info=info))

@@ -260,3 +260,32 @@ def test_fixed_initial_error_takes_the_filter_prior() -> None:
         torch.diagonal(bound[0]), torch.tensor(fixed.P0_diag, dtype=bound.dtype)
     )
     assert pcrb_position(bound)[-1] > 0
+
+
+def test_map_aware_pcrb_on_a_plane_equals_closed_form() -> None:
+    """White map error σ²: the bound is the Kalman covariance with R = R_alt + σ² (and a
+    Gauss-Markov map error gives the 6-state Riccati of the augmented model)."""
+    from neuralmap.nav.pcrb import map_aware_pcrb
+
+    a, b, dt, steps, var = 0.12, -0.07, 1.0, 50, 25.0
+    terrain = GridTerrain(_plane_tile(a, b), method="bilinear")
+    truth = _straight_truth(30, steps, dt)
+    scen = SimpleNamespace(dt=dt, P0_diag=[1e4, 1e4, 100.0, 4.0, 4.0],
+                           Q_diag=[1.0, 1.0, 1.0, 0.01, 0.01], R_m2=81.0, fit_variance_m2=0.0,
+                           altimeter_sigma_m=9.0)
+    F, P0, Q = transition_matrix(dt).numpy(), np.diag(scen.P0_diag), np.diag(scen.Q_diag)
+    H = np.array([[-a, -b, 1.0, 0.0, 0.0]])
+    white = map_aware_pcrb(truth, scen, terrain, map_error_var=var)
+    ref = _riccati(P0, F, Q, H, np.array([[81.0 + var]]), steps)
+    assert _rel_err(white, ref) < 1e-10
+    rho = 0.6
+    corr = map_aware_pcrb(truth, scen, terrain, map_error_var=var, map_error_corr=rho)
+    F6 = np.block([[F, np.zeros((5, 1))], [np.zeros((1, 5)), np.array([[rho]])]])
+    ref6 = _riccati(np.diag([*scen.P0_diag, var]), F6, np.diag([*scen.Q_diag, (1 - rho**2) * var]),
+                    np.array([[-a, -b, 1.0, 0.0, 0.0, 1.0]]), np.array([[81.0]]), steps)
+    assert _rel_err(corr, ref6[:, :5, :5]) < 1e-10
+    # the map's error only ever removes information: both bounds lie above the map-only one
+    exact = pcrb(truth, scen, terrain)
+    assert bool((pcrb_position(white) >= pcrb_position(exact) - 1e-9).all())
+    with pytest.raises(NeuralMapError, match="map_error_corr"):
+        map_aware_pcrb(truth, scen, terrain, map_error_var=var, map_error_corr=1.0)

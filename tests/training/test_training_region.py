@@ -387,3 +387,41 @@ def test_train_py_map_mode_takes_a_glob_of_tiles(tmp_path: Path) -> None:
     assert model.tile_info["shape"] == [25, 49]
     assert model.tile_name.startswith("mosaic_a_2")
     assert whole.shape == (25, 49)
+
+
+def test_void_shard_is_stored_as_void(tmp_path: Path) -> None:
+    """A region with one all-NaN block (shards of one block): that shard is not trained and
+    stored as void, queries over it return NaN (as a grid over voids), the other five are
+    fitted, and the map loads through load_map."""
+    from neuralmap.training.region import void_shards
+
+    path = tmp_path / "r.npy"
+    synthetic_region(path, shape=SHAPE, spacing=100.0, seed=1)
+    heights = np.load(path, mmap_mode="r+")
+    heights[24:, 48:] = np.nan  # the core of block (2, 1): x 4800-7200 m, y 2400-4800 m
+    heights.flush()
+    data = RegionData.open(path)
+    layout = plan_layout(data, block_nodes=24)
+    assert void_shards(data, layout, [(0, 3, 0, 2), (2, 3, 1, 2), (2, 3, 0, 1)]) == [1]
+    summary = fit_region(data, tmp_path / "m", shard_blocks=(1, 1), steps=100, lr=2e-2,
+                         points_per_block=64, block_nodes=24)
+    assert summary["void_shards"] == [5] and summary["trained_shards"] == 5
+    assert not (tmp_path / "m" / "shards" / "shard_00005.pt").exists()
+    model = load_map(tmp_path / "m")
+    assert isinstance(model, ShardedTerrainMap) and model.void_shards == [5]
+    with torch.no_grad():
+        void_h = model(torch.tensor([[6000.0, 3600.0], [7000.0, 4700.0], [5000.0, 2600.0]]))
+        xy = _grid_xy(data)
+        pred = model(xy)
+    assert bool(torch.isnan(void_h).all())
+    ref = torch.tensor(np.asarray(data.heights, dtype=np.float32)).reshape(-1)
+    # away from the void block (and its blend band) the other blocks are fitted
+    far = (xy[:, 0] < 4400.0) | (xy[:, 1] < 2000.0)
+    assert bool(torch.isfinite(pred[far]).all())
+    rmse = float(((pred - ref)[far] ** 2).mean().sqrt())
+    assert rmse < 0.2 * float(ref[far].std()), rmse
+    assert bool(torch.isnan(pred[(xy[:, 0] > 4800.0) & (xy[:, 1] > 2400.0)]).all())
+    # gradients stay finite next to the void (no NaN leaks through the blend weights)
+    probe = torch.tensor([[2000.0, 2000.0]], requires_grad=True)
+    (grad,) = torch.autograd.grad(model(probe).sum(), probe)
+    assert bool(torch.isfinite(grad).all())

@@ -46,6 +46,7 @@ def fit_latent_map(
     between_weight: float = 0.5,
     between_points: int = 8192,
     ste_fraction: float = 0.2,
+    init_sweeps: int = 12,
     seed: int = 0,
 ) -> tuple[LatentTerrainMap, dict[str, Any]]:
     """Fits a latent-grid map to ``tile`` and returns it as its file stores it.
@@ -61,6 +62,7 @@ def fit_latent_map(
         between_weight: Weight of the between-node term.
         between_points: Between-node points per step.
         ste_fraction: Final fraction of steps with straight-through rounding.
+        init_sweeps: Correction sweeps of the Laplacian-pyramid start.
         seed: Seed of the MLP and of the between-node points.
 
     Returns:
@@ -69,7 +71,8 @@ def fit_latent_map(
     torch.manual_seed(seed)
     objective = RateDistortion(tile, rate_weight=rate_weight, between_weight=between_weight,
                                between_points=between_points)
-    grid = LatentGrid(tile, levels=levels, hidden=hidden, init_step=init_step, seed=seed)
+    grid = LatentGrid(tile, levels=levels, hidden=hidden, init_step=init_step,
+                      init_sweeps=init_sweeps, seed=seed)
     optimizer, scheduler = make_optimizer(grid, lr, steps)
     generator = torch.Generator().manual_seed(seed)
     terms = None

@@ -78,6 +78,9 @@ class LatentGrid(nn.Module):
         levels: Latent levels ``L`` (knot spacing ``2^l`` nodes).
         hidden: MLP hidden units (0 = linear synthesis only).
         init_step: Initial quantisation step ``Delta_l`` of every level, metres.
+        init_sweeps: Correction sweeps per level of the Laplacian-pyramid start (12 brings
+            the start to 0.07 m node RMSE on jacksboro, 3.9 m on topobathy; 2 left 1.1 m
+            and 41 m, which 1000 Adam steps did not recover on topobathy).
         seed: Seed of the MLP's initial weights.
 
     Raises:
@@ -86,7 +89,7 @@ class LatentGrid(nn.Module):
     """
 
     def __init__(self, tile: DemTile, *, levels: int = 6, hidden: int = 0,
-                 init_step: float = 1.0, seed: int = 0) -> None:
+                 init_step: float = 1.0, init_sweeps: int = 12, seed: int = 0) -> None:
         super().__init__()
         ny, nx = tile.shape
         if not 1 <= int(levels) <= 12 or 2 ** (levels - 1) > max(ny, nx):
@@ -104,7 +107,7 @@ class LatentGrid(nn.Module):
         self.tile_info = tile.describe()
         filled = torch.as_tensor(fill_voids_nearest(tile.heights, tile.spacing))
         mean = float(filled.mean())
-        init = laplacian_init(filled - mean, self.levels)
+        init = laplacian_init(filled - mean, self.levels, sweeps=max(1, int(init_sweeps)))
         node_feats = node_values(node_lattice(init, self.shape))
         scale = node_feats.reshape(self.levels, -1).std(dim=1).clamp(min=1e-3)
         self.latents = nn.ParameterList([nn.Parameter(z.float()) for z in init])

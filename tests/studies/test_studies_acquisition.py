@@ -1,0 +1,33 @@
+"""Acquisition study: runs that leave the map are counted and excluded, never fatal."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_wide_start_spread_counts_off_map_runs_and_finishes(tmp_path: Path) -> None:
+    scenario = yaml.safe_load((REPO / "configs" / "scenarios" / "tiny.yaml").read_text())
+    scenario["start_spread_m"] = 450.0  # some runs start or end off the 2.9 km tile
+    scenario_file = tmp_path / "wide.yaml"
+    scenario_file.write_text(yaml.safe_dump(scenario))
+    from neuralmap.studies.cli import main
+
+    code = main(["--config", str(REPO / "configs" / "acquisition_tiny.yaml"),
+                 "--scenario", str(scenario_file), "--runs_dir", str(tmp_path / "runs"),
+                 "--n_runs", "40", "--sigmas_m", "[60.0]", "--methods",
+                 "[ekf,point_mass_tracker]", "--flat_leg", "false"])
+    assert code == 0
+    folder = tmp_path / "runs" / "acquisition_tiny" / "version_0"
+    results = json.loads((folder / "results.json").read_text())
+    off = results["off_map"]["60/grid"]
+    assert off["runs"] == 40 and 0 < off["off_map"] < 40
+    rows = results["sigmas"]["60"]
+    for key in ("grid/ekf", "grid/point_mass_tracker"):
+        assert rows[key]["n_included"] == 40 - off["off_map"]
+        assert rows[key]["n_off_map"] == off["off_map"]
+    assert "off-map" in (folder / "report.md").read_text()

@@ -296,6 +296,7 @@ def run_monte_carlo_chunked(
     keep_errors: bool = False,
     block_runs: int = SEED_BLOCK_RUNS,
     batch_runs: int = BATCH_RUNS,
+    progress: bool = False,
 ) -> ChunkedResult:
     """Monte Carlo TAN in chunks of seed blocks, on one or several processes.
 
@@ -317,6 +318,7 @@ def run_monte_carlo_chunked(
         batch_runs: Runs filtered as one batch (rounded up to whole seed blocks); bounds
             memory (one batch's truth and filter histories). Changing it may change the
             results in the last bits; ``chunk_runs`` and ``devices`` never do.
+        progress: Print one line per finished chunk (runs done, rate, time left).
 
     Returns:
         :class:`ChunkedResult`; the same, bit for bit, for any ``chunk_runs``/``devices``.
@@ -349,9 +351,22 @@ def run_monte_carlo_chunked(
             "sizes": sizes, "methods": methods, "dtype": dtype, "device": str(device),
             "keep_errors": keep_errors, "threads": threads}
     jobs = [{"batches": batch_list} for batch_list in chunks]
+    started = time.perf_counter()
+    outputs: list[dict[str, Any]] = []
+
+    def collect(out: dict[str, Any]) -> None:
+        outputs.append(out)
+        if progress:
+            done = sum(sizes[b] for o in outputs for b in o["blocks"])
+            spent = time.perf_counter() - started
+            rate = done / max(spent, 1e-9)
+            print(f"chunked: {done}/{n_runs} runs, {rate:.0f} runs/s, "
+                  f"{(n_runs - done) / rate:.0f} s left", flush=True)
+
     if devices == 1:
         _set_shared(base)
-        outputs = [_run_chunk(job) for job in jobs]
+        for job in jobs:
+            collect(_run_chunk(job))
     else:
         import concurrent.futures
         import multiprocessing
@@ -361,7 +376,8 @@ def run_monte_carlo_chunked(
         with concurrent.futures.ProcessPoolExecutor(devices, mp_context=context,
                                                     initializer=_set_shared,
                                                     initargs=(base,)) as pool:
-            outputs = list(pool.map(_run_chunk, jobs))
+            for out in pool.map(_run_chunk, jobs):
+                collect(out)
     by_block: dict[int, dict[str, dict[str, torch.Tensor]]] = {}
     for out in outputs:
         for i, b in enumerate(out["blocks"]):

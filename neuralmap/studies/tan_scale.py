@@ -41,7 +41,7 @@ class TanScaleConfig(TanOptions):
     study: str = "tan_scale"
     experiment: str = "tan_scale"
     threads: int | None = 1
-    progress: bool = False
+    progress: bool = True
     n_runs: int = 100_000
     methods: list[str] = field(default_factory=lambda: ["bilinear", "nine_point"])
     chunk_runs: int = BATCH_RUNS
@@ -69,7 +69,8 @@ def run(config: TanScaleConfig, outputs: StudyOutputs) -> None:
     started = time.perf_counter()
     result = run_monte_carlo_chunked(
         setup.scenario, setup.methods, n_runs=config.n_runs, chunk_runs=config.chunk_runs,
-        batch_runs=config.batch_runs,        seed=setup.seed, devices=config.workers, threads=config.threads,
+        batch_runs=config.batch_runs, progress=config.progress,
+        seed=setup.seed, devices=config.workers, threads=config.threads,
         dtype=config.torch_dtype, device=config.torch_device, tile=setup.tile,
         truth_terrain=setup.truth_terrain)
     wall = time.perf_counter() - started

@@ -42,11 +42,11 @@ class TanScaleConfig(TanOptions):
     experiment: str = "tan_scale"
     threads: int | None = 1
     progress: bool = True
-    n_runs: int = 100_000
+    n_runs: int = 400_000
     methods: list[str] = field(default_factory=lambda: ["bilinear", "nine_point"])
     chunk_runs: int = BATCH_RUNS
     batch_runs: int = BATCH_RUNS
-    workers: int = 1
+    workers: int = 2
 
     def validate(self) -> None:
         """Checks values (also those of the TAN study)."""

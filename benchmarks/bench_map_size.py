@@ -38,7 +38,7 @@ for extra_path in (REPO_ROOT, REPO_ROOT / "benchmarks"):
 
 from bench_filter import Row, _rates, timed  # noqa: E402
 
-from neuralmap.dem.readers import load_tile  # noqa: E402
+from neuralmap.dem.load import load_tile  # noqa: E402
 from neuralmap.linearize.autograd import AutogradLinearizer  # noqa: E402
 from neuralmap.terrain.bake import bake_to_grid  # noqa: E402
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet  # noqa: E402

@@ -1,12 +1,8 @@
 """DEM tiles: the grid container, file readers, sample tiles and synthetic terrain."""
 
+from neuralmap.dem.load import load_tile
 from neuralmap.dem.mosaic import load_mosaic, write_mosaic
-from neuralmap.dem.readers import (
-    PLAUSIBLE_HEIGHT_M,
-    SAMPLE_NAMES,
-    SUPPORTED_EXTENSIONS,
-    load_tile,
-)
+from neuralmap.dem.readers import PLAUSIBLE_HEIGHT_M, SAMPLE_NAMES, SUPPORTED_EXTENSIONS
 from neuralmap.dem.synthetic import synthetic_tile
 from neuralmap.dem.tile import DemTile, GeoReference, ProjectedReference
 

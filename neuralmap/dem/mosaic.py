@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from neuralmap.dem.geo import geographic_grid, metres_per_degree
-from neuralmap.dem.readers import load_tile
+from neuralmap.dem.load import load_tile
 from neuralmap.dem.tile import DemTile, ProjectedReference
 from neuralmap.exceptions import NeuralMapError
 

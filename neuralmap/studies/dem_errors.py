@@ -47,7 +47,7 @@ from neuralmap.errors import (
 from neuralmap.errors.arma import check_stationary
 from neuralmap.errors.simulation import DEM_ERROR_AR2
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS, make_linearizer
+from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
 from neuralmap.nav.augmented import (
     AugmentedTanModel,
     augment_information,
@@ -57,13 +57,12 @@ from neuralmap.nav.metrics import navigation_metrics
 from neuralmap.nav.model import TanModel
 from neuralmap.nav.monte_carlo import run_filter
 from neuralmap.nav.pcrb import pcrb, pcrb_position, pcrb_recursion, terrain_information
-from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.nav.scenario import load_scenario
 from neuralmap.nav.simulator import simulate
-from neuralmap.nav.truth_terrain import TrueTerrain, true_terrain
+from neuralmap.nav.truth_terrain import TrueTerrain
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.maps import check_map_tile, resolve_map_path
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
-from neuralmap.terrain.export import load_map
+from neuralmap.studies.setup import TanSetup, build_methods, prepare_tan
 from neuralmap.terrain.grid import GridTerrain
 
 __all__ = ["DemErrorsStudyConfig", "prior_estimates", "run"]
@@ -272,32 +271,19 @@ def _survey_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
     return {"one_survey": first.to_dict(), **out}
 
 
-def _m2_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scenario: Any, tile: Any,
-                seed: int) -> dict[str, Any]:
-
-    terrain_map = None
-    if any(m in TERRAIN_MODEL_METHODS for m in config.methods):
-
-        map_path = resolve_map_path(config.map, config.runs_dir,
-                                    tile_fingerprint=tile.fingerprint())
-        terrain_map = load_map(map_path)
-        check_map_tile(terrain_map, tile, map_path=map_path, scenario_name=scenario.name)
-        config.map = str(map_path)
+def _m2_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
+                setup: TanSetup) -> dict[str, Any]:
+    scenario, tile, seed = setup.scenario, setup.tile, setup.seed
     surface = GridTerrain(tile, method="bicubic", dtype=torch.float64)
-    truth_terrain = true_terrain(scenario, tile, seed=seed)
     cells: dict[str, dict[str, Any]] = {}
     typical: dict[str, np.ndarray] = {}
     for period in config.periods:
         sc = dataclasses.replace(scenario, dt=float(period))
         truth = simulate(sc, tile, n_runs=config.n_runs_m2, seed=seed,
-                         truth_terrain=truth_terrain)
+                         truth_terrain=setup.truth_terrain)
         model = TanModel.from_scenario(sc)
         skip = int(round(config.skip_s / period))
-        for name in config.methods:
-            if name in TERRAIN_MODEL_METHODS:
-                lin = make_linearizer(name, tile=tile, terrain=terrain_map)
-            else:
-                lin = make_linearizer(name, tile=tile)
+        for name, lin in setup.methods.items():
             run = run_filter(truth, lin, sc, method=name)
             p_hat, p_cov = prior_estimates(truth, run, model)
             used = run.updated[:, 1:]
@@ -426,10 +412,9 @@ def _identify_along_path(field_model: Any, truth: Any, max_order: int) -> dict[s
             "acf": (acov / acov[0]).tolist()}
 
 
-def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scenario: Any,
-                       tile: Any, seed: int, device: torch.device,
-                       dtype: torch.dtype) -> dict[str, Any]:
-
+def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, setup: TanSetup,
+                       device: torch.device, dtype: torch.dtype) -> dict[str, Any]:
+    scenario, tile, seed = setup.scenario, setup.tile, setup.seed
     corr = config.dem_error_corr_m or correlation_length(0.5315, 100.0)
     phi = (ar1_coefficient(corr, tile.spacing[0]),)
     phi_north = (ar1_coefficient(corr, tile.spacing[1]),)
@@ -443,10 +428,11 @@ def _augmented_section(config: DemErrorsStudyConfig, outputs: StudyOutputs, scen
                                                 dtype=torch.float64), "dem", -field_),
     }
     if config.compare_subgrid:
-        worlds["scenario truth (sub-grid)"] = true_terrain(scenario, tile, seed=seed)
+        worlds["scenario truth (sub-grid)"] = setup.truth_terrain
     field_model = GridTerrain(DemTile(heights=field_, spacing=tile.spacing, origin=tile.origin,
                                       name="dem_error"), method="bicubic", dtype=torch.float64)
-    lin = make_linearizer(config.filter_method, tile=tile).to(device)
+    lin = build_methods([config.filter_method], tile=tile, terrain_map=None,
+                        device=device)[config.filter_method]
     base = TanModel.from_scenario(scenario)
     results: dict[str, Any] = {"correlation_length_m": corr, "phi_grid": [phi[0], phi_north[0]],
                                "worlds": {}}
@@ -584,9 +570,13 @@ def run(config: DemErrorsStudyConfig, outputs: StudyOutputs) -> None:
     started = time.perf_counter()
     scenario = load_scenario(config.scenario)
     _check_periods(config.periods, scenario)  # before minutes of work, named as the option
-    tile = scenario_tile(scenario)
-    seed = scenario.seed if config.seed is None else int(config.seed)
-    config.seed = seed
+    # Table 2's methods on the CPU (its flights are simulated there); the neural ones
+    # with the map's fit variance 0 (m2 is the look-up's own error)
+    setup = prepare_tan(scenario=scenario, methods=config.methods, map_path=config.map,
+                        runs_dir=config.runs_dir, seed=config.seed, neural_fit_variance=0.0,
+                        map_error_points=0, device=torch.device("cpu"), measure_map=False)
+    setup.pin(config)
+    tile, seed = setup.tile, setup.seed
     print(f"dem_errors: scenario {scenario.name} (tile {tile.name}) | periods {config.periods} "
           f"| methods {', '.join(config.methods)} | {config.n_runs} filter runs", flush=True)
     outputs.add_text(
@@ -598,11 +588,11 @@ def run(config: DemErrorsStudyConfig, outputs: StudyOutputs) -> None:
     outputs.results["survey"] = _survey_section(config, outputs, seed)
     timing["survey"] = time.perf_counter() - tick
     tick = time.perf_counter()
-    outputs.results["m2"] = _m2_section(config, outputs, scenario, tile, seed)
+    outputs.results["m2"] = _m2_section(config, outputs, setup)
     timing["m2"] = time.perf_counter() - tick
     tick = time.perf_counter()
     outputs.results["augmented"] = _augmented_section(
-        config, outputs, scenario, tile, seed, config.torch_device, config.torch_dtype)
+        config, outputs, setup, config.torch_device, config.torch_dtype)
     timing["augmented"] = time.perf_counter() - tick
     timing["total"] = time.perf_counter() - started
     outputs.results["timing_s"] = timing

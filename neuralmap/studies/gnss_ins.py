@@ -38,6 +38,14 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies.registry import make_policy
 from neuralmap.filters.policy import FilterPolicy
+from neuralmap.ins.earth import position_offset_ned
+from neuralmap.ins.gnss import UrbanEffects, simulate_gnss
+from neuralmap.ins.imu_model import ImuErrorProcess, imu_grade
+from neuralmap.ins.loosely_coupled import LooselyCoupledConfig, run_loosely_coupled
+from neuralmap.ins.measurement import check_lever_arm
+from neuralmap.ins.metrics import navigation_summary
+from neuralmap.ins.trajectory import short_drive, urban_drive
+from neuralmap.progress import progress_bar
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
@@ -107,9 +115,6 @@ class GnssInsStudyConfig(StudyConfig):
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
         super().validate()
-        from neuralmap.ins.imu_model import imu_grade
-        from neuralmap.ins.measurement import check_lever_arm
-
         if self.n_runs < 1:
             raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
         if self.drive not in ("urban", "short"):
@@ -264,8 +269,6 @@ def _figures(outputs: StudyOutputs, *, traj: Any, quality: Any,
     outputs.add_figure("attitude_vs_time", fig, "Attitude error RMSE over the runs")
     plt.close(fig)
 
-    from neuralmap.ins.earth import position_offset_ned
-
     s = traj.states
     ne = position_offset_ned(s[:, 0], s[:, 1], s[:, 2], s[0, 0], s[0, 1], s[0, 2])
     fig, ax = plt.subplots(figsize=(6, 6))
@@ -292,12 +295,6 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad options.
     """
-    from neuralmap.ins.gnss import UrbanEffects, simulate_gnss
-    from neuralmap.ins.imu_model import ImuErrorProcess
-    from neuralmap.ins.loosely_coupled import LooselyCoupledConfig, run_loosely_coupled
-    from neuralmap.ins.metrics import navigation_summary
-    from neuralmap.ins.trajectory import short_drive, urban_drive
-
     config.validate()
     seed = 0 if config.seed is None else int(config.seed)
     config.seed = seed
@@ -315,8 +312,6 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
     summaries: dict[str, dict[str, Any]] = {}
     timing: dict[str, float] = {}
     quality = None
-    from neuralmap.progress import progress_bar
-
     # IMU samples over all variants (each sample advances every run): progress lines with
     # the rate and the time left in logs, a bar on a terminal
     bar = progress_bar(total=len(config.variants) * (traj.n_samples - 1), desc="gnss_ins",

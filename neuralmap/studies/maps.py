@@ -22,6 +22,9 @@ __all__ = [
 
 #: File name of an exported neural map inside a training run folder.
 MAP_FILENAME = "neural_map.pt"
+#: Every map file a training run folder may hold: the blockwise export and the latent-grid
+#: bitstream (:mod:`neuralmap.terrain.latent`).
+MAP_FILENAMES = (MAP_FILENAME, "latent_map.nlat")
 
 NO_MAP_MESSAGE = (
     "no trained map found under {runs}/: run `python train.py` first (or pass --map PATH)"
@@ -31,8 +34,10 @@ NO_MAP_MESSAGE = (
 def _map_tile_fingerprint(path: Path) -> str:
     """The tile fingerprint recorded in a map file ("" when unreadable)."""
     try:
-        from neuralmap.terrain.export import load_map_payload
+        from neuralmap.terrain.export import load_map, load_map_payload
 
+        if path.suffix != ".pt":  # a latent-grid bitstream: its header names the tile
+            return str(getattr(load_map(path), "tile_fingerprint", "") or "")
         payload = load_map_payload(path)
     except Exception:  # noqa: BLE001 - a broken candidate is simply not preferred
         return ""
@@ -81,8 +86,8 @@ def find_tile_maps(runs_dir: str | os.PathLike[str], tile_fingerprint: str) -> l
         return []
     found: list[Path] = []
     for experiment in sorted(p for p in root.iterdir() if p.is_dir()):
-        candidates = sorted((p for p in experiment.glob(f"version_*/{MAP_FILENAME}")
-                             if p.is_file()),
+        candidates = sorted((p for name in MAP_FILENAMES
+                             for p in experiment.glob(f"version_*/{name}") if p.is_file()),
                             key=lambda p: (p.stat().st_mtime, version_number(p.parent)),
                             reverse=True)
         for path in candidates:

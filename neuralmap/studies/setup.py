@@ -1,4 +1,5 @@
-"""The one setup every TAN-family study shares (tan, tan_outliers, tan_scale, learned):
+"""The one setup every TAN-family study shares (tan, tan_outliers, tan_scale, learned,
+dem_errors):
 scenario, tile, neural map, truth terrain and linearisation methods, frozen, built from
 explicit arguments (:func:`prepare_tan`)."""
 
@@ -190,6 +191,7 @@ def prepare_tan(
     neural_fit_variance: float | None,
     map_error_points: int,
     device: torch.device,
+    measure_map: bool = True,
 ) -> TanSetup:
     """The one setup of every TAN-family study: scenario, tile, map, truth terrain and
     linearisation methods, from explicit arguments.
@@ -205,6 +207,9 @@ def prepare_tan(
             map's MSE against the truth between nodes minus the scenario's fit variance.
         map_error_points: Seeded random points of that measurement.
         device: Device of the linearizers.
+        measure_map: Measure the map's error against the truth (``map_error``); False
+            for a study that gives ``neural_fit_variance`` and reports no map error
+            (``dem_errors``), so that no time goes into it.
 
     Returns:
         The frozen :class:`TanSetup` (record its map and seed with :meth:`TanSetup.pin`).
@@ -223,10 +228,15 @@ def prepare_tan(
     seed = scenario.seed if seed is None else int(seed)
     truth_terrain = true_terrain(scenario, tile, seed=seed)
     map_error: dict[str, Any] = {}
-    if terrain_map is not None:
+    if terrain_map is not None and measure_map:
         map_error = measure_map_error(terrain_map, truth_terrain.model, tile,
                                       n_points=map_error_points, seed=seed)
     if neural_fit_variance is None:
+        if not measure_map:
+            raise NeuralMapError(
+                "prepare_tan: measure_map=False needs neural_fit_variance (the extra R of the "
+                "neural methods comes from the measured map error otherwise)."
+            )
         mse = map_error.get("mse_m2", 0.0) or 0.0
         fit_variance = max(float(mse) - scenario.fit_variance_m2, 0.0)
     else:

@@ -2,7 +2,8 @@
 
 A map stored on board is never a raw float32 grid: it is a compressed one. This module
 encodes a :class:`~neuralmap.dem.tile.DemTile` with the raster codecs of ``imagecodecs``
-(optional extra ``neuralmap[codecs]``), decodes the bytes again and returns the decoded
+and the SZ3 error-bounded compressor of ``pysz`` (optional extra ``neuralmap[codecs]``),
+decodes the bytes again and returns the decoded
 tile, so every navigation method (grid interpolation, plane fits, ...) runs on exactly what
 the decoder on board would see. The stored size is the encoded payload plus a fixed
 :data:`HEADER_BYTES` header (shape, spacing, origin, quantisation offset and step, codec).
@@ -19,8 +20,11 @@ Codecs (``max_error`` = the bound on ``|decoded - stored|`` at the stored nodes,
   PSNR (bisection) for the smallest stream whose decoded maximum error is within
   ``max_error`` (checked against the heights by the encoder; lossless JPEG 2000 when no
   lossy stream is). Bound: ``max_error`` (verified, not by construction).
-* ``"zstd"``: heights quantised to ``int16`` with step ``2 max_error``, row differences
-  (TIFF predictor 2), zstd level 19. Bound: ``max_error``.
+* ``"zstd"``: int16 + zstd: heights quantised to ``int16`` with step ``2 max_error``, row
+  differences (TIFF predictor 2), zstd level 19. Bound: ``max_error``.
+* ``"sz3"``: SZ3 (``pysz``, the error-bounded compressor for scientific floating-point
+  data: prediction + quantisation + entropy coding) on the float64 heights with the
+  absolute error bound ``max_error``. Bound: ``max_error``.
 
 ``decimation = d > 1`` first resamples the tile (bicubic) to a grid with about ``d`` times
 the spacing and the same extent, compresses that grid the same way and interpolates the
@@ -43,7 +47,16 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.grid import GridTerrain, fill_voids_nearest
 
 #: Every codec name :func:`compress_grid` accepts.
-GRID_CODECS = ("lerc", "jpegls", "jpeg2k", "zstd")
+GRID_CODECS = ("lerc", "jpegls", "jpeg2k", "zstd", "sz3")
+
+#: One-line description of each codec, for reports.
+CODEC_LABELS = {
+    "lerc": "LERC (float32, maxZError)",
+    "jpegls": "JPEG-LS near-lossless (uint16 levels)",
+    "jpeg2k": "JPEG 2000 lossy (uint16 levels, PSNR searched for the bound)",
+    "zstd": "int16 + zstd (row differences, level 19)",
+    "sz3": "SZ3 (pysz, absolute error bound)",
+}
 
 #: Bytes counted for the grid header with every compressed grid: shape (2 x int32), spacing,
 #: origin, quantisation offset and step (6 x float64), codec id and settings (8 bytes).
@@ -53,8 +66,23 @@ _CODEC_CLASSES = {"lerc": "LERC", "jpegls": "JPEGLS", "jpeg2k": "JPEG2K", "zstd"
 _UINT16_LEVELS = 65535
 
 
+def _pysz() -> Any:
+    """The ``pysz`` module (SZ3); else a NeuralMapError naming the extra."""
+    try:
+        import pysz
+    except ImportError:
+        raise NeuralMapError(
+            "compressed grids ('sz3') need the optional package pysz: pip install "
+            "'neuralmap[codecs]' (or pip install 'pysz>=1.1')."
+        ) from None
+    return pysz
+
+
 def _imagecodecs(codec: str) -> Any:
-    """The ``imagecodecs`` module, checked to provide ``codec``; else a NeuralMapError."""
+    """The codec library of ``codec`` (``imagecodecs``, or ``pysz`` for SZ3), checked to
+    provide it; else a NeuralMapError naming the extra."""
+    if codec == "sz3":
+        return _pysz()
     try:
         import imagecodecs
     except ImportError:
@@ -82,7 +110,8 @@ class CompressedGrid:
         decimation: Decimation factor (1 = full resolution).
         payload: The encoded bytes (what is stored, with :data:`HEADER_BYTES`).
         stored_shape: ``(ny, nx)`` of the encoded grid.
-        step: Height quantisation step in metres (``None`` for LERC, which takes floats).
+        step: Height quantisation step in metres (``None`` for LERC and SZ3, which take
+            floats).
         offset: Height subtracted before quantisation (the tile minimum), metres.
         error_bound: Guaranteed ``max |decoded - stored heights|`` at the stored nodes.
         tile: The decoded heights at the original tile's nodes (decimated grids
@@ -175,6 +204,12 @@ def _encode(
         payload = bytes(ic.lerc_encode(data, level=max_error))
         rounding = float(np.abs(data.astype(np.float64) - heights).max())
         return payload, None, offset, max_error + rounding, {"maxZError": max_error}
+    if codec == "sz3":
+        config = ic.szConfig()
+        config.errorBoundMode = ic.szErrorBoundMode.ABS
+        config.absErrorBound = float(max_error)
+        compressed, _ = ic.sz.compress(np.ascontiguousarray(heights, dtype=np.float64), config)
+        return bytes(compressed), None, offset, max_error, {"absErrorBound": max_error}
     if codec == "jpegls":
         step = 2.0 * max_error / (2 * near + 1)
         levels = _quantise(heights, step, offset, codec)
@@ -218,6 +253,9 @@ def _decode(
     ic = _imagecodecs(codec)
     if codec == "lerc":
         return np.asarray(ic.lerc_decode(payload), dtype=np.float64)
+    if codec == "sz3":
+        data, _ = ic.sz.decompress(np.frombuffer(payload, dtype=np.uint8), np.float64, shape)
+        return np.asarray(data, dtype=np.float64).reshape(shape)
     assert step is not None
     if codec == "jpegls":
         levels = np.asarray(ic.jpegls_decode(payload), dtype=np.float64)

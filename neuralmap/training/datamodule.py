@@ -24,9 +24,12 @@ from neuralmap.dem import load_mosaic, load_tile
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.grid import GridTerrain
+from neuralmap.training.offnode import OffNodeSampler
 
 #: Seed offset so that the split and the per-epoch shuffles use different streams.
 _SHUFFLE_STREAM = 1_000_003
+#: Seed offset of the off-node draws (another stream than the shuffles and the split).
+_OFFNODE_STREAM = 7_919
 
 
 class ShuffledBatches(Dataset):
@@ -46,6 +49,10 @@ class ShuffledBatches(Dataset):
             nodes in the epochs where ``full_fn(epoch)`` is true (the refit phase). The
             number of batches per epoch stays the same; batches grow slightly instead.
         full_fn: Whether an epoch trains on ``full``.
+        offnode: Optional :class:`OffNodeSampler`; each batch then also carries
+            ``round(offnode_ratio * B)`` points between the nodes with their bicubic
+            targets, drawn from a generator seeded by ``(seed, epoch, index)``.
+        offnode_ratio: Off-node points per node point of a batch.
     """
 
     def __init__(
@@ -58,6 +65,8 @@ class ShuffledBatches(Dataset):
         epoch_fn: Callable[[], int],
         full: tuple[torch.Tensor, torch.Tensor] | None = None,
         full_fn: Callable[[int], bool] | None = None,
+        offnode: OffNodeSampler | None = None,
+        offnode_ratio: float = 0.0,
     ) -> None:
         if xy.ndim != 2 or xy.shape[1] != 2 or heights.shape != xy.shape[:1]:
             raise ValueError(
@@ -70,6 +79,8 @@ class ShuffledBatches(Dataset):
         self.epoch_fn = epoch_fn
         self.full = full
         self.full_fn = full_fn
+        self.offnode = offnode
+        self.offnode_ratio = float(offnode_ratio)
         self._cached: tuple[int, torch.Tensor] | None = None
 
     def __len__(self) -> int:
@@ -88,7 +99,9 @@ class ShuffledBatches(Dataset):
             self._cached = (epoch, torch.randperm(n, generator=generator))
         return self._cached[1]
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, ...]:
+        """``(xy (B, 2), h (B,))``, plus ``(xy_off (M, 2), h_off (M,), slope_off (M, 2))``
+        with an off-node sampler."""
         if not 0 <= index < len(self):
             raise IndexError(index)
         epoch = int(self.epoch_fn())
@@ -98,7 +111,13 @@ class ShuffledBatches(Dataset):
             size = math.ceil(order.shape[0] / len(self))
         take = order[index * size : (index + 1) * size]
         xy, heights = self._source(epoch)
-        return xy[take], heights[take]
+        if self.offnode is None or self.offnode_ratio <= 0.0:
+            return xy[take], heights[take]
+        generator = torch.Generator().manual_seed(
+            (self.seed * _SHUFFLE_STREAM + epoch) * _OFFNODE_STREAM + index)
+        n_off = max(1, round(self.offnode_ratio * int(take.shape[0])))
+        xy_off, h_off, slope_off = self.offnode.sample(n_off, generator, dtype=xy.dtype)
+        return xy[take], heights[take], xy_off, h_off, slope_off
 
 
 class Chunks(Dataset):
@@ -172,6 +191,12 @@ class DemDataModule(pl.LightningDataModule):
         nodata: Extra no-data value(s) of the file (e.g. ``-32768`` for int16 SRTM voids).
         height_check: ``"refuse"`` (default), ``"void"`` or ``"off"`` for heights outside
             −12 000 … +9 000 m.
+        offnode_ratio: Points between the nodes per node point in every training batch,
+            with the bicubic DEM as target (:class:`OffNodeSampler`), so that the map fits
+            the continuous surface and not only the nodes; ``0`` trains on the nodes
+            alone. How much they weigh is the module's ``offnode_weight``.
+        offnode_val_points: Fixed seeded off-node points of the per-epoch validation
+            (``val/offnode_rmse_m``: the map against the bicubic DEM between the nodes).
 
     Raises:
         NeuralMapError: Bad path/file (from ``load_tile``), bad batch size or fraction, or
@@ -192,6 +217,8 @@ class DemDataModule(pl.LightningDataModule):
         units: str | None = None,
         nodata: float | list[float] | None = None,
         height_check: str = "refuse",
+        offnode_ratio: float = 0.5,
+        offnode_val_points: int = 4096,
     ) -> None:
         super().__init__()
         tile_given = isinstance(path, DemTile)
@@ -219,6 +246,17 @@ class DemDataModule(pl.LightningDataModule):
         self.eval_batch_size = int(eval_batch_size)
         if int(refit_epochs) < 0:
             raise NeuralMapError(f"data.refit_epochs must be >= 0, got {refit_epochs}.")
+        if not (math.isfinite(offnode_ratio) and offnode_ratio >= 0.0):
+            raise NeuralMapError(
+                f"data.offnode_ratio must be a finite number >= 0 (off-node points per node "
+                f"point of a batch; 0 = nodes only), got {offnode_ratio}. Try 0.5."
+            )
+        if int(offnode_val_points) < 1:
+            raise NeuralMapError(
+                f"data.offnode_val_points must be >= 1, got {offnode_val_points}."
+            )
+        self.offnode_ratio = float(offnode_ratio)
+        self.offnode_val_points = int(offnode_val_points)
         self.refit_epochs = int(refit_epochs)
         self.refit_epochs_requested = int(refit_epochs)
         self.refit_note: str | None = None
@@ -246,6 +284,8 @@ class DemDataModule(pl.LightningDataModule):
                 height_check=height_check,
             )
         self._split()
+        self.offnode = OffNodeSampler(self.tile) if self.offnode_ratio > 0 else None
+        self._offnode_val: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self._val_slopes: torch.Tensor | None = None
         self._all_slopes: torch.Tensor | None = None
         rank_zero_info(
@@ -337,6 +377,20 @@ class DemDataModule(pl.LightningDataModule):
         return self._val_slopes
 
     @property
+    def offnode_val(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None:
+        """Fixed ``(xy (M, 2), h (M,), slope (M, 2))`` float32 off-node validation points
+        with the bicubic DEM as target (seeded by ``seed``); None when the tile has no
+        valid cell."""
+        if self._offnode_val is None:
+            try:
+                sampler = self.offnode or OffNodeSampler(self.tile)
+            except NeuralMapError:
+                return None
+            generator = torch.Generator().manual_seed(self.seed * _OFFNODE_STREAM + 1)
+            self._offnode_val = sampler.sample(self.offnode_val_points, generator)
+        return self._offnode_val
+
+    @property
     def all_slopes(self) -> torch.Tensor:
         """``(n_valid, 2)`` bicubic DEM slopes at every valid node (m/m)."""
         if self._all_slopes is None:
@@ -409,7 +463,8 @@ class DemDataModule(pl.LightningDataModule):
         return start is not None and epoch >= start
 
     def train_dataloader(self) -> DataLoader:
-        """Whole shuffled batches ``(xy (B, 2), h (B,))`` of the training nodes.
+        """Whole shuffled batches ``(xy (B, 2), h (B,))`` of the training nodes (with
+        ``offnode_ratio > 0`` also ``(xy_off, h_off, slope_off)`` between the nodes).
 
         With ``refit_epochs = R > 0`` the last R epochs draw their batches from every valid
         node, the held-out ones included: validation numbers logged before that phase are
@@ -424,6 +479,8 @@ class DemDataModule(pl.LightningDataModule):
             epoch_fn=self._epoch,
             full=(self.xy, self.heights) if self.refit_epochs > 0 else None,
             full_fn=self.in_refit,
+            offnode=self.offnode,
+            offnode_ratio=self.offnode_ratio,
         )
         return DataLoader(dataset, batch_size=None, shuffle=False, num_workers=0)
 

@@ -166,7 +166,9 @@ class FitEvaluation:
         acf_x: Residual autocorrelation along rows for lags ``0..L``.
         acf_y: Residual autocorrelation along columns.
         metrics: Scalars (see :meth:`FitAccumulator.metrics`, plus ``n_void``,
-            ``acf_x_lag1``, ``acf_y_lag1``).
+            ``acf_x_lag1``, ``acf_y_lag1`` and the off-node errors of
+            :func:`offnode_error`: ``offnode_rmse_m``, ``offnode_max_abs_m``,
+            ``offnode_slope_rmse``).
     """
 
     fitted: np.ndarray
@@ -176,6 +178,46 @@ class FitEvaluation:
     metrics: dict[str, float] = field(default_factory=dict)
 
 
+def offnode_error(
+    model: TerrainModel, tile: DemTile, *, n_points: int = 20000, seed: int = 0,
+    chunk: int = 65536,
+) -> dict[str, float]:
+    """The model against the bicubic DEM at seeded random points between the nodes.
+
+    Points are uniform over the cells with four valid corners
+    (:class:`~neuralmap.training.offnode.OffNodeSampler`); the reference is the Keys
+    bicubic interpolant of the DEM, the surface a grid map answers there.
+
+    Returns:
+        ``offnode_rmse_m``, ``offnode_max_abs_m`` (m) and ``offnode_slope_rmse`` (m/m, RMS
+        norm of the slope error); NaN when the tile has no valid cell.
+    """
+    from neuralmap.exceptions import NeuralMapError
+    from neuralmap.training.offnode import OffNodeSampler
+
+    try:
+        sampler = OffNodeSampler(tile)
+    except NeuralMapError:
+        nan = float("nan")
+        return {"offnode_rmse_m": nan, "offnode_max_abs_m": nan, "offnode_slope_rmse": nan}
+    param = next(iter(model.parameters()), None)
+    device = param.device if param is not None else torch.device("cpu")
+    dtype = param.dtype if param is not None else torch.float64
+    xy, ref_h, ref_s = sampler.sample(n_points, torch.Generator().manual_seed(int(seed)),
+                                      dtype=torch.float64)
+    was_training = model.training
+    model.eval()
+    try:
+        height, slope = height_and_slope(model, xy.to(device, dtype), chunk=chunk)
+    finally:
+        model.train(was_training)
+    err = height.double().cpu() - ref_h
+    slope_err = (slope.double().cpu() - ref_s).square().sum(-1)
+    return {"offnode_rmse_m": float(err.square().mean().sqrt()),
+            "offnode_max_abs_m": float(err.abs().max()),
+            "offnode_slope_rmse": float(slope_err.mean().sqrt())}
+
+
 def evaluate_fit(
     model: TerrainModel,
     tile: DemTile,
@@ -183,6 +225,7 @@ def evaluate_fit(
     slope_ref: torch.Tensor | None = None,
     chunk: int = 65536,
     max_lag: int = 40,
+    offnode_points: int = 20000,
 ) -> FitEvaluation:
     """Evaluates a terrain model on every valid node of its tile.
 
@@ -196,6 +239,8 @@ def evaluate_fit(
             nodes in row-major order (as :attr:`DemDataModule.all_slopes`).
         chunk: Points per evaluation pass.
         max_lag: Largest autocorrelation lag in nodes.
+        offnode_points: Random points between the nodes for :func:`offnode_error`
+            (0 skips it).
 
     Returns:
         The :class:`FitEvaluation`.
@@ -231,5 +276,7 @@ def evaluate_fit(
     metrics["n_void"] = int(tile.n_void)
     metrics["acf_x_lag1"] = float(acf_x[1]) if acf_x.size > 1 else float("nan")
     metrics["acf_y_lag1"] = float(acf_y[1]) if acf_y.size > 1 else float("nan")
+    if offnode_points > 0:
+        metrics.update(offnode_error(model, tile, n_points=offnode_points, chunk=chunk))
     return FitEvaluation(fitted=fitted, residual=residual, acf_x=acf_x, acf_y=acf_y,
                          metrics=metrics)

@@ -30,13 +30,25 @@ class TerrainFitModule(pl.LightningModule):
 
     Loss (SEEDS 004's ``e``, normalised): ``L = mean((N(x_i, y_i) - h_i)^2) / s^2`` with
     ``s = net.height_scale`` the tile's height standard deviation, so the loss is unitless.
+    When the data module also serves points between the nodes (``data.offnode_ratio > 0``,
+    targets from the bicubic DEM ``B``, :class:`~neuralmap.training.offnode.OffNodeSampler`),
+    the loss fits the continuous surface too::
+
+        L += offnode_weight * mean((N(p_j) - B(p_j))^2) / s^2
+             + offnode_slope_weight * mean(|grad N(p_j) - grad B(p_j)|^2) * d^2 / s^2
+
+    with ``d`` the mean grid spacing (a slope error times one cell = a height error), so
+    that the map is no worse a surface than the grid it replaces where the filter samples
+    it (between the nodes).
     Optimiser: Adam, or SGD with momentum (the paper's back-propagation with momentum).
     Stopping: optionally when the validation RMSE falls below ``target_rmse`` metres (the
     paper stops at ``e < rho``; see :class:`neuralmap.training.callbacks.TargetRmseStopping`).
 
     Logged per epoch: ``train/loss``, ``train/lr``, ``val/rmse_m``, ``val/max_abs_m``,
     ``val/mean_m`` (metres) and ``val/slope_rmse`` (m/m, RMS norm of the slope error against
-    the bicubic DEM slopes at the validation nodes).
+    the bicubic DEM slopes at the validation nodes); ``train/offnode_loss`` and
+    ``val/offnode_rmse_m``, ``val/offnode_max_abs_m`` (the map against the bicubic DEM at
+    fixed points between the nodes).
 
     The network arguments default to :data:`neuralmap.terrain.blockwise.NET_DEFAULTS`
     (the net's own defaults), so the module, the net and ``configs/train.yaml`` cannot drift.
@@ -59,10 +71,14 @@ class TerrainFitModule(pl.LightningModule):
         lr_schedule: ``"cosine"`` (to 0 over the run's steps), ``"onecycle"`` or ``"none"``.
         target_rmse: Stop when the validation RMSE (m) is below this; ``None`` = never.
         seed: Seed of the network's initial weights and frequencies.
+        offnode_weight: Weight of the off-node height term (batches without off-node
+            points, ``data.offnode_ratio: 0``, train on the nodes alone).
+        offnode_slope_weight: Weight of the off-node slope term (``0`` skips it; it costs
+            a second backward pass).
 
     Raises:
         NeuralMapError: Unknown optimiser or schedule, non-positive ``lr``, negative
-            ``momentum``/``weight_decay``/``target_rmse``.
+            ``momentum``/``weight_decay``/``target_rmse``/off-node weights.
     """
 
     def __init__(
@@ -84,6 +100,8 @@ class TerrainFitModule(pl.LightningModule):
         lr_schedule: str = "cosine",
         target_rmse: float | None = None,
         seed: int = NET_DEFAULTS.seed,
+        offnode_weight: float = 1.0,
+        offnode_slope_weight: float = 0.0,
     ) -> None:
         super().__init__()
         if optimizer not in OPTIMIZERS:
@@ -106,6 +124,13 @@ class TerrainFitModule(pl.LightningModule):
             raise NeuralMapError(
                 f"model.target_rmse must be > 0 metres (or null to disable), got {target_rmse}."
             )
+        for key, weight in (("offnode_weight", offnode_weight),
+                            ("offnode_slope_weight", offnode_slope_weight)):
+            if not (math.isfinite(weight) and weight >= 0):
+                raise NeuralMapError(
+                    f"model.{key} must be a finite number >= 0, got {weight}. Try 1.0 "
+                    "(0 ignores the off-node points)."
+                )
         if num_blocks is not None and len(num_blocks) != 2:
             raise NeuralMapError(
                 f"model.num_blocks must be [nbx, nby] (blocks along east, north), got {num_blocks}."
@@ -174,16 +199,42 @@ class TerrainFitModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ training
     def training_step(
-        self, batch: tuple[torch.Tensor, torch.Tensor], batch_idx: int
+        self, batch: tuple[torch.Tensor, ...], batch_idx: int
     ) -> torch.Tensor:
-        """One step on a batch ``(xy (B, 2), h (B,))``: normalised MSE (SEEDS 004 ``e``)."""
-        xy, target = batch
+        """One step on a batch ``(xy (B, 2), h (B,))``: normalised MSE (SEEDS 004 ``e``),
+        plus the off-node terms when the batch carries ``(xy_off, h_off, slope_off)``."""
+        xy, target = batch[0], batch[1]
         assert self.net is not None
+        scale2 = self.net.height_scale**2
         pred = self.net(xy)
-        loss = torch.nn.functional.mse_loss(pred, target) / self.net.height_scale**2
+        loss = torch.nn.functional.mse_loss(pred, target) / scale2
         self.points_seen += int(target.numel())
+        if len(batch) == 5 and (self.hparams.offnode_weight > 0
+                                or self.hparams.offnode_slope_weight > 0):
+            off = self._offnode_loss(*batch[2:]) / scale2
+            self.log("train/offnode_loss", off, on_step=False, on_epoch=True,
+                     batch_size=int(batch[3].numel()), sync_dist=True)
+            loss = loss + off
         self.log("train/loss", loss, on_step=False, on_epoch=True, prog_bar=True,
                  batch_size=int(target.numel()), sync_dist=True)
+        return loss
+
+    def _offnode_loss(
+        self, xy: torch.Tensor, target: torch.Tensor, slope_ref: torch.Tensor
+    ) -> torch.Tensor:
+        """Weighted off-node height (and slope) squared error, m^2 (not yet normalised)."""
+        assert self.net is not None
+        hp = self.hparams
+        use_slope = hp.offnode_slope_weight > 0
+        points = xy.detach().requires_grad_(True) if use_slope else xy
+        pred = self.net(points)
+        loss = hp.offnode_weight * torch.nn.functional.mse_loss(pred, target)
+        if use_slope:
+            (slope,) = torch.autograd.grad(pred.sum(), points, create_graph=True)
+            spacing = self.net.tile_info.get("spacing") or (1.0, 1.0)
+            cell2 = float(spacing[0]) * float(spacing[1])
+            loss = loss + hp.offnode_slope_weight * cell2 * (
+                (slope - slope_ref).square().sum(-1).mean())
         return loss
 
     def on_train_epoch_start(self) -> None:
@@ -235,6 +286,18 @@ class TerrainFitModule(pl.LightningModule):
                       prog_bar=True, sync_dist=True)
         self.log_dict({"val/mean_m": m["mean_m"], "val/slope_rmse": m["slope_rmse"]},
                       sync_dist=True)
+        off = getattr(datamodule, "offnode_val", None)
+        if off is not None:
+            err = self._offnode_errors(off[0], off[1])
+            self.log_dict({"val/offnode_rmse_m": err.square().mean().sqrt(),
+                           "val/offnode_max_abs_m": err.abs().max()}, sync_dist=True)
+
+    def _offnode_errors(self, xy: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """``(M,)`` float64 map minus bicubic DEM at fixed off-node points, metres."""
+        assert self.net is not None
+        with torch.no_grad():
+            pred = self.net(xy.to(self.device))
+        return (pred.double() - target.to(pred.device).double()).cpu()
 
     def on_test_epoch_start(self) -> None:
         self._val = FitAccumulator()

@@ -114,3 +114,26 @@ def test_missing_imagecodecs_names_the_extra(
     monkeypatch.setattr(builtins, "__import__", fake_import)
     with pytest.raises(NeuralMapError, match=r"neuralmap\[codecs\]"):
         compress_grid(tile, codec="zstd", max_error=1.0)
+
+
+def test_missing_pysz_names_the_extra(tile: DemTile, monkeypatch: pytest.MonkeyPatch) -> None:
+    real_import = builtins.__import__
+
+    def fake_import(name: str, *args: object, **kwargs: object) -> object:
+        if name == "pysz":
+            raise ImportError("no pysz")
+        return real_import(name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.delitem(sys.modules, "pysz", raising=False)
+    monkeypatch.setattr(builtins, "__import__", fake_import)
+    with pytest.raises(NeuralMapError, match=r"neuralmap\[codecs\].*pysz"):
+        compress_grid(tile, codec="sz3", max_error=1.0)
+
+
+@pytest.mark.parametrize("codec", GRID_CODECS)
+def test_decimated_coarse_nodes_within_stated_bound(tile: DemTile, codec: str) -> None:
+    """Every codec's x2 form: the coarse nodes (every other node) decode within the bound
+    of the coarse grid, which is the bicubic resample of the tile (exact at even nodes)."""
+    grid = compress_grid(tile, codec=codec, max_error=1.0, decimation=2)
+    err = np.abs(grid.tile.heights[::2, ::2] - tile.heights[::2, ::2])
+    assert err.max() <= grid.error_bound + 1e-6

@@ -36,7 +36,8 @@ IMAGE_TAGS = {
 HISTOGRAM_TAG = "fit/residuals"
 #: Final metrics logged as scalars ``final/<key>`` and as hparams metrics.
 FINAL_SCALARS = ("rmse_m", "max_abs_m", "mean_m", "std_m", "slope_rmse", "acf_x_lag1",
-                 "acf_y_lag1", "points_per_s", "train_time_s")
+                 "acf_y_lag1", "offnode_rmse_m", "offnode_max_abs_m", "offnode_slope_rmse",
+                 "points_per_s", "train_time_s")
 
 
 def _tensorboard(trainer: pl.Trainer) -> TensorBoardLogger | None:
@@ -199,6 +200,9 @@ class FitReport(pl.Callback):
             f"final fit on all {metrics['n_nodes']} valid nodes of '{tile.name}': "
             f"RMSE {metrics['rmse_m']:.3f} m, max |e| {metrics['max_abs_m']:.2f} m, "
             f"mean {metrics['mean_m']:+.3f} m, slope RMSE {metrics['slope_rmse']:.4f} m/m; "
+            f"between the nodes vs the bicubic DEM: RMSE "
+            f"{metrics.get('offnode_rmse_m', float('nan')):.3f} m, max |e| "
+            f"{metrics.get('offnode_max_abs_m', float('nan')):.2f} m; "
             f"{n_params} parameters ({metrics['bytes_ratio']:.2f} x raw float32 grid); "
             f"{metrics['points_per_s']:.3g} points/s; outputs in {run_dir} "
             f"({METRICS_FILENAME}, PNGs)"

@@ -24,6 +24,7 @@ Usage:
     python benchmarks/bench_latent_rd.py                 # all three tiles
     python benchmarks/bench_latent_rd.py --quick         # smoke test
     python benchmarks/bench_latent_rd.py --tiles synthetic --steps 400
+    python benchmarks/bench_latent_rd.py --starts sweeps exact  # both latent starts
 """
 
 from __future__ import annotations

@@ -10,10 +10,12 @@ the chunk size or the number of processes (bit-identical in float64). Up to
 :data:`SEED_BLOCK_RUNS` runs, the draws are exactly those of ``simulate`` (the study's
 default results are unchanged); beyond, they are a different (equally valid) sample.
 
-Every seed block is simulated and filtered as one batch of its own (a batched kernel may
-round differently for another batch size), so a chunk is a unit of work, run block after
-block. Memory: one block's truth and filter histories (``O(block · K · 25)`` floats) live
-only while the block runs; what is kept is per run a handful of numbers (final errors and
+Every seed block is simulated on its own and the blocks of one **filter batch**
+(``batch_runs``, 8 blocks by default, fixed by the block index) are filtered together (a
+batched kernel may round differently for another batch size, so the batches never depend
+on the chunking); a chunk is whole filter batches, the unit dealt to a worker. Memory: one
+batch's truth and filter histories (``O(batch · K · 25)`` floats) live only while the
+batch runs; what is kept is per run a handful of numbers (final errors and
 bounds, flags) and per step running sums, added per seed block in block order; glibc is
 told to return large freed blocks to the system (:func:`bound_allocator`), so resident
 memory stays flat over a long run.
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import torch
@@ -35,17 +37,22 @@ from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
 from neuralmap.nav.simulator import Truth, simulate
 
 __all__ = [
+    "BATCH_RUNS",
     "SEED_BLOCK_RUNS",
     "ChunkedResult",
     "MethodSummary",
     "block_seed",
     "bound_allocator",
+    "concat_truths",
     "run_monte_carlo_chunked",
     "simulate_blocks",
 ]
 
 #: Runs per seed block (the unit of seeding; chunks are whole multiples of it).
 SEED_BLOCK_RUNS = 1024
+#: Runs filtered as one batch by default (8 seed blocks): the filter's per-step cost is
+#: mostly fixed overhead at 1024 runs, so larger batches run several times faster.
+BATCH_RUNS = 8 * SEED_BLOCK_RUNS
 _MASK64 = (1 << 64) - 1
 
 
@@ -97,9 +104,14 @@ def simulate_blocks(
     scenario: Scenario, tile: DemTile, *, blocks: list[int], sizes: list[int], seed: int,
     truth_terrain: Any, dtype: torch.dtype, device: str | torch.device,
 ) -> list[Truth]:
-    """The truths of the given seed blocks (each simulated on its own seed)."""
+    """The truths of the given seed blocks (each simulated on its own seed).
+
+    Without the altimeter quality record (the chunked filters use no quality-aware policy;
+    the draws are the same).
+    """
     return [simulate(scenario, tile, n_runs=sizes[b], seed=block_seed(seed, b), dtype=dtype,
-                     device=device, truth_terrain=truth_terrain) for b in blocks]
+                     device=device, truth_terrain=truth_terrain, quality=False)
+            for b in blocks]
 
 
 @dataclass
@@ -199,38 +211,71 @@ def _block_reduce(run: Any, sizes: list[int]) -> list[dict[str, torch.Tensor]]:
     return out
 
 
-def _run_chunk(job: dict[str, Any]) -> dict[str, Any]:
-    """Runs a chunk's seed blocks one after the other; returns their reductions.
+def concat_truths(truths: list[Truth]) -> Truth:
+    """The seed blocks' truths as one batch (runs in block order; shared fields from the first).
 
-    Each seed block is simulated and filtered as its own batch: a batched linear-algebra
-    kernel may round differently for another batch size (seen at the ulp level for a batch
-    of one), so the batch of a run never depends on the chunking.
+    Args:
+        truths: Truths of the same scenario and world, ``(N_b, K+1, …)`` each.
+
+    Returns:
+        One :class:`Truth` with ``N = Σ N_b`` runs.
+    """
+    if len(truths) == 1:
+        return truths[0]
+    first = truths[0]
+    batched = {}
+    for f in fields(first):
+        value = getattr(first, f.name)
+        if f.name != "t" and isinstance(value, torch.Tensor):
+            batched[f.name] = torch.cat([getattr(tr, f.name) for tr in truths])
+    return replace(first, **batched)
+
+
+#: The inputs every chunk of the current run shares (set once per process).
+_SHARED: dict[str, Any] = {}
+
+
+def _set_shared(base: dict[str, Any]) -> None:
+    """Stores the run's shared inputs in this process (a worker's initializer)."""
+    _SHARED.clear()
+    _SHARED.update(base)
+
+
+def _run_chunk(job: dict[str, Any]) -> dict[str, Any]:
+    """Runs a chunk's filter batches one after the other; returns their per-block reductions.
+
+    Each seed block draws from its own generator; the seed blocks of one filter batch
+    (``job["batches"]``, fixed by the global block index) are concatenated and filtered as
+    one batch, so the per-step overhead is paid once per batch, not once per block. A
+    batched kernel may round differently for another batch size (seen at the ulp level
+    for a batch of one), so the batches never depend on the chunking.
     """
     from neuralmap.nav.monte_carlo import run_filter
 
+    job = {**_SHARED, **job}
     torch.set_num_threads(int(job.get("threads", 1)))
     bound_allocator()
     reduced: dict[str, list[dict[str, torch.Tensor]]] = {name: [] for name in job["methods"]}
     errors: dict[str, list[torch.Tensor]] = {name: [] for name in job["methods"]}
     filt = dict.fromkeys(job["methods"], 0.0)
     sim_s, t = 0.0, None
-    for block in job["blocks"]:
+    for blocks in job["batches"]:
         tick = time.perf_counter()
-        (truth,) = simulate_blocks(job["scenario"], job["tile"], blocks=[block],
-                                   sizes=job["sizes"], seed=job["seed"],
-                                   truth_terrain=job["truth_terrain"], dtype=job["dtype"],
-                                   device=job["device"])
+        truth = concat_truths(simulate_blocks(
+            job["scenario"], job["tile"], blocks=blocks, sizes=job["sizes"],
+            seed=job["seed"], truth_terrain=job["truth_terrain"], dtype=job["dtype"],
+            device=job["device"]))
         sim_s += time.perf_counter() - tick
         t = truth.t.cpu()
         for name, linearizer in job["methods"].items():
             run = run_filter(truth, linearizer, job["scenario"], method=name)
-            reduced[name].extend(_block_reduce(run, [truth.n_runs]))
+            reduced[name].extend(_block_reduce(run, [job["sizes"][b] for b in blocks]))
             filt[name] += run.elapsed_s
             if job["keep_errors"]:
                 errors[name].append(run.err.detach().cpu())
             del run
         del truth
-    return {"blocks": job["blocks"], "reduced": reduced,
+    return {"blocks": [b for blocks in job["batches"] for b in blocks], "reduced": reduced,
             "errors": {k: torch.cat(v) for k, v in errors.items() if v}, "sim_s": sim_s,
             "filter_s": filt, "t": t}
 
@@ -250,6 +295,8 @@ def run_monte_carlo_chunked(
     truth_terrain: Any = None,
     keep_errors: bool = False,
     block_runs: int = SEED_BLOCK_RUNS,
+    batch_runs: int = BATCH_RUNS,
+    progress: bool = False,
 ) -> ChunkedResult:
     """Monte Carlo TAN in chunks of seed blocks, on one or several processes.
 
@@ -257,7 +304,8 @@ def run_monte_carlo_chunked(
         scenario: A :class:`Scenario` or a shipped name / YAML path.
         methods: Method name to linearizer (picklable when ``devices > 1``).
         n_runs: Runs N.
-        chunk_runs: Runs per chunk (rounded up to whole seed blocks); bounds memory.
+        chunk_runs: Runs per chunk (rounded up to whole filter batches), the unit dealt
+            to a worker.
         seed: Simulation seed (None = ``scenario.seed``).
         devices: Worker processes (spawned; chunks dealt round-robin). 1 = this process.
         threads: Torch threads per worker.
@@ -267,6 +315,10 @@ def run_monte_carlo_chunked(
         truth_terrain: The world, when built (else built once from ``seed``).
         keep_errors: Also return every run's ``(K+1, 5)`` errors (tests; memory ``O(N·K)``).
         block_runs: Runs per seed block (changing it changes the draws).
+        batch_runs: Runs filtered as one batch (rounded up to whole seed blocks); bounds
+            memory (one batch's truth and filter histories). Changing it may change the
+            results in the last bits; ``chunk_runs`` and ``devices`` never do.
+        progress: Print one line per finished chunk (runs done, rate, time left).
 
     Returns:
         :class:`ChunkedResult`; the same, bit for bit, for any ``chunk_runs``/``devices``.
@@ -280,7 +332,7 @@ def run_monte_carlo_chunked(
     if not isinstance(methods, dict) or not methods:
         raise NeuralMapError("run_monte_carlo_chunked: methods must be a non-empty dict.")
     for what, value in (("n_runs", n_runs), ("chunk_runs", chunk_runs), ("devices", devices),
-                        ("block_runs", block_runs)):
+                        ("block_runs", block_runs), ("batch_runs", batch_runs)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise NeuralMapError(
                 f"run_monte_carlo_chunked: {what} must be an integer >= 1, got {value!r}.")
@@ -290,22 +342,42 @@ def run_monte_carlo_chunked(
     if truth_terrain is None:
         truth_terrain = true_terrain(scenario, tile, seed=seed)
     sizes = _block_sizes(n_runs, block_runs)
-    per_chunk = max(1, math.ceil(chunk_runs / block_runs))
-    chunks = [list(range(i, min(i + per_chunk, len(sizes))))
-              for i in range(0, len(sizes), per_chunk)]
+    per_batch = max(1, math.ceil(batch_runs / block_runs))
+    batches = [list(range(i, min(i + per_batch, len(sizes))))
+               for i in range(0, len(sizes), per_batch)]
+    per_chunk = max(1, math.ceil(chunk_runs / (per_batch * block_runs)))
+    chunks = [batches[i:i + per_chunk] for i in range(0, len(batches), per_chunk)]
     base = {"scenario": scenario, "tile": tile, "truth_terrain": truth_terrain, "seed": seed,
             "sizes": sizes, "methods": methods, "dtype": dtype, "device": str(device),
             "keep_errors": keep_errors, "threads": threads}
-    jobs = [{**base, "blocks": blocks} for blocks in chunks]
+    jobs = [{"batches": batch_list} for batch_list in chunks]
+    started = time.perf_counter()
+    outputs: list[dict[str, Any]] = []
+
+    def collect(out: dict[str, Any]) -> None:
+        outputs.append(out)
+        if progress:
+            done = sum(sizes[b] for o in outputs for b in o["blocks"])
+            spent = time.perf_counter() - started
+            rate = done / max(spent, 1e-9)
+            print(f"chunked: {done}/{n_runs} runs, {rate:.0f} runs/s, "
+                  f"{(n_runs - done) / rate:.0f} s left", flush=True)
+
     if devices == 1:
-        outputs = [_run_chunk(job) for job in jobs]
+        _set_shared(base)
+        for job in jobs:
+            collect(_run_chunk(job))
     else:
         import concurrent.futures
         import multiprocessing
 
         context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(devices, mp_context=context) as pool:
-            outputs = list(pool.map(_run_chunk, jobs))
+        # the shared inputs (world, tile, methods) travel once per worker, not per chunk
+        with concurrent.futures.ProcessPoolExecutor(devices, mp_context=context,
+                                                    initializer=_set_shared,
+                                                    initargs=(base,)) as pool:
+            for out in pool.map(_run_chunk, jobs):
+                collect(out)
     by_block: dict[int, dict[str, dict[str, torch.Tensor]]] = {}
     for out in outputs:
         for i, b in enumerate(out["blocks"]):

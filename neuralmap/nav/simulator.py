@@ -168,6 +168,7 @@ def simulate(
     dtype: torch.dtype = torch.float64,
     device: str | torch.device = "cpu",
     truth_terrain: TrueTerrain | None = None,
+    quality: bool = True,
 ) -> Truth:
     """Simulates N truth trajectories, their INS outputs and radar-altimeter measurements.
 
@@ -181,6 +182,8 @@ def simulate(
         device: Device of the returned tensors.
         truth_terrain: The truth terrain (built from the scenario and ``seed`` when None;
             pass it to share one world between several simulations or the PCRB).
+        quality: Also compute the altimeter's quality record (``Truth.quality``; False
+            leaves it None, the draws unchanged: only quality-aware policies read it).
 
     Returns:
         :class:`Truth` with ``K = scenario.n_steps``.
@@ -236,10 +239,12 @@ def simulate(
     radar = radar + fault_error
     lock = torch.isfinite(radar)
     ins_pos_f64 = pos + ins_error[..., :3]
-    roughness = footprint_roughness(
-        GridTerrain(tile, method="bilinear", dtype=f64), ins_pos_f64[..., :2],
-        torch.where(lock, radar, h - terrain_true), scenario.beam_half_angle_deg)
-    quality = torch.stack([roughness, torch.where(lock, radar, 0.0), lock.to(f64)], dim=-1)
+    record = None
+    if quality:
+        roughness = footprint_roughness(
+            GridTerrain(tile, method="bilinear", dtype=f64), ins_pos_f64[..., :2],
+            torch.where(lock, radar, h - terrain_true), scenario.beam_half_angle_deg)
+        record = torch.stack([roughness, torch.where(lock, radar, 0.0), lock.to(f64)], dim=-1)
 
     def cast(x: torch.Tensor) -> torch.Tensor:
         return x.to(device=device, dtype=dtype)
@@ -252,5 +257,5 @@ def simulate(
         extent=tuple(float(e) for e in tile.extent),  # type: ignore[arg-type]
         tile_name=tile.name, tile_fingerprint=tile.fingerprint(), scenario=scenario,
         seed=seed, dem_error=dem_error, terrain=truth_terrain, fault=fault.to(device),
-        quality=cast(quality),
+        quality=None if record is None else cast(record),
     )

@@ -33,7 +33,8 @@ def _same(a, b) -> None:  # noqa: ANN001
 
 def test_chunked_equals_one_chunk(setup) -> None:  # noqa: ANN001
     scenario, tile, methods = setup
-    kwargs = {"n_runs": 5, "seed": 5, "tile": tile, "keep_errors": True, "block_runs": 2}
+    kwargs = {"n_runs": 5, "seed": 5, "tile": tile, "keep_errors": True, "block_runs": 2,
+              "batch_runs": 2}
     one = run_monte_carlo_chunked(scenario, methods, chunk_runs=8, **kwargs)
     many = run_monte_carlo_chunked(scenario, methods, chunk_runs=2, **kwargs)
     odd = run_monte_carlo_chunked(scenario, methods, chunk_runs=3, **kwargs)  # 2 blocks/chunk
@@ -41,6 +42,18 @@ def test_chunked_equals_one_chunk(setup) -> None:  # noqa: ANN001
     _same(one, many)
     _same(one, odd)
     assert one.err["bilinear"].shape == (5, scenario.n_steps + 1, 5)
+
+
+def test_batches_of_several_blocks_do_not_depend_on_the_chunking(setup) -> None:  # noqa: ANN001
+    scenario, tile, methods = setup
+    kwargs = {"n_runs": 7, "seed": 5, "tile": tile, "keep_errors": True, "block_runs": 2,
+              "batch_runs": 4}
+    one = run_monte_carlo_chunked(scenario, methods, chunk_runs=8, **kwargs)
+    many = run_monte_carlo_chunked(scenario, methods, chunk_runs=1, **kwargs)  # 1 batch/chunk
+    two = run_monte_carlo_chunked(scenario, methods, chunk_runs=4, devices=2, **kwargs)
+    assert (one.n_chunks, many.n_chunks, two.n_chunks) == (1, 2, 2)
+    _same(one, many)
+    _same(one, two)
 
 
 def test_first_block_is_the_plain_simulation(setup) -> None:  # noqa: ANN001

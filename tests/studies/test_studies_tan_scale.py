@@ -31,8 +31,8 @@ def test_tan_scale_tiny_end_to_end(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 def test_tan_scale_tiny_chunking_does_not_change_results(tmp_path: Path) -> None:
-    three = _run(tmp_path, "--n_runs", "1100", "--chunk_runs", "1024")
-    one = _run(tmp_path, "--n_runs", "1100", "--chunk_runs", "4096")
+    three = _run(tmp_path, "--n_runs", "1100", "--chunk_runs", "1024", "--batch_runs", "1024")
+    one = _run(tmp_path, "--n_runs", "1100", "--chunk_runs", "4096", "--batch_runs", "1024")
     assert (three["n_chunks"], one["n_chunks"]) == (2, 1)
     assert three["methods"]["bilinear"]["rmse_pos_curve"] == one["methods"]["bilinear"][
         "rmse_pos_curve"]
@@ -42,3 +42,5 @@ def test_tan_scale_tiny_chunking_does_not_change_results(tmp_path: Path) -> None
 def test_tan_scale_bad_options() -> None:
     with pytest.raises(NeuralMapError, match="workers"):
         TanScaleConfig(workers=0).validate()
+    with pytest.raises(NeuralMapError, match="batch_runs"):
+        TanScaleConfig(batch_runs=0).validate()

@@ -24,6 +24,7 @@ Usage:
     python benchmarks/bench_latent_rd.py                 # all three tiles
     python benchmarks/bench_latent_rd.py --quick         # smoke test
     python benchmarks/bench_latent_rd.py --tiles synthetic --steps 400
+    python benchmarks/bench_latent_rd.py --starts sweeps exact  # both latent starts
 """
 
 from __future__ import annotations
@@ -158,28 +159,36 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
     rms = lambda a: float(np.sqrt(np.mean((a - truth) ** 2)))  # noqa: E731
     bicubic_dem = rms(bicubic_of(tile, tile.heights, xy))
     rows: list[dict[str, Any]] = []
-    for lam in args.lambdas:
-        clock = time.perf_counter()
-        latent_map, _ = fit_latent_map(tile, rate_weight=lam, steps=args.steps, hidden=args.hidden,
-                                       levels=args.levels, init_sweeps=args.init_sweeps)
-        nodes = latent_map.node_heights().numpy()
-        with torch.no_grad():
-            own = latent_map(torch.from_numpy(xy).float()).double().numpy()
-        rows.append({"kind": "latent", "what": f"lambda {lam:g}", "bytes": len(encode_latent_map(latent_map)),
-                     "rmse_m": node_rmse(nodes, tile), "between_truth_m": rms(own),
-                     "bicubic_nodes_truth_m": rms(bicubic_of(tile, nodes, xy)),
-                     "fit_s": time.perf_counter() - clock})
-        print(f"#   latent lambda {lam:g}: {rows[-1]['bytes']} B, RMSE {rows[-1]['rmse_m']:.3f} m, "
-              f"{rows[-1]['fit_s']:.0f} s", flush=True)
+    latent_kinds = [f"latent ({start} start)" for start in args.starts]
+    for start, kind in zip(args.starts, latent_kinds, strict=True):
+        for lam in args.lambdas:
+            clock = time.perf_counter()
+            latent_map, _ = fit_latent_map(
+                tile, rate_weight=lam, steps=args.steps, hidden=args.hidden, levels=args.levels,
+                init_sweeps=args.init_sweeps, exact_start=start == "exact",
+                between_weight=args.between_weight)
+            nodes = latent_map.node_heights().numpy()
+            with torch.no_grad():
+                own = latent_map(torch.from_numpy(xy).float()).double().numpy()
+            rows.append({"kind": kind, "what": f"lambda {lam:g}",
+                         "bytes": len(encode_latent_map(latent_map)),
+                         "rmse_m": node_rmse(nodes, tile), "between_truth_m": rms(own),
+                         "bicubic_nodes_truth_m": rms(bicubic_of(tile, nodes, xy)),
+                         "fit_s": time.perf_counter() - clock})
+            print(f"#   {kind} lambda {lam:g}: {rows[-1]['bytes']} B, RMSE "
+                  f"{rows[-1]['rmse_m']:.3f} m, {rows[-1]['fit_s']:.0f} s", flush=True)
     for kind, sweep in (("jpeg2k (PSNR sweep)", jpeg2k_psnr_sweep(tile, args.psnr_levels)),
                         ("jpeg2k (max error)", jpeg2k_bounded_sweep(tile, args.bounds))):
         for r in sweep:
             rows.append({"kind": kind, "what": r["what"], "bytes": r["bytes"], "rmse_m": r["rmse_m"],
                          "between_truth_m": rms(bicubic_of(tile, r["decoded"], xy)),
                          "bicubic_nodes_truth_m": float("nan"), "fit_s": float("nan")})
-    latent = [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == "latent"]
-    bd = {kind: bd_rate(latent, [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == kind])
-          for kind in ("jpeg2k (PSNR sweep)", "jpeg2k (max error)")}
+    bd = {}
+    for latent_kind in latent_kinds:
+        latent = [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == latent_kind]
+        for kind in ("jpeg2k (PSNR sweep)", "jpeg2k (max error)"):
+            bd[f"{latent_kind} vs {kind}"] = bd_rate(
+                latent, [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == kind])
     return {"tile": tile, "rows": rows, "bd": bd, "bicubic_dem_truth_m": bicubic_dem}
 
 
@@ -191,13 +200,13 @@ def format_tile(result: dict[str, Any]) -> str:
              "| bicubic of its nodes vs truth (m) |", "|---|---|---:|---:|---:|---:|---:|"]
     n = tile.shape[0] * tile.shape[1]
     for r in result["rows"]:
-        if not (0.2 <= r["rmse_m"] <= 8.0) and r["kind"] != "latent":
+        if not (0.2 <= r["rmse_m"] <= 8.0) and not r["kind"].startswith("latent"):
             continue
         own = "" if np.isnan(r["bicubic_nodes_truth_m"]) else f"{r['bicubic_nodes_truth_m']:.3f}"
         lines.append(f"| {r['kind']} | {r['what']} | {r['bytes']:,} | {8 * r['bytes'] / n:.3f} | "
                      f"{r['rmse_m']:.3f} | {r['between_truth_m']:.3f} | {own} |")
     for kind, value in result["bd"].items():
-        lines.append(f"\nBD-rate latent vs {kind} (node RMSE {RMSE_RANGE[0]}-{RMSE_RANGE[1]} m): "
+        lines.append(f"\nBD-rate {kind} (node RMSE {RMSE_RANGE[0]}-{RMSE_RANGE[1]} m): "
                      f"{value:+.1f} %")
     return "\n".join(lines)
 
@@ -210,6 +219,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--levels", type=int, default=6)
     parser.add_argument("--hidden", type=int, default=0)
     parser.add_argument("--init_sweeps", type=int, default=12)
+    parser.add_argument("--starts", nargs="+", choices=["sweeps", "exact"], default=["exact"],
+                        help="latent starts to compare: pyramid sweeps only, or + exact nodes")
+    parser.add_argument("--between_weight", type=float, default=0.5)
     parser.add_argument("--psnr_levels", nargs="+", type=float,
                         default=[40, 45, 50, 55, 60, 65, 70, 75, 80, 85, 90])
     parser.add_argument("--bounds", nargs="+", type=float, default=[1, 2, 4, 8, 16])
@@ -228,7 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     print(f"# bench_latent_rd: torch {torch.__version__}, {torch.get_num_threads()} thread(s); "
           f"{args.steps} steps, levels {args.levels}, hidden {args.hidden}, init sweeps "
-          f"{args.init_sweeps}, lambdas {args.lambdas}")
+          f"{args.init_sweeps}, starts {args.starts}, between weight {args.between_weight}, "
+          f"lambdas {args.lambdas}")
     for name in args.tiles:
         print(format_tile(run_tile(name, args)), flush=True)
         print()

@@ -45,6 +45,9 @@ class LatentFitModule(pl.LightningModule):
         init_step: Initial quantisation step of every level, metres.
         ste_fraction: Final fraction of steps with straight-through rounding.
         seed: Seed of the MLP weights and between-node points.
+        exact_start: Start from latents that reproduce every node exactly
+            (:func:`~neuralmap.terrain.latent.latent_grid.exact_finest`); false keeps the
+            Laplacian-pyramid sweeps alone.
 
     Raises:
         NeuralMapError: ``rate_weight`` <= 0, or other out-of-range settings.
@@ -52,7 +55,8 @@ class LatentFitModule(pl.LightningModule):
 
     def __init__(self, levels: int = 6, hidden: int = 0, rate_weight: float = 3.0,
                  between_weight: float = 0.5, between_points: int = 8192, lr: float = 0.01,
-                 init_step: float = 1.0, ste_fraction: float = 0.2, seed: int = 0) -> None:
+                 init_step: float = 1.0, ste_fraction: float = 0.2, seed: int = 0,
+                 exact_start: bool = True) -> None:
         super().__init__()
         check_rate_weight(rate_weight)
         if not (math.isfinite(lr) and lr > 0):
@@ -72,7 +76,8 @@ class LatentFitModule(pl.LightningModule):
             torch.manual_seed(int(hp.seed))
             self.tile = tile
             self.grid = LatentGrid(tile, levels=hp.levels, hidden=hp.hidden,
-                                   init_step=hp.init_step, seed=hp.seed)
+                                   init_step=hp.init_step, seed=hp.seed,
+                                   exact_start=bool(hp.get("exact_start", True)))
             self.objective = RateDistortion(tile, rate_weight=hp.rate_weight,
                                             between_weight=hp.between_weight,
                                             between_points=hp.between_points)

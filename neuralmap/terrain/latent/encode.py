@@ -48,6 +48,7 @@ def fit_latent_map(
     ste_fraction: float = 0.2,
     init_sweeps: int = 12,
     seed: int = 0,
+    exact_start: bool = True,
 ) -> tuple[LatentTerrainMap, dict[str, Any]]:
     """Fits a latent-grid map to ``tile`` and returns it as its file stores it.
 
@@ -64,6 +65,7 @@ def fit_latent_map(
         ste_fraction: Final fraction of steps with straight-through rounding.
         init_sweeps: Correction sweeps of the Laplacian-pyramid start.
         seed: Seed of the MLP and of the between-node points.
+        exact_start: Start from latents that reproduce every node (:class:`LatentGrid`).
 
     Returns:
         ``(map, history)`` with the last step's loss terms in ``history``.
@@ -72,7 +74,7 @@ def fit_latent_map(
     objective = RateDistortion(tile, rate_weight=rate_weight, between_weight=between_weight,
                                between_points=between_points)
     grid = LatentGrid(tile, levels=levels, hidden=hidden, init_step=init_step,
-                      init_sweeps=init_sweeps, seed=seed)
+                      init_sweeps=init_sweeps, seed=seed, exact_start=exact_start)
     optimizer, scheduler = make_optimizer(grid, lr, steps)
     generator = torch.Generator().manual_seed(seed)
     terms = None

@@ -36,6 +36,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.previous_code import load_previous  # noqa: E402
 from neuralmap.ins.gnss import simulate_gnss  # noqa: E402
 from neuralmap.ins.imu_model import ImuErrorProcess, imu_grade  # noqa: E402
 from neuralmap.ins.kernels import HAVE_NUMBA  # noqa: E402
@@ -50,24 +51,8 @@ PREVIOUS = "ecdd133"
 
 def previous_driver() -> object:
     """``run_on_log`` of the record-by-record implementation (commit ecdd133), or None."""
-    import importlib.util
-    import subprocess
-    import tempfile
-
-    try:
-        source = subprocess.run(
-            ["git", "-C", str(REPO_ROOT), "show", f"{PREVIOUS}:neuralmap/ins/log_run.py"],
-            check=True, capture_output=True, text=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    path = Path(tempfile.mkdtemp()) / "log_run_per_record.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("log_run_per_record", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module.run_on_log
+    module = load_previous(PREVIOUS, "neuralmap/ins/log_run.py", "log_run_per_record")
+    return None if module is None else module.run_on_log
 
 
 def main(argv: list[str] | None = None) -> None:

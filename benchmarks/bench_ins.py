@@ -40,6 +40,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO_ROOT))
 
+from benchmarks.previous_code import load_previous  # noqa: E402
 from neuralmap.ins.earth import WGS84_A, WGS84_E2, WGS84_OMEGA  # noqa: E402
 from neuralmap.ins.error_model import process_noise_density  # noqa: E402
 from neuralmap.ins.gnss import simulate_gnss  # noqa: E402
@@ -236,24 +237,8 @@ class RecordedImu:
 
 def previous_filter() -> object:
     """``run_loosely_coupled`` of the per-sample implementation (commit c9af50c), or None."""
-    import importlib.util
-    import subprocess
-    import tempfile
-
-    try:
-        source = subprocess.run(
-            ["git", "-C", str(REPO_ROOT), "show", "c9af50c:neuralmap/ins/loosely_coupled.py"],
-            check=True, capture_output=True, text=True).stdout
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    path = Path(tempfile.mkdtemp()) / "loosely_coupled_per_sample.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("loosely_coupled_per_sample", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module.run_loosely_coupled
+    module = load_previous("c9af50c", "neuralmap/ins/loosely_coupled.py", "loosely_coupled_per_sample")
+    return None if module is None else module.run_loosely_coupled
 
 
 def _record_imu(n: int, traj, dt: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:  # type: ignore[no-untyped-def]

@@ -24,7 +24,8 @@ Usage:
     python benchmarks/bench_latent_rd.py                 # all three tiles
     python benchmarks/bench_latent_rd.py --quick         # smoke test
     python benchmarks/bench_latent_rd.py --tiles synthetic --steps 400
-    python benchmarks/bench_latent_rd.py --starts sweeps exact  # both latent starts
+    python benchmarks/bench_latent_rd.py --starts sweeps exact  # both pyramid starts
+    python benchmarks/bench_latent_rd.py --bases wavelet        # the wavelet basis only
 """
 
 from __future__ import annotations
@@ -159,14 +160,18 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
     rms = lambda a: float(np.sqrt(np.mean((a - truth) ** 2)))  # noqa: E731
     bicubic_dem = rms(bicubic_of(tile, tile.heights, xy))
     rows: list[dict[str, Any]] = []
-    latent_kinds = [f"latent ({start} start)" for start in args.starts]
-    for start, kind in zip(args.starts, latent_kinds, strict=True):
+    variants = [(basis, start) for basis in args.bases
+                for start in (args.starts if basis == "pyramid" else ["exact"])]
+    latent_kinds = [f"latent {basis} ({start} start)" for basis, start in variants]
+    for (basis, start), kind in zip(variants, latent_kinds, strict=True):
         for lam in args.lambdas:
             clock = time.perf_counter()
             latent_map, _ = fit_latent_map(
-                tile, rate_weight=lam, steps=args.steps, hidden=args.hidden, levels=args.levels,
+                tile, rate_weight=lam, steps=args.steps, hidden=args.hidden,
+                levels=args.wavelet_levels if basis == "wavelet" else args.levels,
                 init_sweeps=args.init_sweeps, exact_start=start == "exact",
-                between_weight=args.between_weight)
+                between_weight=args.between_weight, basis=basis, wavelet=args.wavelet,
+                init_step=args.init_step)
             nodes = latent_map.node_heights().numpy()
             with torch.no_grad():
                 own = latent_map(torch.from_numpy(xy).float()).double().numpy()
@@ -216,7 +221,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--tiles", nargs="+", default=["jacksboro", "topobathy", "synthetic"])
     parser.add_argument("--lambdas", nargs="+", type=float, default=[0.1, 0.5, 2.0, 8.0, 32.0])
     parser.add_argument("--steps", type=int, default=1500)
-    parser.add_argument("--levels", type=int, default=6)
+    parser.add_argument("--levels", type=int, default=6, help="pyramid levels")
+    parser.add_argument("--bases", nargs="+", choices=["wavelet", "pyramid"],
+                        default=["wavelet", "pyramid"], help="latent bases to compare")
+    parser.add_argument("--wavelet", default="cdf97", choices=["cdf97", "cdf53"])
+    parser.add_argument("--wavelet_levels", type=int, default=6)
+    parser.add_argument("--init_step", type=float, default=1.0)
     parser.add_argument("--hidden", type=int, default=0)
     parser.add_argument("--init_sweeps", type=int, default=12)
     parser.add_argument("--starts", nargs="+", choices=["sweeps", "exact"], default=["exact"],
@@ -239,9 +249,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     print(f"# bench_latent_rd: torch {torch.__version__}, {torch.get_num_threads()} thread(s); "
-          f"{args.steps} steps, levels {args.levels}, hidden {args.hidden}, init sweeps "
-          f"{args.init_sweeps}, starts {args.starts}, between weight {args.between_weight}, "
-          f"lambdas {args.lambdas}")
+          f"{args.steps} steps, bases {args.bases} (wavelet {args.wavelet}, "
+          f"{args.wavelet_levels} levels), pyramid levels {args.levels}, hidden {args.hidden}, "
+          f"init sweeps {args.init_sweeps}, starts {args.starts}, between weight "
+          f"{args.between_weight}, init step {args.init_step}, lambdas {args.lambdas}")
     for name in args.tiles:
         print(format_tile(run_tile(name, args)), flush=True)
         print()

@@ -10,6 +10,7 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.terrain.latent.basis import check_basis
 from neuralmap.terrain.latent.encode import make_optimizer, quantizer_at
 from neuralmap.terrain.latent.latent_grid import LatentGrid, export_map
 from neuralmap.terrain.latent.map import LatentTerrainMap
@@ -59,7 +60,7 @@ class LatentFitModule(pl.LightningModule):
     def __init__(self, levels: int = 6, hidden: int = 0, rate_weight: float = 3.0,
                  between_weight: float = 0.5, between_points: int = 8192, lr: float = 0.01,
                  init_step: float = 1.0, ste_fraction: float = 0.2, seed: int = 0,
-                 exact_start: bool = True, basis: str = "pyramid",
+                 exact_start: bool = True, basis: str = "wavelet",
                  wavelet: str = "cdf97") -> None:
         super().__init__()
         check_rate_weight(rate_weight)
@@ -67,6 +68,7 @@ class LatentFitModule(pl.LightningModule):
             raise NeuralMapError(f"model.lr must be finite and > 0, got {lr}.")
         if not 0.0 <= ste_fraction <= 1.0:
             raise NeuralMapError(f"model.ste_fraction must be in [0, 1], got {ste_fraction}.")
+        check_basis(basis, wavelet)
         self.save_hyperparameters()
         self.grid: LatentGrid | None = None
         self.objective: RateDistortion | None = None
@@ -82,7 +84,7 @@ class LatentFitModule(pl.LightningModule):
             self.grid = LatentGrid(tile, levels=hp.levels, hidden=hp.hidden,
                                    init_step=hp.init_step, seed=hp.seed,
                                    exact_start=bool(hp.get("exact_start", True)),
-                                   basis=str(hp.get("basis", "pyramid")),
+                                   basis=str(hp.get("basis", "wavelet")),
                                    wavelet=str(hp.get("wavelet", "cdf97")))
             self.objective = RateDistortion(tile, rate_weight=hp.rate_weight,
                                             between_weight=hp.between_weight,

@@ -35,7 +35,7 @@ def _tile(seed: int = 0) -> DemTile:
 def trained() -> tuple[DemTile, LatentGrid, LatentTerrainMap]:
     tile = _tile()
     torch.manual_seed(0)
-    grid = LatentGrid(tile, levels=4, hidden=4, init_step=0.2)
+    grid = LatentGrid(tile, levels=4, hidden=4, init_step=0.2, basis="pyramid")
     objective = RateDistortion(tile, rate_weight=0.05, between_points=256)
     opt = torch.optim.Adam(grid.parameters(), lr=0.02)
     for _ in range(40):
@@ -78,7 +78,7 @@ def _with_zero_latents(m: LatentTerrainMap) -> LatentTerrainMap:
     zeros = [np.zeros_like(s) for s in m.symbols]
     return LatentTerrainMap(zeros, m.steps, m.scales * 0 + 1e-3, m.synthesis_vector,
                             m.feature_scale, hidden=m.hidden, tile_info=m.tile_info,
-                            metrics=m.metrics)
+                            metrics=m.metrics, basis=m.basis)
 
 
 def test_truncated_and_corrupted_files_are_refused(trained, tmp_path: Path):

@@ -87,12 +87,11 @@ class LatentBasis:
         return out
 
 
-def make_basis(name: str, levels: int, shape: tuple[int, int], *, wavelet: str = "cdf97"
-               ) -> LatentBasis:
-    """A checked :class:`LatentBasis` for a ``(ny, nx)`` tile.
+def check_basis(name: str, wavelet: str = "cdf97") -> str:
+    """The basis name if known (and its wavelet, for the wavelet basis), else a clear error.
 
     Raises:
-        NeuralMapError: Unknown basis or wavelet name, or too many levels for the tile.
+        NeuralMapError: Unknown basis or wavelet name.
     """
     if name not in BASES:
         raise NeuralMapError(
@@ -100,6 +99,19 @@ def make_basis(name: str, levels: int, shape: tuple[int, int], *, wavelet: str =
             "'wavelet' (critically sampled CDF 9/7 subbands) or 'pyramid' (overcomplete "
             "B-spline levels)."
         )
+    if name == "wavelet":
+        check_wavelet(wavelet)
+    return name
+
+
+def make_basis(name: str, levels: int, shape: tuple[int, int], *, wavelet: str = "cdf97"
+               ) -> LatentBasis:
+    """A checked :class:`LatentBasis` for a ``(ny, nx)`` tile.
+
+    Raises:
+        NeuralMapError: Unknown basis or wavelet name, or too many levels for the tile.
+    """
+    check_basis(name, wavelet)
     ny, nx = shape
     if name == "pyramid":
         if not 1 <= int(levels) <= 12 or 2 ** (levels - 1) > max(ny, nx):
@@ -108,7 +120,6 @@ def make_basis(name: str, levels: int, shape: tuple[int, int], *, wavelet: str =
                 f"side ({max(ny, nx)} nodes), got {levels}."
             )
     else:
-        check_wavelet(wavelet)
         check_levels((ny + 2, nx + 2), int(levels))
     return LatentBasis(name, int(levels), wavelet)
 

@@ -49,7 +49,7 @@ def fit_latent_map(
     init_sweeps: int = 12,
     seed: int = 0,
     exact_start: bool = True,
-    basis: str = "pyramid",
+    basis: str = "wavelet",
     wavelet: str = "cdf97",
 ) -> tuple[LatentTerrainMap, dict[str, Any]]:
     """Fits a latent-grid map to ``tile`` and returns it as its file stores it.

@@ -145,7 +145,7 @@ class LatentGrid(nn.Module):
 
     def __init__(self, tile: DemTile, *, levels: int = 6, hidden: int = 0,
                  init_step: float = 1.0, init_sweeps: int = 12, seed: int = 0,
-                 exact_start: bool = True, basis: str = "pyramid",
+                 exact_start: bool = True, basis: str = "wavelet",
                  wavelet: str = "cdf97") -> None:
         super().__init__()
         ny, nx = tile.shape

@@ -130,3 +130,23 @@ def test_linear_synthesis_map_round_trips_and_matches_direct_decode(tmp_path: Pa
     xy = torch.from_numpy(tile.node_xy().reshape(-1, 2)).float()
     torch.testing.assert_close(loaded(xy).double().view(tile.shape), loaded.node_heights(),
                                atol=2e-3, rtol=0)
+
+
+def test_format_1_file_reads_as_the_pyramid(trained, tmp_path: Path):
+    """A format-1 file (uncompressed JSON header, no basis key) still loads as the pyramid."""
+    import json
+    import struct
+    import zlib
+
+    _, _, m = trained
+    data = encode_latent_map(m)
+    (length,) = struct.unpack("<I", data[10:14])
+    header = json.loads(zlib.decompress(data[14 : 14 + length]))
+    assert header.pop("basis") == "pyramid"
+    raw = json.dumps(header).encode()
+    body = MAGIC + struct.pack("<HI", 1, len(raw)) + raw + data[14 + length : -4]
+    path = tmp_path / "v1.nlat"
+    path.write_bytes(body + struct.pack("<I", zlib.crc32(body)))
+    loaded = load_map(path)
+    assert loaded.basis.name == "pyramid"
+    torch.testing.assert_close(loaded.coeffs, m.coeffs, rtol=0, atol=0)

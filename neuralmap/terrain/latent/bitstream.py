@@ -6,7 +6,7 @@ Layout (all integers little-endian; sizes in bytes)::
     0       8      magic b"NMLATENT"
     8       2      format version (uint16), currently 2
     10      4      header length J (uint32)
-    14      J      header, UTF-8 JSON: {"tile_info": DemTile.describe(), "levels": L,
+    14      J      header, zlib-compressed UTF-8 JSON (format 1: uncompressed): {"tile_info": DemTile.describe(), "levels": L,
                    "hidden": H, "basis": "pyramid" | "wavelet", "wavelet": "cdf97",
                    "ranges": [[min, max] per latent array], "metrics": {...}}
     ..      8 S    float32 quantisation steps Delta_b, Laplace scales b_b (S latent arrays)
@@ -68,7 +68,8 @@ def encode_latent_map(latent_map: LatentTerrainMap) -> bytes:
         "ranges": ranges,
         "metrics": latent_map.metrics,
     }
-    header_bytes = json.dumps(header, separators=(",", ":"), allow_nan=False).encode()
+    header_bytes = zlib.compress(
+        json.dumps(header, separators=(",", ":"), allow_nan=False).encode(), 9)
     synth = latent_map.synthesis_vector
     channels = latent_map.basis.channels
     linear = synth[: channels + 1]
@@ -132,7 +133,8 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
         )
     try:
         pos = _FIXED
-        header: dict[str, Any] = json.loads(body[pos : pos + header_len].decode())
+        raw = body[pos : pos + header_len]
+        header: dict[str, Any] = json.loads((zlib.decompress(raw) if version >= 2 else raw).decode())
         pos += header_len
         hidden = int(header["hidden"])
         info = header["tile_info"]
@@ -158,7 +160,7 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
     except NeuralMapError:
         raise
     except (KeyError, TypeError, ValueError, IndexError, struct.error,
-            UnicodeDecodeError) as exc:
+            UnicodeDecodeError, zlib.error) as exc:
         raise _damaged(where, f"{type(exc).__name__}: {exc}") from None
     return LatentTerrainMap(
         symbols, steps, scales, np.concatenate([linear, mlp]), feature_scale,

@@ -1,8 +1,9 @@
 """The trainable latent grid: continuous latents, learned quantisation, rate and distortion.
 
 Cool-chic-style training state of a latent-grid map (Ladune et al. 2023; C3, Kim et al.
-2024): per level ``l`` continuous latents ``z_l`` (metres), a learned quantisation step
-``Delta_l`` and a Laplace scale ``b_l`` of the factorized entropy model, plus the
+2024): per latent array ``l`` (a pyramid level or a wavelet subband, :mod:`.basis`)
+continuous latents ``z_l`` (metres), a learned quantisation step ``Delta_l`` and a Laplace
+scale ``b_l`` of the factorized entropy model, plus the
 :class:`~neuralmap.terrain.latent.synthesis.Synthesis`. The stored latents are the symbols
 ``q_l = round(z_l / Delta_l)`` and the decoded latents ``q_l Delta_l``. During training the
 rounding is relaxed, either by additive noise ``z / Delta + u``, ``u ~ U(-1/2, 1/2)``, or by
@@ -116,14 +117,17 @@ def node_gains(basis: LatentBasis, shape: tuple[int, int]) -> torch.Tensor:
 
 
 class LatentGrid(nn.Module):
-    """Trainable latent pyramid + entropy model + synthesis for one tile.
+    """Trainable latents (wavelet subbands or pyramid levels) + entropy model + synthesis.
 
     Args:
         tile: The DEM tile (voids are filled nearest for the start and masked in the loss).
-        levels: Latent levels ``L`` (knot spacing ``2^l`` nodes).
+        levels: Wavelet levels ``J`` (``3 J + 1`` subbands) or pyramid levels ``L`` (knot
+            spacing ``2^l`` nodes).
         hidden: MLP hidden units (0 = linear synthesis only).
-        init_step: Initial quantisation step ``Delta_l`` of every level, metres.
-        init_sweeps: Correction sweeps per level of the Laplacian-pyramid start (12 brings
+        init_step: Initial quantisation step, metres: every pyramid level's, or the node
+            error scale of the wavelet subbands' steps ``init_step / sqrt(G_b)``
+            (:func:`node_gains`).
+        init_sweeps: Pyramid basis: correction sweeps per level of the Laplacian-pyramid start (12 brings
             the start to 0.07 m node RMSE on jacksboro, 3.9 m on topobathy; 2 left 1.1 m
             and 41 m, which 1000 Adam steps did not recover on topobathy).
         seed: Seed of the MLP's initial weights.

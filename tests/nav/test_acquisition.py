@@ -21,14 +21,14 @@ from neuralmap.nav.acquisition import (
     run_acquisition,
     tan_inputs,
 )
-from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.nav.scenario import scenario_tile
 from neuralmap.nav.simulator import simulate
 from neuralmap.terrain.grid import GridTerrain
 
 
 @pytest.fixture(scope="module")
-def tiny():
-    scenario = load_scenario("tiny")
+def tiny(tiny_scenario):
+    scenario = tiny_scenario
     sig = 120.0
     scenario = dataclasses.replace(
         scenario, init_pos_sigma_m=sig, start_xy=[900.0, 900.0], start_spread_m=50.0,
@@ -102,11 +102,11 @@ def test_point_mass_hands_off_and_falls_back(tiny) -> None:
 
 
 @pytest.fixture(scope="module")
-def tilted_plane():
+def tilted_plane(tiny_scenario):
     """The tiny scenario over a tilted plane with the DEM as truth: the radar measurement
     is linear in the position, so the Bayes posterior is Gaussian and the EKF with the
     bilinear linearizer (exact on a plane) is the Kalman filter, the reference."""
-    scenario = load_scenario("tiny")
+    scenario = tiny_scenario
     sig = 60.0
     scenario = dataclasses.replace(
         scenario, truth_model="dem", init_pos_sigma_m=sig, start_xy=[900.0, 900.0],

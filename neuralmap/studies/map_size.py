@@ -230,12 +230,6 @@ class MapEntry:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def find_neural_maps(runs_dir: str, tile_fingerprint: str) -> list[Path]:
-    """Newest map file (blockwise or latent-grid) of the tile in every experiment folder of
-    ``runs_dir`` (the one map discovery: :func:`neuralmap.studies.maps.find_tile_maps`)."""
-    return find_tile_maps(runs_dir, tile_fingerprint)
-
-
 def build_grid_maps(tile: Any, config: MapSizeStudyConfig) -> list[MapEntry]:
     """The raw float32 grid and every codec × max error × decimation of the config."""
     raw = GridTerrain(tile, method="bicubic")
@@ -493,7 +487,7 @@ def run(config: MapSizeStudyConfig, outputs: StudyOutputs) -> None:
     scenario, tile, seed, truth_terrain = (setup.scenario, setup.tile, setup.seed,
                                            setup.truth_terrain)
     if config.neural_maps is None:
-        paths = find_neural_maps(config.runs_dir, tile.fingerprint())
+        paths = find_tile_maps(config.runs_dir, tile.fingerprint())
     else:
         paths = [Path(p) for p in config.neural_maps]
     config.neural_maps = [str(p) for p in paths]

@@ -146,9 +146,6 @@ def test_single_component_bank_is_the_kalman_filter(tilted_plane) -> None:
     torch.testing.assert_close(res.run.P, kalman.run.P, atol=1e-9, rtol=0)
 
 
-@pytest.mark.xfail(strict=True, reason="the EKF bank's lattice prior does not match P0: its "
-                   "mixture variance at step 0 is 9917 m^2 against the prior's 3600 m^2 "
-                   "(bank_per_axis=3, sigma0 = 60 m)")
 def test_bank_mixture_starts_at_the_prior(tilted_plane) -> None:
     """The Gaussian-sum prior's moments are the prior's (mean and covariance)."""
     inputs, grid, lin, cfg, kalman = tilted_plane

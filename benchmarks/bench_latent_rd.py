@@ -15,8 +15,8 @@ Each stream is charged :data:`neuralmap.terrain.codecs.HEADER_BYTES`. Distortion
 RMSE at the tile's nodes; the BD-rate (Bjøntegaard) of the latent map against each JPEG
 2000 curve is the mean log-rate difference at equal log-RMSE over the overlap of the
 curves within 0.5-5 m (cubic fits; fewer points, lower degree). Both are also set against
-the Gaussian rate-distortion bound of the tile's radially averaged spectrum (reverse
-water-filling, :func:`gaussian_rd`): how much room a transform coder has left. Between the nodes, every
+the Gaussian rate-distortion bound of the tile's smoothed spectrum (reverse water-filling,
+:func:`gaussian_rd`): how much room a linear transform coder has left. Between the nodes, every
 map is compared with the subgrid truth terrain (:func:`neuralmap.nav.truth_terrain.true_terrain`,
 bicubic DEM on a 4x finer grid plus fractal detail continuing the tile's spectrum) at
 random points: the latent map itself, bicubic of the DEM, and bicubic of the latent map's
@@ -134,44 +134,26 @@ def bd_rate(test: list[tuple[float, float]], ref: list[tuple[float, float]],
 
 
 def gaussian_rd(tile: DemTile, rmses: list[float]) -> list[dict[str, Any]]:
-    """Gaussian rate-distortion bound of the tile at node RMSEs (reverse water-filling).
+    """Gaussian rate-distortion bound of the tile at node RMSEs
+    (:func:`neuralmap.studies.rate_distortion.gaussian_rd_bytes`: reverse water-filling on
+    the tile's smoothed log-frequency x orientation DCT spectrum).
 
-    The heights (voids filled, mean removed) are mirror-extended to ``(2 ny, 2 nx)`` (no
-    border jump), their periodogram is averaged over rings of equal physical frequency
-    (cycles per metre; an isotropic stationary model of the tile) and the Gaussian
-    process with that spectrum ``S(f)`` gives, for a water level ``theta``,
-    ``D = mean_f min(theta, S(f))`` and ``R = mean_f max(0, 1/2 log2(S(f) / theta))`` bits
-    per node (Cover & Thomas 2006, eq. 10.65). It is the least rate of a coder that
-    knows only this spectrum (a stationary, isotropic Gaussian model: the limit of a
-    linear transform coder with one fixed distribution per frequency band; entropy-coded
-    scalar quantisation stays about 0.25 bit per significant coefficient above it at high
-    rate). It is not a bound for the tile itself: the Gaussian is the hardest source of a
-    given spectrum, so a coder that exploits non-stationarity or sparsity (flat sea, local
-    roughness, anisotropy) can go below it.
+    It is the least rate of a coder that knows only this spectrum (a stationary Gaussian
+    model: the limit of a linear transform coder with one fixed distribution per frequency
+    band). It is not a bound for the tile itself: the Gaussian is the hardest source of a
+    given spectrum, so a coder that exploits non-stationarity or sparsity (a flat sea, local
+    roughness) can go below it.
     """
+    from neuralmap.studies.rate_distortion import gaussian_rd_bytes
     from neuralmap.terrain.grid import fill_voids_nearest
 
-    h = fill_voids_nearest(tile.heights, tile.spacing)
-    h = h - h.mean()
-    ext = np.block([[h, h[:, ::-1]], [h[::-1], h[::-1, ::-1]]])
-    power = np.abs(np.fft.fft2(ext)) ** 2 / ext.size
-    fy = np.fft.fftfreq(ext.shape[0], d=tile.spacing[1])
-    fx = np.fft.fftfreq(ext.shape[1], d=tile.spacing[0])
-    radius = np.hypot(*np.meshgrid(fy, fx, indexing="ij"))
-    ring = np.digitize(radius, np.linspace(0.0, radius.max() * (1 + 1e-9), 256))
-    sums = np.bincount(ring.ravel(), power.ravel())
-    counts = np.bincount(ring.ravel())
-    spectrum = (sums / np.maximum(counts, 1))[ring]
+    heights = fill_voids_nearest(tile.heights, tile.spacing)
     n_nodes = int(tile.valid_mask.sum())
     out = []
     for rmse in rmses:
-        lo, hi = 1e-12, float(spectrum.max())
-        for _ in range(200):  # bisection on log(theta)
-            theta = np.sqrt(lo * hi)
-            lo, hi = (theta, hi) if np.minimum(theta, spectrum).mean() < rmse**2 else (lo, theta)
-        bits = 0.5 * np.log2(np.maximum(spectrum / theta, 1.0)).mean()
-        out.append({"bytes": bits * n_nodes / 8.0, "rmse_m": float(rmse),
-                    "what": f"RMSE {rmse:g} m, {bits:.3f} bit/node"})
+        nbytes = gaussian_rd_bytes(heights, float(rmse))
+        out.append({"bytes": nbytes, "rmse_m": float(rmse),
+                    "what": f"RMSE {rmse:g} m, {8 * nbytes / n_nodes:.3f} bit/node"})
     return out
 
 
@@ -232,7 +214,7 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
             rows.append({"kind": kind, "what": r["what"], "bytes": r["bytes"], "rmse_m": r["rmse_m"],
                          "between_truth_m": rms(bicubic_of(tile, r["decoded"], xy)),
                          "bicubic_nodes_truth_m": float("nan"), "fit_s": float("nan")})
-    bound_kind = "Gaussian R(D) bound (radial spectrum)"
+    bound_kind = "Gaussian R(D) bound (smoothed spectrum)"
     for r in gaussian_rd(tile, [0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 7.0]):
         rows.append({"kind": bound_kind, "what": r["what"], "bytes": round(r["bytes"]),
                      "rmse_m": r["rmse_m"], "between_truth_m": float("nan"),

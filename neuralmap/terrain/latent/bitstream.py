@@ -61,7 +61,8 @@ def encode_latent_map(latent_map: LatentTerrainMap) -> bytes:
     levels, hidden = latent_map.levels, latent_map.hidden
     ranges = [list(symbol_range(s)) for s in latent_map.symbols]
     header = {
-        "tile_info": latent_map.tile_info,
+        # unset fields (None) are left out: every reader takes them with .get
+        "tile_info": {k: v for k, v in latent_map.tile_info.items() if v is not None},
         "levels": levels,
         "hidden": hidden,
         **latent_map.basis.describe(),

@@ -45,6 +45,9 @@ from neuralmap.viz.tensorboard_nav import log_navigation
 
 __all__ = ["DEFAULT_METHODS", "TanStudyConfig", "run"]
 
+#: How the EKF methods' R is built (``--noise``).
+NOISE_MODES = ("measured", "scenario")
+
 _FIGURES = {
     "error_vs_time": "Horizontal position RMSE vs time, with the PCRB",
     "trajectories": "Trajectories over the tile (truth and estimates)",
@@ -62,12 +65,21 @@ class TanStudyConfig(TanOptions):
         methods: The shared linearisation methods plus ``point_mass_tracker`` (the point-mass
             tracker on the bilinear DEM for the whole flight, :mod:`neuralmap.nav.tracking`).
         tracker_cells: Lattice cells per axis of ``point_mass_tracker`` (cell = σ/3.1).
+        noise: R of the EKF methods: ``"measured"`` = the altimeter variance + each method's
+            miss against the truth terrain as a function of the position σ, measured over the
+            map and on pilot flights (:mod:`neuralmap.nav.noise_calibration`); ``"scenario"``
+            = the scenario's ``R_m2 + fit_variance_m2`` + each method's own variance.
+        noise_pilot_runs: Pilot runs of the in-flight measurement (0 = the map table only).
+        noise_iterations: Pilot flights (fixed-point iterations).
     """
 
     experiment: str = "evaluate"
     n_plot_trajectories: int = 5
     methods: list[str] = field(default_factory=lambda: [*DEFAULT_METHODS, TRACKER_METHOD])
     tracker_cells: int = 32
+    noise: str = "measured"
+    noise_pilot_runs: int = 300
+    noise_iterations: int = 2
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
@@ -85,6 +97,12 @@ class TanStudyConfig(TanOptions):
                 self.tracker_cells < 8):
             raise NeuralMapError(f"--tracker_cells must be an integer >= 8, got "
                                  f"{self.tracker_cells!r}.")
+        if self.noise not in NOISE_MODES:
+            raise NeuralMapError(f"--noise must be one of {', '.join(NOISE_MODES)}, got "
+                                 f"{self.noise!r}.")
+        if self.noise_pilot_runs < 0 or self.noise_iterations < 1:
+            raise NeuralMapError(f"--noise_pilot_runs must be >= 0 and --noise_iterations >= 1, "
+                                 f"got {self.noise_pilot_runs} and {self.noise_iterations}.")
         if self.n_plot_trajectories < 0:
             raise NeuralMapError(
                 f"--n_plot_trajectories must be >= 0, got {self.n_plot_trajectories}."
@@ -170,10 +188,26 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         flush=True,
     )
     timing["setup"] = time.perf_counter() - started
+    noise_info: dict[str, Any] = {"rule": "scenario R_m2 + fit_variance_m2 + the method's own "
+                                          "variance"}
+    filter_scenario = scenario
+    if methods and config.noise == "measured":
+        from neuralmap.nav.noise_calibration import derive_method_noise
+
+        tick = time.perf_counter()
+        methods, filter_scenario, noise_info = derive_method_noise(
+            methods, scenario=scenario, tile=tile, truth_terrain=truth_terrain, seed=seed,
+            n_pilot=config.noise_pilot_runs, iterations=config.noise_iterations)
+        timing["noise"] = time.perf_counter() - tick
+        print(f"R: measured per method ({config.noise_pilot_runs} pilot runs, "
+              f"{timing['noise']:.1f} s): " + "; ".join(
+                  f"{m} {v['R_m2'][_node(v, 20.0)]:.0f} m² at 20 m, "
+                  f"{v['R_m2'][_node(v, 100.0)]:.0f} at 100 m"
+                  for m, v in noise_info["methods"].items()), flush=True)
 
     if methods:
         truth, runs = run_monte_carlo(
-            scenario, methods, n_runs=config.n_runs, seed=seed, progress=config.progress,
+            filter_scenario, methods, n_runs=config.n_runs, seed=seed, progress=config.progress,
             device=device, dtype=dtype, tile=tile, truth_terrain=truth_terrain,
         )
     else:
@@ -235,6 +269,7 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     _add_map_aware_bound(results, pcrb_map_pos, dem_bound)
     if tracker_info:
         results["tracker"] = tracker_info
+    results["noise"] = {"mode": config.noise, **noise_info}
     claims = check_claims(results) + _tracker_claims(results)
     print()
     print(format_table(results))
@@ -258,6 +293,11 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     write_trajectories(outputs.dir, tile, truth.t.cpu().numpy(),
                        {name: v.detach().cpu().numpy() for name, v in tracks.items()})
     outputs.results.update(results)
+
+
+def _node(table: dict[str, Any], sigma: float) -> int:
+    """Index of the table node nearest ``sigma``."""
+    return int(np.argmin(np.abs(np.asarray(table["sigmas_m"]) - sigma)))
 
 
 def _dem_map_error(scenario: Any, tile: Any, truth_terrain: Any, config: Any) -> dict[str, Any]:

@@ -35,6 +35,7 @@ from neuralmap.linearize.checks import check_points
 
 __all__ = [
     "DEFAULT_NOISE_SIGMAS_M",
+    "fit_offset_scale",
     "MeasuredNoiseLinearizer",
     "NoiseTable",
     "interpolate_table",
@@ -56,9 +57,12 @@ class NoiseTable:
         map_mse_m2: ``(K,)`` ``E[e²]`` over the map with ``d ~ N(0, σ² I)`` (map error +
             linearisation error), m².
         map_mean_m: ``(K,)`` ``E[e]`` over the map, m.
-        variance_m2: ``(K,)`` the R term the filter gets, m²: ``map_mse_m2``, or the
-            in-flight value where ``flight_samples`` is large enough
+        variance_m2: ``(K,)`` offset ``a(σ)`` of the R term the filter gets, m²:
+            ``map_mse_m2``, or the in-flight value where ``flight_samples`` is large enough
             (:func:`neuralmap.nav.noise_calibration.calibrate_noise`).
+        scale: ``(K,)`` weight ``b(σ)`` of the method's own variance ``u`` (its local
+            roughness measure: cell twist, plane-fit residual, region miss): the R term is
+            ``a(σ) + b(σ) u``, fitted by least squares of ``e²`` on ``u`` (zeros: ``a`` alone).
         flight_samples: ``(K,)`` weight of the pilot-flight samples behind each node (0 =
             the map value is used).
         n_points: Map points of the measurement.
@@ -74,13 +78,18 @@ class NoiseTable:
     n_points: int
     draws: int
     seed: int
+    scale: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        if not self.scale:
+            object.__setattr__(self, "scale", (0.0,) * len(self.sigmas_m))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON form for results.json."""
         return {"sigmas_m": list(self.sigmas_m), "map_mse_m2": list(self.map_mse_m2),
                 "map_mean_m": list(self.map_mean_m), "variance_m2": list(self.variance_m2),
                 "flight_samples": list(self.flight_samples), "n_points": self.n_points,
-                "draws": self.draws, "seed": self.seed}
+                "draws": self.draws, "seed": self.seed, "scale": list(self.scale)}
 
 
 def interpolate_table(sigmas: torch.Tensor, values: torch.Tensor, sigma: torch.Tensor
@@ -120,9 +129,36 @@ def _uniform_points(extent: tuple[float, float, float, float], margin: float, n:
                         ymin + margin + u[:, 1] * (ymax - ymin - 2 * margin)], dim=-1)
 
 
+def fit_offset_scale(e2: torch.Tensor, u: torch.Tensor, w: torch.Tensor | None = None
+                     ) -> tuple[float, float]:
+    """Weighted least squares ``e² ≈ a + b u`` with ``a, b >= 0`` and the mean kept.
+
+    ``b = max(cov(e², u) / var(u), 0)`` (0 when ``u`` has no spread), ``a = mean(e²) − b
+    mean(u)``; when that is negative, ``a = 0`` and ``b = mean(e²) / mean(u)``. Either way
+    ``a + b mean(u) = mean(e²)``.
+
+    Returns:
+        ``(a, b)``.
+    """
+    e2, u = e2.double(), u.double()
+    w = torch.ones_like(e2) if w is None else w.double()
+    total = float(w.sum())
+    if not total > 0:
+        return 0.0, 0.0
+    mean_e, mean_u = float((w * e2).sum()) / total, float((w * u).sum()) / total
+    var_u = float((w * (u - mean_u).square()).sum()) / total
+    cov = float((w * (u - mean_u) * (e2 - mean_e)).sum()) / total
+    b = max(cov / var_u, 0.0) if var_u > 1e-12 * max(mean_u * mean_u, 1e-300) else 0.0
+    a = mean_e - b * mean_u
+    if a < 0.0:
+        a, b = 0.0, (mean_e / mean_u if mean_u > 0 else 0.0)
+    return a, b
+
+
 def _miss(linearizer: Linearizer, truth: Any, p: torch.Tensor, sigma: float,
-          d: torch.Tensor) -> torch.Tensor:
-    """``(M, J)`` miss ``t(p + d) − h(p) − slope(p) · d`` with the method run at ``σ² I``."""
+          d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(M, J)`` miss ``t(p + d) − h(p) − slope(p) · d`` with the method run at ``σ² I``,
+    and ``(M,)`` the method's own variance there."""
     m = p.shape[0]
     cov = torch.eye(2, dtype=p.dtype).expand(m, 2, 2) * (sigma * sigma)
     lin = linearizer(p, cov)
@@ -130,7 +166,8 @@ def _miss(linearizer: Linearizer, truth: Any, p: torch.Tensor, sigma: float,
     slope = lin.slope.detach().double()
     with torch.no_grad():
         t = truth((p.unsqueeze(1) + d).reshape(-1, 2)).double().reshape(d.shape[:2])
-    return t - height.unsqueeze(1) - (slope.unsqueeze(1) * d).sum(-1)
+    miss = t - height.unsqueeze(1) - (slope.unsqueeze(1) * d).sum(-1)
+    return miss, lin.variance.detach().double()
 
 
 def measure_linearization_noise(
@@ -142,6 +179,7 @@ def measure_linearization_noise(
     n_points: int = 4000,
     draws: int = 8,
     seed: int = 0,
+    local: bool = False,
 ) -> NoiseTable:
     """Measures a method's miss ``e = t(p̂ + d) − h(p̂) − slope(p̂) · d`` against the truth.
 
@@ -158,9 +196,12 @@ def measure_linearization_noise(
         n_points: Points ``p̂`` (>= 100).
         draws: Draws of ``d`` per point (>= 1).
         seed: Seed of points and draws.
+        local: Fit ``e² ≈ a + b u`` on the method's own variance ``u``
+            (:func:`fit_offset_scale`, per point ``e²`` averaged over the draws); False:
+            ``a = E[e²]``, ``b = 0``.
 
     Returns:
-        :class:`NoiseTable` with ``variance_m2 = map_mse_m2``.
+        :class:`NoiseTable` (``variance_m2`` = ``a``, ``scale`` = ``b``).
 
     Raises:
         NeuralMapError: Bad sigmas, counts or an extent too small for them.
@@ -180,21 +221,27 @@ def measure_linearization_noise(
     z = torch.randn(n_points, draws, 2, generator=gen, dtype=torch.float64)
     param = next(iter(linearizer.parameters()), None)
     dtype = param.dtype if param is not None else torch.float64
-    mse, mean = [], []
+    mse, mean, offset, scale = [], [], [], []
     for s in sig:
-        e = _miss(linearizer, truth, p.to(dtype), s, (z * s).to(dtype)).double()
-        e = e[torch.isfinite(e)]
+        e, u = _miss(linearizer, truth, p.to(dtype), s, (z * s).to(dtype))
+        ok = torch.isfinite(e).all(dim=1) & torch.isfinite(u)
+        e, u = e[ok].double(), u[ok]
         mse.append(float(e.square().mean()) if e.numel() else 0.0)
         mean.append(float(e.mean()) if e.numel() else 0.0)
-    return NoiseTable(tuple(sig), tuple(mse), tuple(mean), tuple(mse), (0.0,) * len(sig),
-                      int(n_points), int(draws), int(seed))
+        a, b = fit_offset_scale(e.square().mean(dim=1), u) if local and e.numel() else (
+            mse[-1], 0.0)
+        offset.append(a)
+        scale.append(b)
+    return NoiseTable(tuple(sig), tuple(mse), tuple(mean), tuple(offset), (0.0,) * len(sig),
+                      int(n_points), int(draws), int(seed), tuple(scale))
 
 
 class MeasuredNoiseLinearizer(Linearizer):
     """A method whose variance is its measured noise table at the filter's position σ.
 
     Height and slope are the wrapped method's; the variance is
-    ``table.variance_m2(σ)`` with ``σ = sqrt(tr(pos_cov) / 2)`` (the mean per-axis
+    ``a(σ) + b(σ) u`` (``a = table.variance_m2``, ``b = table.scale``, ``u`` the wrapped
+    method's own variance at the point; ``b = 0`` unless the table was fitted ``local``) with ``σ = sqrt(tr(pos_cov) / 2)`` (the mean per-axis
     variance of the horizontal covariance), piecewise linear in σ and constant beyond the
     table (:func:`interpolate_table`); without ``pos_cov`` the σ = 0 value (the map error).
     It replaces the method's own variance (which the table already contains, measured).
@@ -206,6 +253,7 @@ class MeasuredNoiseLinearizer(Linearizer):
 
     table_sigmas: torch.Tensor
     table_variance: torch.Tensor
+    table_scale: torch.Tensor
 
     def __init__(self, inner: Linearizer, table: NoiseTable) -> None:
         super().__init__()
@@ -219,6 +267,9 @@ class MeasuredNoiseLinearizer(Linearizer):
         self.register_buffer("table_variance",
                              torch.tensor(table.variance_m2, dtype=torch.float64),
                              persistent=False)
+        self.register_buffer("table_scale", torch.tensor(table.scale, dtype=torch.float64),
+                             persistent=False)
+        self.local = any(b != 0.0 for b in table.scale)
 
     def __getattr__(self, name: str) -> Any:
         """The wrapped method's attributes (``terrain``, ``grid``, ``extent``...)."""
@@ -244,9 +295,12 @@ class MeasuredNoiseLinearizer(Linearizer):
         sigmas = self.table_sigmas.to(dtype)
         values = self.table_variance.to(dtype)
         if pos_cov is None:
-            variance = values[0].expand_as(lin.height).clone()
+            sigma = torch.zeros_like(lin.height.detach())
         else:
             trace = pos_cov[:, 0, 0] + pos_cov[:, 1, 1]
             sigma = (0.5 * trace.detach().to(dtype)).clamp(min=0.0).sqrt()
-            variance = interpolate_table(sigmas, values, sigma)
+        variance = interpolate_table(sigmas, values, sigma)
+        if self.local:
+            own = lin.variance.detach().to(dtype)
+            variance = variance + interpolate_table(sigmas, self.table_scale.to(dtype), sigma) * own
         return Linearization(lin.height, lin.slope, variance)

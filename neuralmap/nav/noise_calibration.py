@@ -28,6 +28,7 @@ from neuralmap.linearize.measured_noise import (
     DEFAULT_NOISE_SIGMAS_M,
     MeasuredNoiseLinearizer,
     NoiseTable,
+    fit_offset_scale,
     measure_linearization_noise,
 )
 
@@ -36,7 +37,7 @@ __all__ = ["binned_mean_square", "calibrate_noise", "derive_method_noise", "flig
 
 
 def flight_miss(run: Any, truth: Any, linearizer: Any, model: Any, truth_model: Any
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The miss met in flight at every updated step of a filter run.
 
     The prior estimate of step k is ``x̂⁻_k = Φ x̂_{k−1}`` with ``x̂ = δX − err`` (output
@@ -51,8 +52,8 @@ def flight_miss(run: Any, truth: Any, linearizer: Any, model: Any, truth_model: 
         truth_model: The true terrain (float64).
 
     Returns:
-        ``(sigma (M,), miss (M,))`` over the updated steps of runs whose truth stayed on
-        the map, float64.
+        ``(sigma (M,), miss (M,), own variance (M,))`` over the updated steps of runs whose
+        truth stayed on the map, float64 (``own``: the method's own variance there).
     """
     dtype = run.err.dtype
     F = model.transition(dtype=dtype, device=run.err.device)
@@ -69,8 +70,25 @@ def flight_miss(run: Any, truth: Any, linearizer: Any, model: Any, truth_model: 
         miss = (truth_model(p.double()).double() - lin.height.detach().double()
                 - (lin.slope.detach().double() * (p - p_hat).double()).sum(-1))
     sigma = (0.5 * (cov[:, 0, 0] + cov[:, 1, 1])).double().clamp(min=0.0).sqrt()
-    ok = torch.isfinite(miss) & torch.isfinite(sigma)
-    return sigma[ok], miss[ok]
+    own = lin.variance.detach().double()
+    ok = torch.isfinite(miss) & torch.isfinite(sigma) & torch.isfinite(own)
+    return sigma[ok], miss[ok], own[ok]
+
+
+def tent_weights(sigma: torch.Tensor, nodes: tuple[float, ...]) -> torch.Tensor:
+    """``(K, M)`` tent weights of samples at ``sigma`` on the nodes (columns sum to 1)."""
+    s = torch.tensor(nodes, dtype=torch.float64)
+    sig = sigma.double().clamp(min=float(s[0]), max=float(s[-1]))
+    k = len(nodes)
+    out = torch.zeros(k, sig.numel(), dtype=torch.float64)
+    if k == 1:
+        return out + 1.0
+    idx = torch.bucketize(sig, s).clamp(1, k - 1)
+    w = (sig - s[idx - 1]) / (s[idx] - s[idx - 1])
+    cols = torch.arange(sig.numel())
+    out[idx - 1, cols] += 1.0 - w
+    out[idx, cols] += w
+    return out
 
 
 def binned_mean_square(sigma: torch.Tensor, value: torch.Tensor, nodes: tuple[float, ...]
@@ -123,7 +141,7 @@ def isotonic_increasing(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 def calibrate_noise(linearizer: Any, table: NoiseTable, *, pilot: Any, scenario: Any,
                     model: Any, truth_model: Any, iterations: int = 2,
-                    min_weight: float = 200.0) -> NoiseTable:
+                    min_weight: float = 200.0, local: bool = False) -> NoiseTable:
     """Replaces a table's ``variance_m2`` by the miss met on pilot flights.
 
     Each iteration flies the EKF (``run_filter``) on ``pilot`` with the current table,
@@ -140,6 +158,8 @@ def calibrate_noise(linearizer: Any, table: NoiseTable, *, pilot: Any, scenario:
         truth_model: The true terrain.
         iterations: Pilot flights (>= 1).
         min_weight: Pilot weight a node needs to use the flight value.
+        local: Fit ``e² ≈ a + b u`` per node on the method's own variance ``u``
+            (:func:`~neuralmap.linearize.measured_noise.fit_offset_scale`, tent weights).
 
     Returns:
         The table with ``variance_m2`` and ``flight_samples`` from the last iteration.
@@ -153,12 +173,20 @@ def calibrate_noise(linearizer: Any, table: NoiseTable, *, pilot: Any, scenario:
     for _ in range(iterations):
         run = run_filter(pilot, MeasuredNoiseLinearizer(linearizer, current), scenario,
                          model=model)
-        sigma, miss = flight_miss(run, pilot, linearizer, model, truth_model)
+        sigma, miss, own = flight_miss(run, pilot, linearizer, model, truth_model)
         mean, weight = binned_mean_square(sigma, miss.square(), current.sigmas_m)
         enough = weight >= min_weight
         values = np.where(enough, mean, map_mse)
+        scale = np.asarray(current.scale, dtype=float)
+        if local:
+            tents = tent_weights(sigma, current.sigmas_m)
+            fits = [fit_offset_scale(miss.square(), own, tents[i]) for i in range(len(values))]
+            values = np.where(enough, [a for a, _ in fits], np.asarray(table.variance_m2))
+            scale = np.where(enough, [b for _, b in fits], np.asarray(table.scale))
+            scale = isotonic_increasing(scale, np.maximum(weight, min_weight))
         values = isotonic_increasing(values, np.maximum(weight, min_weight))
         current = dataclasses.replace(current, variance_m2=tuple(float(v) for v in values),
+                                      scale=tuple(float(b) for b in scale),
                                       flight_samples=tuple(float(w) if e else 0.0
                                                            for w, e in zip(weight, enough,
                                                                            strict=True)))
@@ -168,6 +196,7 @@ def calibrate_noise(linearizer: Any, table: NoiseTable, *, pilot: Any, scenario:
 def derive_method_noise(methods: dict[str, Any], *, scenario: Any, tile: Any, truth_terrain: Any,
                         seed: int, n_pilot: int, iterations: int, n_points: int = 4000,
                         draws: int = 8, sigmas: tuple[float, ...] = DEFAULT_NOISE_SIGMAS_M,
+                        local: bool = False, pilot_duration_s: float | None = None,
                         ) -> tuple[dict[str, Any], Any, dict[str, Any]]:
     """Measured R for every EKF method: map table, then (``n_pilot > 0``) pilot flights.
 
@@ -188,6 +217,11 @@ def derive_method_noise(methods: dict[str, Any], *, scenario: Any, tile: Any, tr
         n_points: Map points of the table.
         draws: Draws per point and σ.
         sigmas: σ nodes, m.
+        local: ``R = a(σ) + b(σ) u`` on each method's own variance ``u`` (fitted), not
+            ``a(σ)`` alone.
+        pilot_duration_s: Length of the pilot flights (s); None = the scenario's. The
+            filter's σ passes from the prior to the converged level in the first part of
+            a flight, so a shorter pilot samples the same σ range for less time.
 
     Returns:
         ``(wrapped methods, scenario without the hand map variance, info)``; ``info`` has
@@ -200,19 +234,22 @@ def derive_method_noise(methods: dict[str, Any], *, scenario: Any, tile: Any, tr
     model = TanModel.from_scenario(filter_scenario)
     extent = tuple(float(e) for e in tile.extent)
     truth_model = truth_terrain.model
-    pilot = None
+    pilot, pilot_scenario = None, filter_scenario
     if n_pilot > 0:
-        pilot = simulate(filter_scenario, tile, n_runs=int(n_pilot), seed=int(seed) + 1,
+        pilot_scenario = filter_scenario if pilot_duration_s is None else dataclasses.replace(
+            filter_scenario, duration_s=min(float(pilot_duration_s),
+                                            float(filter_scenario.duration_s)))
+        pilot = simulate(pilot_scenario, tile, n_runs=int(n_pilot), seed=int(seed) + 1,
                          truth_terrain=truth_terrain)
     wrapped, info = {}, {}
     for name, linearizer in methods.items():
         table = measure_linearization_noise(linearizer, truth_model, extent=extent,
                                             sigmas=sigmas, n_points=n_points, draws=draws,
-                                            seed=seed)
+                                            seed=seed, local=local)
         if pilot is not None:
-            table = calibrate_noise(linearizer, table, pilot=pilot, scenario=filter_scenario,
+            table = calibrate_noise(linearizer, table, pilot=pilot, scenario=pilot_scenario,
                                     model=model, truth_model=truth_model,
-                                    iterations=iterations)
+                                    iterations=iterations, local=local)
         wrapped[name] = MeasuredNoiseLinearizer(linearizer, table)
         info[name] = {**table.to_dict(),
                       "R_m2": [float(filter_scenario.R_m2) + v for v in table.variance_m2]}
@@ -222,6 +259,9 @@ def derive_method_noise(methods: dict[str, Any], *, scenario: Any, tile: Any, tr
                 "with d ~ N(0, sigma^2 I), replaced by the pilot flights' value where they "
                 "have samples",
         "altimeter_R_m2": float(filter_scenario.R_m2), "pilot_runs": int(n_pilot),
-        "pilot_seed": int(seed) + 1, "iterations": int(iterations) if n_pilot > 0 else 0,
+        "pilot_seed": int(seed) + 1, "pilot_duration_s": float(
+            filter_scenario.duration_s if pilot_duration_s is None else min(
+                float(pilot_duration_s), float(filter_scenario.duration_s))),
+        "iterations": int(iterations) if n_pilot > 0 else 0,
         "methods": info}
 

@@ -78,8 +78,8 @@ class TanStudyConfig(TanOptions):
     methods: list[str] = field(default_factory=lambda: [*DEFAULT_METHODS, TRACKER_METHOD])
     tracker_cells: int = 32
     noise: str = "measured"
-    noise_pilot_runs: int = 300
-    noise_iterations: int = 2
+    noise_pilot_runs: int = 400
+    noise_iterations: int = 3
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""

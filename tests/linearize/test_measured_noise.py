@@ -22,6 +22,7 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.autograd import AutogradLinearizer
 from neuralmap.linearize.measured_noise import (
     MeasuredNoiseLinearizer,
+    fit_offset_scale,
     interpolate_table,
     measure_linearization_noise,
 )
@@ -133,3 +134,33 @@ def test_bad_sigmas_are_refused() -> None:
     with pytest.raises(NeuralMapError, match="smaller than twice the margin"):
         measure_linearization_noise(AutogradLinearizer(terrain), terrain,
                                     extent=(0.0, 1e3, 0.0, 1e3), sigmas=(0.0, 300.0))
+
+
+def test_offset_scale_fit_equals_weighted_least_squares() -> None:
+    rng = np.random.default_rng(7)
+    u = rng.uniform(0.0, 10.0, 500)
+    e2 = 3.0 + 2.0 * u + rng.normal(0.0, 1.0, 500)
+    w = rng.uniform(0.1, 1.0, 500)
+    design = np.stack([np.ones_like(u), u], axis=1) * np.sqrt(w)[:, None]
+    expected = np.linalg.lstsq(design, e2 * np.sqrt(w), rcond=None)[0]
+    a, b = fit_offset_scale(torch.from_numpy(e2), torch.from_numpy(u), torch.from_numpy(w))
+    np.testing.assert_allclose([a, b], expected, rtol=1e-9)
+    # a negative offset is refused: a = 0 and the mean is kept
+    a, b = fit_offset_scale(torch.tensor([0.0, 10.0]), torch.tensor([1.0, 2.0]))
+    assert a == 0.0 and b == pytest.approx(5.0 / 1.5)
+
+
+def test_local_table_scales_the_method_own_variance() -> None:
+    terrain = _Sine(10.0, 2000.0)
+    inner = AutogradLinearizer(terrain, region_variance=True)
+    table = measure_linearization_noise(inner, terrain, extent=(0.0, 10000.0, 0.0, 10000.0),
+                                        sigmas=(0.0, 30.0), n_points=400, draws=64, local=True)
+    # σ ≪ wavelength: the terrain is locally quadratic, where the region variance is the
+    # exact expected miss at each point (its curvature varies along x): e² ≈ 0 + 1 · u
+    assert table.scale[1] == pytest.approx(1.0, rel=0.1)
+    assert table.variance_m2[1] < 0.1 * table.map_mse_m2[1]
+    xy = torch.tensor([[4000.0, 5200.0]], dtype=torch.float64)
+    cov = torch.eye(2, dtype=torch.float64).unsqueeze(0) * 900.0
+    got = MeasuredNoiseLinearizer(inner, table)(xy, cov).variance
+    expected = table.variance_m2[1] + table.scale[1] * inner(xy, cov).variance
+    torch.testing.assert_close(got, expected)

@@ -81,11 +81,11 @@ def test_flight_miss_on_a_plane_is_the_map_offset(plane_case) -> None:
     linearizer = make_linearizer("bilinear", tile=tile, variance="zero")
     run = run_filter(truth, linearizer, scenario)
     grid = GridTerrain(tile, method="bilinear", dtype=torch.float64)
-    sigma, miss = flight_miss(run, truth, linearizer, TanModel.from_scenario(scenario),
+    sigma, miss, own = flight_miss(run, truth, linearizer, TanModel.from_scenario(scenario),
                               lambda xy: grid(xy) + 3.0)
     assert miss.numel() == 20 * scenario.n_steps
     np.testing.assert_allclose(miss.numpy(), 3.0, atol=1e-6)
-    assert bool((sigma > 0).all())
+    assert bool((sigma > 0).all()) and bool((own == 0).all())
 
 
 def test_derived_r_makes_a_consistent_linear_case_consistent(plane_case) -> None:

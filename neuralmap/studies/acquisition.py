@@ -65,6 +65,9 @@ class AcquisitionStudyConfig(StudyConfig):
             ``neural_region``).
         map: Neural map file; None = newest ``<runs_dir>/*/version_*/neural_map.pt`` of
             the tile. Without one, the neural rows are skipped and the report says so.
+        n_runs_tracker: Runs of the ``point_mass_tracker`` rows (the first on-map runs of
+            the σ0; its lattice runs the whole flight, the study's most expensive row);
+            None = all.
         n_runs_neural: Runs for the neural-map rows (its forward over every grid cell is
             the expensive part); None = ``n_runs``.
         map_error_points: Seeded random points of the neural map's error against the
@@ -103,6 +106,7 @@ class AcquisitionStudyConfig(StudyConfig):
     maps: list[str] = field(default_factory=lambda: ["grid", "neural"])
     map: str | None = None
     n_runs_neural: int | None = 100
+    n_runs_tracker: int | None = 200
     map_error_points: int = 2000
     grid_cells: int | None = None
     max_spacing_m: float = 50.0
@@ -124,8 +128,9 @@ class AcquisitionStudyConfig(StudyConfig):
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
         super().validate()
-        if self.n_runs < 1 or (self.n_runs_neural is not None and self.n_runs_neural < 1):
-            raise NeuralMapError("--n_runs and --n_runs_neural must be >= 1.")
+        if self.n_runs < 1 or any(k is not None and k < 1 for k in (self.n_runs_neural,
+                                                                      self.n_runs_tracker)):
+            raise NeuralMapError("--n_runs, --n_runs_neural and --n_runs_tracker must be >= 1.")
         if self.map_error_points < 100:
             raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
         if not self.sigmas_m or any(not s > 0 for s in self.sigmas_m):
@@ -312,15 +317,22 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                 cfg = acq_cfg
                 if method == "point_mass" and config.adaptive_point_mass:
                     cfg = dataclasses.replace(acq_cfg, adaptive=True)
+                run_inputs, run_bound = inputs, bound
+                if method == "point_mass_tracker" and config.n_runs_tracker is not None:
+                    sub = kept & (torch.cumsum(kept.long(), 0) <= config.n_runs_tracker)
+                    if int(sub.sum()) < int(kept.sum()):
+                        run_inputs = _runs_on_map(inputs, sub[kept])
+                        run_bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
+                                                       runs=sub)).to("cpu")
                 try:
-                    res = run_acquisition(inputs, method=method, terrain=terrain,
+                    res = run_acquisition(run_inputs, method=method, terrain=terrain,
                                           linearizer=lin, config=cfg, name=f"{method}/{kind}")
                 except NeuralMapError as exc:  # keep every finished stage; report this one
                     notes.append(f"sigma0 {sigma:g} m, {kind}, {method} failed: {exc}")
                     print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method} failed: {exc}",
                           flush=True)
                     continue
-                m = _row_metrics(res, bound, config, scenario.dt)
+                m = _row_metrics(res, run_bound, config, scenario.dt)
                 m["n_off_map"] = n_off
                 per_sigma[f"{kind}/{method}"] = m
                 curves[f"{sigma:g}/{kind}/{method}"] = m["rmse_pos_curve"]

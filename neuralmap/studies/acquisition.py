@@ -68,6 +68,11 @@ class AcquisitionStudyConfig(StudyConfig):
         n_runs_tracker: Runs of the ``point_mass_tracker`` rows (the first on-map runs of
             the σ0; its lattice runs the whole flight, the study's most expensive row);
             None = all.
+        neural_likelihood_oversample: The point-mass likelihoods of the neural-map rows read
+            the map baked onto a grid this many times finer than the DEM (bilinear; the
+            report gives the baked grid's largest deviation from the map at random points);
+            0 = the map's own forward at every cell (about 1.5 s per step for 100 runs of
+            64² cells on this CPU). The EKF always linearises the map itself.
         n_runs_neural: Runs for the neural-map rows (its forward over every grid cell is
             the expensive part); None = ``n_runs``.
         map_error_points: Seeded random points of the neural map's error against the
@@ -107,6 +112,7 @@ class AcquisitionStudyConfig(StudyConfig):
     map: str | None = None
     n_runs_neural: int | None = 100
     n_runs_tracker: int | None = 200
+    neural_likelihood_oversample: int = 4
     map_error_points: int = 2000
     grid_cells: int | None = None
     max_spacing_m: float = 50.0
@@ -128,6 +134,9 @@ class AcquisitionStudyConfig(StudyConfig):
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
         super().validate()
+        if self.neural_likelihood_oversample < 0:
+            raise NeuralMapError(f"--neural_likelihood_oversample must be >= 0, got "
+                                 f"{self.neural_likelihood_oversample}.")
         if self.n_runs < 1 or any(k is not None and k < 1 for k in (self.n_runs_neural,
                                                                       self.n_runs_tracker)):
             raise NeuralMapError("--n_runs, --n_runs_neural and --n_runs_tracker must be >= 1.")
@@ -251,6 +260,7 @@ def _maps(config: AcquisitionStudyConfig, device: torch.device,
     )
     setup.pin(config)
     maps: dict[str, tuple[Any, Any, float]] = {}
+    bake_notes: list[str] = []
     for kind in config.maps:
         linearizer = setup.methods.get(_MAP_LINEARIZERS[kind])
         if linearizer is None:
@@ -258,13 +268,36 @@ def _maps(config: AcquisitionStudyConfig, device: torch.device,
         if kind == "grid":
             maps[kind] = (GridTerrain(setup.tile, method="bilinear").to(device), linearizer, 0.0)
         else:
-            maps[kind] = (setup.terrain_map.to(device), linearizer, setup.fit_variance)
+            maps[kind] = (_likelihood_map(setup, config, bake_notes).to(device), linearizer,
+                          setup.fit_variance)
     notes = []
     if setup.map_note:
         notes.append(f"neural map rows skipped: {setup.map_note}")
     elif setup.map_path is not None:
         notes.append(f"neural map {setup.map_path}")
-    return setup, maps, notes
+    return setup, maps, notes + bake_notes
+
+
+def _likelihood_map(setup: Any, config: AcquisitionStudyConfig, notes: list[str]) -> Any:
+    """The neural map for the point-mass likelihoods: baked onto a finer grid
+    (``neural_likelihood_oversample``), with its measured deviation in ``notes``."""
+    if config.neural_likelihood_oversample <= 0:
+        return setup.terrain_map
+    from neuralmap.terrain.bake import bake_to_grid
+
+    k = int(config.neural_likelihood_oversample)
+    baked = bake_to_grid(setup.terrain_map, setup.tile, oversample=k, method="bilinear")
+    gen = torch.Generator().manual_seed(int(config.seed or 0) + 0xBA4E)
+    xmin, xmax, ymin, ymax = setup.tile.extent
+    u = torch.rand(20000, 2, generator=gen, dtype=torch.float64)
+    xy = torch.stack([xmin + u[:, 0] * (xmax - xmin), ymin + u[:, 1] * (ymax - ymin)], -1)
+    dtype = next((p.dtype for p in setup.terrain_map.parameters()), torch.float32)
+    with torch.no_grad():
+        dev = (baked(xy) - setup.terrain_map(xy.to(dtype)).double()).abs()
+    notes.append(f"neural-map point-mass likelihoods read the map baked onto a {k}x finer "
+                 f"bilinear grid: deviation from the map at 20000 random points RMS "
+                 f"{float(dev.square().mean().sqrt()):.3f} m, max {float(dev.max()):.3f} m")
+    return baked
 
 
 def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:

@@ -39,6 +39,7 @@ __all__ = [
     "MeasuredNoiseLinearizer",
     "NoiseTable",
     "interpolate_table",
+    "position_sigma",
     "measure_linearization_noise",
 ]
 
@@ -90,6 +91,18 @@ class NoiseTable:
                 "map_mean_m": list(self.map_mean_m), "variance_m2": list(self.variance_m2),
                 "flight_samples": list(self.flight_samples), "n_points": self.n_points,
                 "draws": self.draws, "seed": self.seed, "scale": list(self.scale)}
+
+
+def position_sigma(cov: torch.Tensor) -> torch.Tensor:
+    """The per-axis position σ a noise table is read at: ``sqrt(tr(cov) / 2)``.
+
+    Args:
+        cov: ``(N, 2, 2)`` horizontal covariance, m².
+
+    Returns:
+        ``(N,)`` σ, m (NaN for a non-finite covariance).
+    """
+    return (0.5 * (cov[:, 0, 0] + cov[:, 1, 1])).clamp(min=0.0).sqrt()
 
 
 def interpolate_table(sigmas: torch.Tensor, values: torch.Tensor, sigma: torch.Tensor
@@ -297,8 +310,7 @@ class MeasuredNoiseLinearizer(Linearizer):
         if pos_cov is None:
             sigma = torch.zeros_like(lin.height.detach())
         else:
-            trace = pos_cov[:, 0, 0] + pos_cov[:, 1, 1]
-            sigma = (0.5 * trace.detach().to(dtype)).clamp(min=0.0).sqrt()
+            sigma = position_sigma(pos_cov.detach().to(dtype))
         variance = interpolate_table(sigmas, values, sigma)
         if self.local:
             own = lin.variance.detach().to(dtype)

@@ -30,6 +30,7 @@ from neuralmap.linearize.measured_noise import (
     NoiseTable,
     fit_offset_scale,
     measure_linearization_noise,
+    position_sigma,
 )
 
 __all__ = ["binned_mean_square", "calibrate_noise", "derive_method_noise", "flight_miss",
@@ -69,7 +70,7 @@ def flight_miss(run: Any, truth: Any, linearizer: Any, model: Any, truth_model: 
         lin = linearizer(p_hat, cov)
         miss = (truth_model(p.double()).double() - lin.height.detach().double()
                 - (lin.slope.detach().double() * (p - p_hat).double()).sum(-1))
-    sigma = (0.5 * (cov[:, 0, 0] + cov[:, 1, 1])).double().clamp(min=0.0).sqrt()
+    sigma = position_sigma(cov.double())
     own = lin.variance.detach().double()
     ok = torch.isfinite(miss) & torch.isfinite(sigma) & torch.isfinite(own)
     return sigma[ok], miss[ok], own[ok]

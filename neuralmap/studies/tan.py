@@ -27,6 +27,7 @@ from neuralmap.nav.map_error import map_error_correlation, measure_map_error
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics
 from neuralmap.nav.model import TanModel
 from neuralmap.nav.monte_carlo import run_monte_carlo
+from neuralmap.nav.noise_calibration import derive_method_noise
 from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
 from neuralmap.nav.simulator import simulate
 from neuralmap.nav.tracking import TRACKER_METHOD, TrackerOptions, run_tracker
@@ -197,8 +198,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
                                           "variance"}
     filter_scenario = scenario
     if methods and config.noise == "measured":
-        from neuralmap.nav.noise_calibration import derive_method_noise
-
         tick = time.perf_counter()
         methods, filter_scenario, noise_info = derive_method_noise(
             methods, scenario=scenario, tile=tile, truth_terrain=truth_terrain, seed=seed,
@@ -403,8 +402,6 @@ RECOMMENDED_EKF = "neural_region"
 def _consistency_claims(results: dict[str, Any]) -> list[Any]:
     """NEES band coverage of the recommended EKF method (toolkit target: >= 90 % of steps);
     the other methods' coverage is in the table."""
-    from neuralmap.studies.tan_report import ClaimCheck
-
     entry = results["methods"].get(RECOMMENDED_EKF)
     if not entry or entry.get("nees_in_band") is None:
         return []

@@ -24,14 +24,30 @@ from typing import Any
 import numpy as np
 import torch
 
+from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.nav.metrics import nees
+from neuralmap.nav.acquisition import (
+    ACQUISITION_METHODS,
+    AcquisitionConfig,
+    acquisition_time,
+    run_acquisition,
+    tan_inputs,
+)
+from neuralmap.nav.metrics import divergence_rule, navigation_metrics, nees
+from neuralmap.nav.pcrb import pcrb, pcrb_position
+from neuralmap.nav.simulator import simulate
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.studies.setup import prepare_tan
+from neuralmap.terrain.base import inside_extent
+from neuralmap.terrain.grid import GridTerrain
+from neuralmap.viz.navigation import plot_error_vs_time
 
 __all__ = ["AcquisitionStudyConfig", "run"]
 
-_MAPS = ("grid", "neural")
+#: Map kind -> the EKF's linearisation method on it (the point mass's likelihood terrain
+#: is the bilinear DEM for ``grid``, the neural map itself for ``neural``).
+_MAP_LINEARIZERS = {"grid": "bilinear", "neural": "neural_region"}
 
 
 @dataclass
@@ -107,8 +123,6 @@ class AcquisitionStudyConfig(StudyConfig):
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
-        from neuralmap.nav.acquisition import ACQUISITION_METHODS
-
         super().validate()
         if self.n_runs < 1 or (self.n_runs_neural is not None and self.n_runs_neural < 1):
             raise NeuralMapError("--n_runs and --n_runs_neural must be >= 1.")
@@ -121,18 +135,16 @@ class AcquisitionStudyConfig(StudyConfig):
         if not self.methods or bad:
             raise NeuralMapError(f"--methods: unknown or empty {bad or self.methods}; pick "
                                  f"from {', '.join(ACQUISITION_METHODS)}.")
-        bad = [m for m in self.maps if m not in _MAPS]
+        bad = [m for m in self.maps if m not in _MAP_LINEARIZERS]
         if not self.maps or bad:
             raise NeuralMapError(f"--maps: unknown or empty {bad or self.maps}; pick from "
-                                 f"{', '.join(_MAPS)}.")
+                                 f"{', '.join(_MAP_LINEARIZERS)}.")
         if self.n_runs_flat < 1:
             raise NeuralMapError(f"--n_runs_flat must be >= 1, got {self.n_runs_flat}.")
         self.acquisition_config().validate()
 
-    def acquisition_config(self) -> Any:
+    def acquisition_config(self) -> AcquisitionConfig:
         """The :class:`~neuralmap.nav.acquisition.AcquisitionConfig` of these options."""
-        from neuralmap.nav.acquisition import AcquisitionConfig
-
         return AcquisitionConfig(
             cells=self.grid_cells, max_spacing_m=self.max_spacing_m, max_cells=self.max_cells,
             dtype=self.grid_dtype, min_spacing_m=self.min_spacing_m,
@@ -184,10 +196,8 @@ def _runs_on_map(inputs: Any, kept: torch.Tensor) -> Any:
         ins_error=inputs.ins_error[idx], on_map=inputs.on_map[idx])
 
 
-def _flat_tile(tile: Any) -> Any:
+def _flat_tile(tile: DemTile) -> DemTile:
     """A plane of the tile's size, spacing and origin at its mean height."""
-    from neuralmap.dem.tile import DemTile
-
     heights = np.full(tile.shape, float(np.nanmean(tile.heights)))
     return DemTile(heights=heights, spacing=tile.spacing, origin=tile.origin,
                    name=f"{tile.name}-flat")
@@ -195,9 +205,6 @@ def _flat_tile(tile: Any) -> Any:
 
 def _row_metrics(res: Any, bound: torch.Tensor, config: AcquisitionStudyConfig,
                  dt: float) -> dict[str, Any]:
-    from neuralmap.nav.acquisition import acquisition_time
-    from neuralmap.nav.metrics import navigation_metrics
-
     met = navigation_metrics(res.run, bound, pcrb_factor=config.pcrb_factor,
                              divergence_sigma=config.divergence_sigma)
     keep = ~res.run.off_map
@@ -226,34 +233,33 @@ def _row_metrics(res: Any, bound: torch.Tensor, config: AcquisitionStudyConfig,
     }
 
 
-def _map_and_methods(kind: str, tile: Any, config: AcquisitionStudyConfig,
-                     device: torch.device, truth_terrain: Any, scenario: Any,
-                     seed: int) -> tuple[Any, Any, float, str]:
-    """(likelihood terrain, EKF linearizer, extra R, note) for ``grid`` or ``neural``."""
-    from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.terrain.grid import GridTerrain
-
-    if kind == "grid":
-        return (GridTerrain(tile, method="bilinear").to(device),
-                make_linearizer("bilinear", tile=tile).to(device), 0.0, "")
-    from neuralmap.studies.maps import check_map_tile, resolve_map_path
-    from neuralmap.terrain.export import load_map
-
-    try:
-        path = resolve_map_path(config.map, config.runs_dir, tile_fingerprint=tile.fingerprint())
-    except NeuralMapError as exc:
-        if config.map is not None:
-            raise
-        return None, None, 0.0, f"neural map rows skipped: {exc}"
-    terrain = load_map(path)
-    check_map_tile(terrain, tile, map_path=path, scenario_name=config.scenario)
-    from neuralmap.nav.map_error import measure_map_error
-
-    error = measure_map_error(terrain, truth_terrain.model, tile,
-                              n_points=config.map_error_points, seed=seed)
-    fit = max(float(error.get("mse_m2", 0.0) or 0.0) - scenario.fit_variance_m2, 0.0)
-    lin = make_linearizer("neural_region", tile=tile, terrain=terrain, fit_variance=fit)
-    return terrain.to(device), lin.to(device), fit, f"neural map {path}"
+def _maps(config: AcquisitionStudyConfig, device: torch.device,
+          ) -> tuple[Any, dict[str, tuple[Any, Any, float]], list[str]]:
+    """The shared setup (:func:`~neuralmap.studies.setup.prepare_tan`) and, per map kind of
+    ``config.maps``, (likelihood terrain, EKF linearizer, extra R); the notes say which
+    neural map flies, or why its rows are skipped (no map given and none found)."""
+    setup = prepare_tan(
+        scenario=config.scenario, methods=[_MAP_LINEARIZERS[k] for k in config.maps],
+        map_path=config.map, runs_dir=config.runs_dir, seed=config.seed,
+        neural_fit_variance=None, map_error_points=config.map_error_points, device=device,
+        map_optional=True,
+    )
+    setup.pin(config)
+    maps: dict[str, tuple[Any, Any, float]] = {}
+    for kind in config.maps:
+        linearizer = setup.methods.get(_MAP_LINEARIZERS[kind])
+        if linearizer is None:
+            continue
+        if kind == "grid":
+            maps[kind] = (GridTerrain(setup.tile, method="bilinear").to(device), linearizer, 0.0)
+        else:
+            maps[kind] = (setup.terrain_map.to(device), linearizer, setup.fit_variance)
+    notes = []
+    if setup.map_note:
+        notes.append(f"neural map rows skipped: {setup.map_note}")
+    elif setup.map_path is not None:
+        notes.append(f"neural map {setup.map_path}")
+    return setup, maps, notes
 
 
 def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
@@ -262,31 +268,12 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad input (scenario, map, runs starting off the map...).
     """
-    from neuralmap.nav.acquisition import run_acquisition, tan_inputs
-    from neuralmap.nav.metrics import divergence_rule
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.nav.truth_terrain import true_terrain
-    from neuralmap.terrain.base import inside_extent
-
     started = time.perf_counter()
     device, dtype = config.torch_device, config.torch_dtype
-    base = load_scenario(config.scenario)
-    tile = scenario_tile(base)
-    seed = base.seed if config.seed is None else int(config.seed)
-    config.seed = seed
+    setup, maps, notes = _maps(config, device)
+    base, tile, seed = setup.scenario, setup.tile, setup.seed
+    truth_terrain = setup.truth_terrain  # the same world at every sigma0
     acq_cfg = config.acquisition_config()
-    truth_terrain = true_terrain(base, tile, seed=seed)  # the same world at every sigma0
-    maps: dict[str, tuple[Any, Any, float]] = {}
-    notes: list[str] = []
-    for kind in config.maps:
-        terrain, lin, extra_r, note = _map_and_methods(kind, tile, config, device,
-                                                       truth_terrain, base, seed)
-        if note:
-            notes.append(note)
-        if terrain is not None:
-            maps[kind] = (terrain, lin, extra_r)
     results: dict[str, Any] = {"sigmas": {}, "notes": notes,
                                "divergence_rule": divergence_rule(config.pcrb_factor,
                                                                   config.divergence_sigma)}
@@ -365,24 +352,24 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                 outputs.log_scalar(f"summary/{metric}/sigma{sigma_key}/{name}", m[metric])
     outputs.results.update(results)
     _write_report(outputs, config, rows, headers, results, notes)
+    _figure(outputs, results, base.dt)
 
 
-def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: Any, acq_cfg: Any,
-              device: torch.device, dtype: torch.dtype, seed: int) -> dict[str, Any]:
+def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: DemTile,
+              acq_cfg: AcquisitionConfig, device: torch.device, dtype: torch.dtype,
+              seed: int) -> dict[str, Any]:
     """Point mass over a plane: no terrain information, the posterior must stay wide."""
-    from neuralmap.nav.acquisition import run_acquisition, tan_inputs
-    from neuralmap.nav.simulator import simulate
-    from neuralmap.nav.truth_terrain import true_terrain
-    from neuralmap.terrain.grid import GridTerrain
-
     flat = _flat_tile(tile)
     sigma = float(min(config.sigmas_m))
     scenario = scenario_at_sigma(base, sigma, flat.extent)
+    leg = prepare_tan(scenario=scenario, tile=flat, methods=["bilinear"], map_path=None,
+                      runs_dir=config.runs_dir, seed=seed, neural_fit_variance=0.0,
+                      map_error_points=config.map_error_points, device=device)
     truth = simulate(scenario, flat, n_runs=config.n_runs_flat, seed=seed, dtype=dtype,
-                     device=device, truth_terrain=true_terrain(scenario, flat, seed=seed))
+                     device=device, truth_terrain=leg.truth_terrain)
     res = run_acquisition(tan_inputs(truth, scenario), method="point_mass_ekf",
-                          terrain=GridTerrain(flat, method="bilinear"), config=acq_cfg,
-                          linearizer=_plane_linearizer(flat))
+                          terrain=GridTerrain(flat, method="bilinear").to(device),
+                          config=acq_cfg, linearizer=leg.methods["bilinear"])
     P = res.run.P[:, -1, :2, :2].double()
     post_sigma = torch.linalg.eigvalsh(P)[:, -1].clamp_min(0).sqrt()
     err = res.run.err[:, -1, :2].norm(dim=-1).double()
@@ -394,12 +381,6 @@ def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: Any, acq_cfg: Any
         "handed_off_fraction": float((res.handoff_step >= 0).double().mean()),
         "nees_final_mean": float(nees(res.run.err[:, -1, :2], P).mean()),
     }
-
-
-def _plane_linearizer(tile: Any) -> Any:
-    from neuralmap.linearize.factory import make_linearizer
-
-    return make_linearizer("bilinear", tile=tile)
 
 
 def _fmt(value: Any) -> str:
@@ -460,32 +441,18 @@ def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: l
                                 if ratio is not None and ratio > 1.10 else None)),
                 runs=runs,
             )
-    _figure(outputs, results)
 
 
-def _figure(outputs: StudyOutputs, results: dict[str, Any]) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    sigmas = list(results["sigmas"])
-    if not sigmas:
-        return
-    fig, axes = plt.subplots(1, len(sigmas), figsize=(5 * len(sigmas), 4), squeeze=False)
+def _figure(outputs: StudyOutputs, results: dict[str, Any], dt: float) -> None:
+    """One error-vs-time figure per σ0 (:func:`~neuralmap.viz.navigation.plot_error_vs_time`)."""
     curves = results["curves"]
-    for ax, sigma in zip(axes[0], sigmas, strict=True):
-        for key, curve in curves.items():
-            if key.startswith(f"{sigma}/") and not key.endswith("/pcrb"):
-                y = np.array([np.nan if v is None else v for v in curve], dtype=float)
-                ax.semilogy(y, label=key.split("/", 1)[1])
-        bound = curves.get(f"{sigma}/pcrb")
-        if bound:
-            ax.semilogy(bound, "k--", label="PCRB")
-        ax.set_title(f"σ0 = {sigma} m")
-        ax.set_xlabel("step")
-        ax.set_ylabel("horizontal RMSE, m")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    outputs.add_figure("rmse_vs_time", fig, "Horizontal RMSE vs time against the PCRB")
-    plt.close(fig)
+    for sigma in results["sigmas"]:
+        rows = {key.split("/", 1)[1]: curve for key, curve in curves.items()
+                if key.startswith(f"{sigma}/") and not key.endswith("/pcrb")}
+        if not rows:
+            continue
+        n = len(next(iter(rows.values())))
+        fig = plot_error_vs_time(np.arange(n) * dt, rows, curves.get(f"{sigma}/pcrb"),
+                                 title=f"Horizontal RMSE vs time, σ0 = {sigma} m")
+        outputs.add_figure(f"rmse_vs_time_sigma{sigma}", fig,
+                           f"Horizontal RMSE vs time against the PCRB, σ0 = {sigma} m")

@@ -12,7 +12,16 @@ error):
   (the distortion axis; ``-20 log10(error)`` is a PSNR up to a constant, so this is the
   usual BD-rate with PSNR). The log-rates are interpolated piecewise linearly (robust with
   few points, unlike the original cubic fit) on a fine grid of the common range. Negative
-  values: B needs fewer bytes than A at equal error.
+  values: B needs fewer bytes than A at equal error;
+* :func:`gaussian_rd_bytes`: how few bytes any coder could need for a node RMSE if the tile
+  were a Gaussian field with its own (smoothed) spectrum, by reverse water-filling over the
+  tile's DCT coefficients (T. M. Cover and J. A. Thomas, *Elements of Information Theory*,
+  2nd ed., Theorem 10.3.3). Among fields of a given covariance the Gaussian one is the
+  hardest to code, so a coder below this rate exploits structure beyond the spectrum
+  (non-stationarity, non-Gaussian shapes); one above it has room left that a linear
+  transform coder could take. With ``oracle=True`` each coefficient is its own variance:
+  the rate a coder would need if it knew every coefficient's variance exactly, far below
+  anything a real coder reaches (it is told most of the answer).
 """
 
 from __future__ import annotations
@@ -20,8 +29,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.fft import dctn
+from scipy.optimize import brentq
 
-__all__ = ["bd_rate", "bytes_at_error", "pareto_front"]
+__all__ = ["bd_rate", "bytes_at_error", "gaussian_rd_bytes", "pareto_front"]
 
 
 def pareto_front(sizes: list[float], errors: list[float | None]) -> list[int]:
@@ -102,3 +113,71 @@ def bd_rate(
     grid = np.linspace(lo, hi, int(n_grid))
     diff = np.interp(grid, eb, rb) - np.interp(grid, ea, ra)
     return float(math.expm1(float(np.trapezoid(diff, grid) / (hi - lo))))
+
+
+def _dct_variances(coefficients: np.ndarray, radial_bins: int, angle_bins: int) -> np.ndarray:
+    """Per-coefficient variance: the mean power over (log radius, angle) cells of the spectrum.
+
+    Args:
+        coefficients: ``(ny, nx)`` orthonormal DCT-II coefficients of the mean-free field.
+        radial_bins: Cells in log spatial frequency (from the lowest to the highest).
+        angle_bins: Cells in orientation over the quarter plane (anisotropic relief).
+
+    Returns:
+        ``(ny, nx)`` variance of each coefficient (the DC term keeps its own power).
+    """
+    ny, nx = coefficients.shape
+    ky, kx = np.meshgrid(np.arange(ny) / ny, np.arange(nx) / nx, indexing="ij")
+    radius = np.hypot(ky, kx)
+    edges = np.linspace(math.log(1.0 / max(ny, nx)), math.log(math.sqrt(2.0)), radial_bins)
+    ring = np.digitize(np.log(np.maximum(radius, 1e-12)), edges)
+    sector = np.minimum((np.arctan2(ky, kx) / (math.pi / 2) * angle_bins).astype(int),
+                        angle_bins - 1)
+    cell = (ring * angle_bins + sector).ravel()
+    power = coefficients.ravel() ** 2
+    mean_power = np.bincount(cell, power) / np.maximum(np.bincount(cell), 1)
+    variances = mean_power[cell].reshape(ny, nx)
+    variances[0, 0] = coefficients[0, 0] ** 2
+    return variances
+
+
+def gaussian_rd_bytes(
+    heights: np.ndarray, rmse_m: float, *, oracle: bool = False,
+    radial_bins: int = 40, angle_bins: int = 12,
+) -> float:
+    """Bytes a Gaussian field with the tile's spectrum needs at a node RMSE (reverse water-filling).
+
+    The mean-free node heights ``h`` are transformed by the orthonormal 2-D DCT-II (close to
+    the Karhunen-Loève transform of a stationary field); coefficient ``k`` gets variance
+    ``σ²_k`` (the mean power of its spectral cell, or ``c_k²`` with ``oracle``); then with
+    the water level ``θ`` solving ``mean_k min(θ, σ²_k) = D = rmse²``,
+    ``R(D) = Σ_k max(0, ½ log2(σ²_k / θ))`` bits (Cover & Thomas, Thm. 10.3.3).
+
+    Args:
+        heights: ``(ny, nx)`` node heights, m (voids must be filled first).
+        rmse_m: Node RMSE, m (> 0).
+        oracle: Each coefficient's own power as its variance (see the module docstring).
+        radial_bins: Log-frequency cells of the smoothed spectrum.
+        angle_bins: Orientation cells of the smoothed spectrum.
+
+    Returns:
+        ``R(D) / 8`` in bytes (0 when ``D`` is at least the field's variance).
+
+    Raises:
+        ValueError: Non-finite heights, a non-2-D array or ``rmse_m <= 0``.
+    """
+    field = np.asarray(heights, dtype=np.float64)
+    if field.ndim != 2 or not np.all(np.isfinite(field)):
+        raise ValueError("gaussian_rd_bytes: heights must be a finite 2-D array (fill voids "
+                         "first, e.g. neuralmap.terrain.grid.fill_voids_nearest).")
+    if not rmse_m > 0:
+        raise ValueError(f"gaussian_rd_bytes: rmse_m must be > 0, got {rmse_m!r}.")
+    coefficients = dctn(field - field.mean(), norm="ortho")
+    variances = (np.maximum(coefficients**2, 1e-300) if oracle
+                 else _dct_variances(coefficients, radial_bins, angle_bins))
+    distortion = float(rmse_m) ** 2
+    if distortion >= float(np.mean(variances)):
+        return 0.0
+    theta = brentq(lambda t: float(np.mean(np.minimum(t, variances))) - distortion,
+                   1e-300, float(variances.max()))
+    return float(np.sum(np.maximum(0.0, 0.5 * np.log2(variances / theta))) / 8.0)

@@ -1,7 +1,6 @@
 """The one setup every TAN-family study shares (tan, tan_outliers, tan_scale, learned,
-dem_errors):
-scenario, tile, neural map, truth terrain and linearisation methods, frozen, built from
-explicit arguments (:func:`prepare_tan`)."""
+dem_errors, acquisition, map_size): scenario, tile, neural map, truth terrain and
+linearisation methods, frozen, built from explicit arguments (:func:`prepare_tan`)."""
 
 from __future__ import annotations
 
@@ -12,6 +11,7 @@ from typing import Any
 
 import torch
 
+from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS, make_linearizer
 from neuralmap.nav.map_error import measure_map_error
@@ -146,6 +146,8 @@ class TanSetup:
         map_error: Its error against the truth between nodes (empty without a map).
         fit_variance: The extra R of the neural methods, m².
         methods: Method name -> linearizer.
+        map_note: Why the terrain-model methods were left out (``map_optional`` and no
+            map found); empty otherwise.
     """
 
     scenario: Any
@@ -157,6 +159,7 @@ class TanSetup:
     map_error: dict[str, Any]
     fit_variance: float
     methods: dict[str, Any]
+    map_note: str = ""
 
     def pin(self, config: Any) -> None:
         """Records the map and seed actually used in ``config`` (its ``map`` and ``seed``),
@@ -192,6 +195,8 @@ def prepare_tan(
     map_error_points: int,
     device: torch.device,
     measure_map: bool = True,
+    tile: DemTile | None = None,
+    map_optional: bool = False,
 ) -> TanSetup:
     """The one setup of every TAN-family study: scenario, tile, map, truth terrain and
     linearisation methods, from explicit arguments.
@@ -210,6 +215,11 @@ def prepare_tan(
         measure_map: Measure the map's error against the truth (``map_error``); False
             for a study that gives ``neural_fit_variance`` and reports no map error
             (``dem_errors``), so that no time goes into it.
+        tile: The DEM tile to fly over; None = the scenario's (``acquisition`` passes a
+            synthetic plane for its flat-terrain leg).
+        map_optional: With ``map_path`` None and no map of the tile under ``runs_dir``,
+            leave the terrain-model methods out (``map_note`` says why) instead of
+            raising (``acquisition``: its neural-map rows are skipped).
 
     Returns:
         The frozen :class:`TanSetup` (record its map and seed with :meth:`TanSetup.pin`).
@@ -218,13 +228,21 @@ def prepare_tan(
         NeuralMapError: Bad scenario, no map, a map of another tile.
     """
     scenario = load_scenario(scenario) if isinstance(scenario, str) else scenario
-    tile = scenario_tile(scenario)
+    tile = scenario_tile(scenario) if tile is None else tile
     found: Path | None = None
     terrain_map = None
+    map_note = ""
     if any(m in TERRAIN_MODEL_METHODS for m in methods):
-        found = resolve_map_path(map_path, runs_dir, tile_fingerprint=tile.fingerprint())
-        terrain_map = load_map(found)
-        check_map_tile(terrain_map, tile, map_path=found, scenario_name=scenario.name)
+        try:
+            found = resolve_map_path(map_path, runs_dir, tile_fingerprint=tile.fingerprint())
+        except NeuralMapError as exc:
+            if map_path is not None or not map_optional:
+                raise
+            methods = [m for m in methods if m not in TERRAIN_MODEL_METHODS]
+            map_note = str(exc)
+        else:
+            terrain_map = load_map(found)
+            check_map_tile(terrain_map, tile, map_path=found, scenario_name=scenario.name)
     seed = scenario.seed if seed is None else int(seed)
     truth_terrain = true_terrain(scenario, tile, seed=seed)
     map_error: dict[str, Any] = {}
@@ -244,7 +262,7 @@ def prepare_tan(
     built = build_methods(list(methods), tile=tile, terrain_map=terrain_map, device=device,
                           fit_variance=fit_variance)
     return TanSetup(scenario, tile, seed, truth_terrain, terrain_map, found, map_error,
-                    fit_variance, built)
+                    fit_variance, built, map_note)
 
 
 def void_exposure(tile: Any, truth: Any) -> dict[str, int]:

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
+from scipy.fft import idctn
 
-from neuralmap.studies.rate_distortion import bd_rate, bytes_at_error
+from neuralmap.studies.rate_distortion import bd_rate, bytes_at_error, gaussian_rd_bytes
 
 
 def test_bd_rate_of_a_curve_at_half_the_bytes_is_minus_fifty_percent() -> None:
@@ -43,3 +45,45 @@ def test_bytes_at_error_interpolates_in_log_log_and_never_extrapolates() -> None
     assert bytes_at_error(sizes, errors, 8.0) is None
     # a dominated point (larger and less accurate) is not on the front and is ignored
     assert bytes_at_error([*sizes, 9000.0], [*errors, 3.0], 2.0) == pytest.approx(2000.0)
+
+
+def test_gaussian_rd_of_white_noise_is_the_closed_form() -> None:
+    """White Gaussian noise of variance σ²: R(D) = n/2 log2(σ²/D) bits for D < σ²
+    (Cover & Thomas, Thm. 10.3.2); the smoothed spectrum is flat up to sampling noise."""
+    rng = np.random.default_rng(0)
+    field = 10.0 * rng.standard_normal((128, 160))
+    n, var = field.size, float(np.var(field))
+    expected = n / 2 * math.log2(var / 1.0) / 8
+    assert gaussian_rd_bytes(field, 1.0) == pytest.approx(expected, rel=1e-2)
+    assert gaussian_rd_bytes(field, 20.0) == 0.0
+
+
+def test_gaussian_rd_oracle_water_fills_two_variances_exactly() -> None:
+    """DCT coefficients ±a on the low quarter, ±b elsewhere (oracle variances a², b²):
+    below b² every coefficient gets ½ log2(σ²/D); above it the water level θ solves
+    f·θ + (1 - f)·b² = D and only the low coefficients are coded."""
+    ny, nx, a, b = 64, 96, 20.0, 2.0
+    ky, kx = np.meshgrid(np.arange(ny) / ny, np.arange(nx) / nx, indexing="ij")
+    low = np.hypot(ky, kx) < 0.25
+    low[0, 0] = False  # the mean: removed by the function
+    signs = np.where(np.random.default_rng(1).random((ny, nx)) < 0.5, -1.0, 1.0)
+    coefficients = signs * np.where(low, a, b)
+    coefficients[0, 0] = 0.0
+    field = idctn(coefficients, norm="ortho") + 300.0
+    n, f = field.size, low.mean()
+    small = 1.0  # D < b²: every coefficient but the (zero-power) mean is coded at θ
+    theta = small * n / (n - 1)  # (n - 1)/n · θ = D
+    expected = ((low.sum() * 0.5 * math.log2(a**2 / theta))
+                + ((~low).sum() - 1) * 0.5 * math.log2(b**2 / theta)) / 8
+    assert gaussian_rd_bytes(field, math.sqrt(small), oracle=True) == pytest.approx(expected, rel=1e-9)
+    d = 10.0  # b² < D: θ = (D - (1 - f) b²) / f, with the DC term at zero variance in the mean
+    theta = (d - ((~low).sum() - 1) / n * b**2) / f
+    expected = low.sum() * 0.5 * math.log2(a**2 / theta) / 8
+    assert gaussian_rd_bytes(field, math.sqrt(d), oracle=True) == pytest.approx(expected, rel=1e-6)
+
+
+def test_gaussian_rd_refuses_bad_input() -> None:
+    with pytest.raises(ValueError, match="fill voids"):
+        gaussian_rd_bytes(np.array([[1.0, float("nan")], [0.0, 1.0]]), 1.0)
+    with pytest.raises(ValueError, match="rmse_m must be > 0"):
+        gaussian_rd_bytes(np.zeros((4, 4)), 0.0)

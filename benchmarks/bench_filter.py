@@ -432,11 +432,11 @@ def bench_queries(
 
 
 def latent_maps_for(tile: DemTile, hidden: list[int]) -> list[tuple[torch.nn.Module, str]]:
-    """Latent maps of the tile: freshly initialised (Laplacian-pyramid latents, untrained
-    decoder; the query cost does not depend on the values) for each ``hidden``."""
+    """Latent maps of the tile: freshly initialised (the default wavelet basis, exact start,
+    untrained decoder; the query cost does not depend on the values) for each ``hidden``."""
     from neuralmap.terrain.latent import LatentGrid, export_map
 
-    return [(export_map(LatentGrid(tile, hidden=h)), f"6 levels, hidden {h}") for h in hidden]
+    return [(export_map(LatentGrid(tile, hidden=h)), f"wavelet basis, hidden {h}") for h in hidden]
 
 
 def bench_latent_queries(tile: DemTile, *, n_points: int, repeats: int,

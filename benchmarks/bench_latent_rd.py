@@ -14,7 +14,9 @@ file size is what is counted. JPEG 2000 in the same run:
 Each stream is charged :data:`neuralmap.terrain.codecs.HEADER_BYTES`. Distortion is the
 RMSE at the tile's nodes; the BD-rate (Bjøntegaard) of the latent map against each JPEG
 2000 curve is the mean log-rate difference at equal log-RMSE over the overlap of the
-curves within 0.5-5 m (cubic fits; fewer points, lower degree). Between the nodes, every
+curves within 0.5-5 m (cubic fits; fewer points, lower degree). Both are also set against
+the Gaussian rate-distortion bound of the tile's smoothed spectrum (reverse water-filling,
+:func:`gaussian_rd`): how much room a linear transform coder has left. Between the nodes, every
 map is compared with the subgrid truth terrain (:func:`neuralmap.nav.truth_terrain.true_terrain`,
 bicubic DEM on a 4x finer grid plus fractal detail continuing the tile's spectrum) at
 random points: the latent map itself, bicubic of the DEM, and bicubic of the latent map's
@@ -24,7 +26,8 @@ Usage:
     python benchmarks/bench_latent_rd.py                 # all three tiles
     python benchmarks/bench_latent_rd.py --quick         # smoke test
     python benchmarks/bench_latent_rd.py --tiles synthetic --steps 400
-    python benchmarks/bench_latent_rd.py --starts sweeps exact  # both latent starts
+    python benchmarks/bench_latent_rd.py --starts sweeps exact  # both pyramid starts
+    python benchmarks/bench_latent_rd.py --bases wavelet        # the wavelet basis only
 """
 
 from __future__ import annotations
@@ -130,6 +133,30 @@ def bd_rate(test: list[tuple[float, float]], ref: list[tuple[float, float]],
     return float((np.exp(diff) - 1.0) * 100.0)
 
 
+def gaussian_rd(tile: DemTile, rmses: list[float]) -> list[dict[str, Any]]:
+    """Gaussian rate-distortion bound of the tile at node RMSEs
+    (:func:`neuralmap.studies.rate_distortion.gaussian_rd_bytes`: reverse water-filling on
+    the tile's smoothed log-frequency x orientation DCT spectrum).
+
+    It is the least rate of a coder that knows only this spectrum (a stationary Gaussian
+    model: the limit of a linear transform coder with one fixed distribution per frequency
+    band). It is not a bound for the tile itself: the Gaussian is the hardest source of a
+    given spectrum, so a coder that exploits non-stationarity or sparsity (a flat sea, local
+    roughness) can go below it.
+    """
+    from neuralmap.studies.rate_distortion import gaussian_rd_bytes
+    from neuralmap.terrain.grid import fill_voids_nearest
+
+    heights = fill_voids_nearest(tile.heights, tile.spacing)
+    n_nodes = int(tile.valid_mask.sum())
+    out = []
+    for rmse in rmses:
+        nbytes = gaussian_rd_bytes(heights, float(rmse))
+        out.append({"bytes": nbytes, "rmse_m": float(rmse),
+                    "what": f"RMSE {rmse:g} m, {8 * nbytes / n_nodes:.3f} bit/node"})
+    return out
+
+
 def between_truth(tile: DemTile, n_points: int) -> tuple[Any, np.ndarray, np.ndarray]:
     """Subgrid truth heights at random between-node points: ``(truth model, xy, heights)``."""
     from neuralmap.nav.truth_terrain import true_terrain
@@ -159,14 +186,18 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
     rms = lambda a: float(np.sqrt(np.mean((a - truth) ** 2)))  # noqa: E731
     bicubic_dem = rms(bicubic_of(tile, tile.heights, xy))
     rows: list[dict[str, Any]] = []
-    latent_kinds = [f"latent ({start} start)" for start in args.starts]
-    for start, kind in zip(args.starts, latent_kinds, strict=True):
+    variants = [(basis, start) for basis in args.bases
+                for start in (args.starts if basis == "pyramid" else ["exact"])]
+    latent_kinds = [f"latent {basis} ({start} start)" for basis, start in variants]
+    for (basis, start), kind in zip(variants, latent_kinds, strict=True):
         for lam in args.lambdas:
             clock = time.perf_counter()
             latent_map, _ = fit_latent_map(
-                tile, rate_weight=lam, steps=args.steps, hidden=args.hidden, levels=args.levels,
+                tile, rate_weight=lam, steps=args.steps, hidden=args.hidden,
+                levels=args.wavelet_levels if basis == "wavelet" else args.levels,
                 init_sweeps=args.init_sweeps, exact_start=start == "exact",
-                between_weight=args.between_weight)
+                between_weight=args.between_weight, basis=basis, wavelet=args.wavelet,
+                init_step=args.init_step)
             nodes = latent_map.node_heights().numpy()
             with torch.no_grad():
                 own = latent_map(torch.from_numpy(xy).float()).double().numpy()
@@ -183,12 +214,22 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
             rows.append({"kind": kind, "what": r["what"], "bytes": r["bytes"], "rmse_m": r["rmse_m"],
                          "between_truth_m": rms(bicubic_of(tile, r["decoded"], xy)),
                          "bicubic_nodes_truth_m": float("nan"), "fit_s": float("nan")})
+    bound_kind = "Gaussian R(D) bound (smoothed spectrum)"
+    for r in gaussian_rd(tile, [0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 7.0]):
+        rows.append({"kind": bound_kind, "what": r["what"], "bytes": round(r["bytes"]),
+                     "rmse_m": r["rmse_m"], "between_truth_m": float("nan"),
+                     "bicubic_nodes_truth_m": float("nan"), "fit_s": float("nan")})
     bd = {}
+    curve = lambda kind: [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == kind]  # noqa: E731
     for latent_kind in latent_kinds:
-        latent = [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == latent_kind]
         for kind in ("jpeg2k (PSNR sweep)", "jpeg2k (max error)"):
-            bd[f"{latent_kind} vs {kind}"] = bd_rate(
-                latent, [(r["bytes"], r["rmse_m"]) for r in rows if r["kind"] == kind])
+            bd[f"{latent_kind} vs {kind}"] = bd_rate(curve(latent_kind), curve(kind))
+    for latent_kind in latent_kinds:  # both codecs over the latent curve's RMSE range
+        span = [r for _, r in curve(latent_kind)]
+        lo, hi = max(RMSE_RANGE[0], min(span)), min(RMSE_RANGE[1], max(span))
+        for kind in (latent_kind, "jpeg2k (PSNR sweep)"):
+            bd[f"{kind} vs the {bound_kind}, node RMSE {lo:.2f}-{hi:.2f} m"] = bd_rate(
+                curve(kind), curve(bound_kind), lo, hi)
     return {"tile": tile, "rows": rows, "bd": bd, "bicubic_dem_truth_m": bicubic_dem}
 
 
@@ -203,11 +244,12 @@ def format_tile(result: dict[str, Any]) -> str:
         if not (0.2 <= r["rmse_m"] <= 8.0) and not r["kind"].startswith("latent"):
             continue
         own = "" if np.isnan(r["bicubic_nodes_truth_m"]) else f"{r['bicubic_nodes_truth_m']:.3f}"
+        between = "" if np.isnan(r["between_truth_m"]) else f"{r['between_truth_m']:.3f}"
         lines.append(f"| {r['kind']} | {r['what']} | {r['bytes']:,} | {8 * r['bytes'] / n:.3f} | "
-                     f"{r['rmse_m']:.3f} | {r['between_truth_m']:.3f} | {own} |")
+                     f"{r['rmse_m']:.3f} | {between} | {own} |")
     for kind, value in result["bd"].items():
-        lines.append(f"\nBD-rate {kind} (node RMSE {RMSE_RANGE[0]}-{RMSE_RANGE[1]} m): "
-                     f"{value:+.1f} %")
+        span = "" if "node RMSE" in kind else f" (node RMSE {RMSE_RANGE[0]}-{RMSE_RANGE[1]} m)"
+        lines.append(f"\nBD-rate {kind}{span}: {value:+.1f} %")
     return "\n".join(lines)
 
 
@@ -216,7 +258,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--tiles", nargs="+", default=["jacksboro", "topobathy", "synthetic"])
     parser.add_argument("--lambdas", nargs="+", type=float, default=[0.1, 0.5, 2.0, 8.0, 32.0])
     parser.add_argument("--steps", type=int, default=1500)
-    parser.add_argument("--levels", type=int, default=6)
+    parser.add_argument("--levels", type=int, default=6, help="pyramid levels")
+    parser.add_argument("--bases", nargs="+", choices=["wavelet", "pyramid"],
+                        default=["wavelet", "pyramid"], help="latent bases to compare")
+    parser.add_argument("--wavelet", default="cdf97", choices=["cdf97", "cdf53"])
+    parser.add_argument("--wavelet_levels", type=int, default=6)
+    parser.add_argument("--init_step", type=float, default=1.0)
     parser.add_argument("--hidden", type=int, default=0)
     parser.add_argument("--init_sweeps", type=int, default=12)
     parser.add_argument("--starts", nargs="+", choices=["sweeps", "exact"], default=["exact"],
@@ -239,9 +286,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     torch.set_num_threads(args.threads)
     print(f"# bench_latent_rd: torch {torch.__version__}, {torch.get_num_threads()} thread(s); "
-          f"{args.steps} steps, levels {args.levels}, hidden {args.hidden}, init sweeps "
-          f"{args.init_sweeps}, starts {args.starts}, between weight {args.between_weight}, "
-          f"lambdas {args.lambdas}")
+          f"{args.steps} steps, bases {args.bases} (wavelet {args.wavelet}, "
+          f"{args.wavelet_levels} levels), pyramid levels {args.levels}, hidden {args.hidden}, "
+          f"init sweeps {args.init_sweeps}, starts {args.starts}, between weight "
+          f"{args.between_weight}, init step {args.init_step}, lambdas {args.lambdas}")
     for name in args.tiles:
         print(format_tile(run_tile(name, args)), flush=True)
         print()

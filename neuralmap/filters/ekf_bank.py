@@ -40,12 +40,17 @@ def lattice_prior(
     axes: tuple[int, int] = (0, 1),
     shrink: float = 0.6,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Splits a Gaussian prior into a ``per_axis × per_axis`` lattice of components.
+    """Splits a Gaussian prior into a moment-matched ``per_axis × per_axis`` lattice of components.
 
     The component means sit on a regular lattice over ``± span_sigma · σ`` of two state
-    ``axes`` (the horizontal error); each component keeps ``P0`` but with those two
-    variances replaced by ``(shrink · spacing)²``; the weights are the prior density at the
-    means, normalised.
+    ``axes`` (the horizontal error). Each component keeps ``P0`` but with those two
+    variances replaced by ``c²``, ``c`` aimed at ``shrink · spacing`` (at most ``0.8 σ``);
+    the weights are a Gaussian of variance ``σ² − c²`` at the lattice points, and ``c²`` is
+    then set to ``σ² − Σ_k w_k g_k²`` (``g_k`` the lattice offsets), so that the mixture has
+    exactly the prior's mean and covariance (law of total variance,
+    ``Cov = E[Cov_k] + Cov[mean_k]``). A coarse lattice over a wide span therefore puts
+    almost all weight on its centre: covering ``± span_sigma · σ`` and keeping the prior's
+    moments cannot both be had with few components.
 
     Args:
         x0: ``(N, n)`` prior means.
@@ -53,10 +58,11 @@ def lattice_prior(
         per_axis: Components per axis (K = per_axis²).
         span_sigma: Lattice half-width in prior standard deviations.
         axes: The two state indices spread over.
-        shrink: Component standard deviation as a fraction of the lattice spacing.
+        shrink: Aimed component standard deviation as a fraction of the lattice spacing.
 
     Returns:
-        ``(means (N, K, n), covs (K, n, n), log_weights (N, K))``.
+        ``(means (N, K, n), covs (K, n, n), log_weights (N, K))``; the mixture's mean is
+        ``x0`` and its covariance ``P0``.
     """
     if per_axis < 1:
         raise NeuralMapError(f"lattice_prior: per_axis must be >= 1, got {per_axis}.")
@@ -68,6 +74,12 @@ def lattice_prior(
         unit = torch.zeros(1, dtype=dtype)
     else:
         unit = torch.linspace(-span_sigma, span_sigma, per_axis, dtype=dtype)
+    # component σ / prior σ, aimed at shrink · spacing and at most 0.8
+    aim = 1.0 if per_axis == 1 else min(shrink * 2.0 * span_sigma / (per_axis - 1), 0.8)
+    spread = max(1.0 - aim**2, 1e-12)  # lattice weights' variance, in prior σ²
+    axis_logw = -0.5 * unit**2 / spread
+    axis_w = torch.softmax(axis_logw, 0)
+    component = max(1.0 - float((axis_w * unit**2).sum()), 1e-6)  # c² / σ², moments exact
     gi, gj = torch.meshgrid(unit, unit, indexing="ij")
     gi, gj = gi.reshape(-1), gj.reshape(-1)
     k = gi.numel()
@@ -75,12 +87,10 @@ def lattice_prior(
     means[..., i] += gi * si
     means[..., j] += gj * sj
     covs = P0.expand(k, -1, -1).clone()
-    if per_axis > 1:
-        step = 2.0 * span_sigma / (per_axis - 1)
-        covs[:, i, i] = (shrink * step * si) ** 2
-        covs[:, j, j] = (shrink * step * sj) ** 2
-        covs[:, i, j] = covs[:, j, i] = 0.0
-    logw = -0.5 * (gi**2 + gj**2)
+    covs[:, i, i] = component * si**2
+    covs[:, j, j] = component * sj**2
+    covs[:, i, j] = covs[:, j, i] = 0.0
+    logw = -0.5 * (gi**2 + gj**2) / spread
     logw = logw - torch.logsumexp(logw, 0)
     return means, covs, logw.expand(x0.shape[0], k).clone()
 

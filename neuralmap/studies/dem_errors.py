@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from matplotlib.figure import Figure
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.errors import (
@@ -379,13 +380,9 @@ def _m2_section(config: DemErrorsStudyConfig, outputs: StudyOutputs,
     return {"cells": cells, "paper_table2": {k: list(v) for k, v in PAPER_TABLE2.items()}}
 
 
-def _plot_sequences(typical: dict[str, np.ndarray], config: DemErrorsStudyConfig) -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 4))
+def _plot_sequences(typical: dict[str, np.ndarray], config: DemErrorsStudyConfig) -> Figure:
+    fig = Figure(figsize=(8, 4))
+    ax = fig.add_subplot()
     for name, seq in typical.items():
         ax.plot(np.arange(1, seq.size + 1), seq, label=name, lw=1)
     ax.set_xlabel("filter step")

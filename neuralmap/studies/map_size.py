@@ -59,13 +59,26 @@ from typing import Any
 
 import numpy as np
 import torch
+from matplotlib.figure import Figure
 from torch import nn
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.linearize.autograd import AutogradLinearizer
+from neuralmap.nav.bootstrap import bootstrap_rmse, paired_ratio, resample_index
+from neuralmap.nav.metrics import navigation_metrics
+from neuralmap.nav.monte_carlo import run_monte_carlo
+from neuralmap.nav.pcrb import pcrb, pcrb_position
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.maps import find_tile_maps
+from neuralmap.studies.maps import check_map_tile, find_tile_maps
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.rate_distortion import bd_rate, bytes_at_error, pareto_front
+from neuralmap.studies.setup import prepare_tan
+from neuralmap.terrain.bake import bake_to_grid
+from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+from neuralmap.terrain.codecs import CODEC_LABELS, GRID_CODECS, compress_grid
+from neuralmap.terrain.export import load_map, save_map
+from neuralmap.terrain.grid import GridTerrain
+from neuralmap.terrain.quantize import QUANT_SCHEMES
 
 __all__ = ["MapEntry", "MapSizeStudyConfig", "pareto_front", "run"]
 
@@ -142,9 +155,6 @@ class MapSizeStudyConfig(StudyConfig):
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
-        from neuralmap.terrain.codecs import GRID_CODECS
-        from neuralmap.terrain.quantize import QUANT_SCHEMES
-
         super().validate()
         if self.n_runs < 1:
             raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
@@ -220,17 +230,8 @@ class MapEntry:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-def find_neural_maps(runs_dir: str, tile_fingerprint: str) -> list[Path]:
-    """Newest map file (blockwise or latent-grid) of the tile in every experiment folder of
-    ``runs_dir`` (the one map discovery: :func:`neuralmap.studies.maps.find_tile_maps`)."""
-    return find_tile_maps(runs_dir, tile_fingerprint)
-
-
 def build_grid_maps(tile: Any, config: MapSizeStudyConfig) -> list[MapEntry]:
     """The raw float32 grid and every codec × max error × decimation of the config."""
-    from neuralmap.terrain.codecs import compress_grid
-    from neuralmap.terrain.grid import GridTerrain
-
     raw = GridTerrain(tile, method="bicubic")
     entries = [MapEntry("raw float32 grid", "raw grid", "grid", tile.heights.size * 4, raw,
                         {"codec": None, "max_error_m": 0.0, "decimation": 1})]
@@ -282,11 +283,6 @@ def build_neural_maps(
         NeuralMapError: A map of another tile, or one that records no tile (as the TAN
             study refuses it).
     """
-    from neuralmap.studies.maps import check_map_tile
-    from neuralmap.terrain.bake import bake_to_grid
-    from neuralmap.terrain.blockwise import BlockwiseTerrainNet
-    from neuralmap.terrain.export import load_map, save_map
-
     folder.mkdir(parents=True, exist_ok=True)
     entries = []
     for path in paths:
@@ -354,9 +350,6 @@ def map_quality(
         ``own_nodes_truth_rmse_m``: the bicubic interpolation of the map's own node
         values against the truth (what the map's nodes would give as a grid).
     """
-    from neuralmap.terrain.bake import bake_to_grid
-    from neuralmap.terrain.grid import GridTerrain
-
     dtype = _model_dtype(entry.terrain)
     valid = np.isfinite(tile.heights)
     nodes = torch.from_numpy(tile.node_xy()[valid])
@@ -424,13 +417,9 @@ def _plot_front(
     outputs: StudyOutputs, rows: list[dict[str, Any]], *, key: str, ylabel: str, name: str,
     caption: str, raw_bytes: int, reference: float | None = None,
 ) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     floor = 0.01  # lossless maps (error 0) are drawn at 1 cm on the log axis
-    fig, ax = plt.subplots(figsize=(7.5, 5.0))
+    fig = Figure(figsize=(7.5, 5.0))
+    ax = fig.add_subplot()
     families = sorted({r["family"] for r in rows}, key=lambda f: (f.startswith("neural"), f))
     markers = "osD^v<>ph*Xd"
     for i, family in enumerate(families):
@@ -461,7 +450,6 @@ def _plot_front(
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
     outputs.add_figure(name, fig, caption)
-    plt.close(fig)
 
 
 def _run_masks(run: Any, metrics: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -488,23 +476,18 @@ def run(config: MapSizeStudyConfig, outputs: StudyOutputs) -> None:
     Raises:
         NeuralMapError: Bad input (scenario, maps of another tile, codecs missing...).
     """
-    from neuralmap.linearize.autograd import AutogradLinearizer
-    from neuralmap.nav.bootstrap import bootstrap_rmse, paired_ratio, resample_index
-    from neuralmap.nav.metrics import navigation_metrics
-    from neuralmap.nav.monte_carlo import run_monte_carlo
-    from neuralmap.nav.pcrb import pcrb, pcrb_position
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
-    from neuralmap.nav.truth_terrain import true_terrain
-    from neuralmap.terrain.grid import GridTerrain
-
     started = time.perf_counter()
     device, dtype = config.torch_device, config.torch_dtype
-    scenario = load_scenario(config.scenario)
-    tile = scenario_tile(scenario)
-    seed = scenario.seed if config.seed is None else int(config.seed)
-    config.seed = seed
+    # the shared setup: scenario, tile, seed and truth terrain (the maps under test are
+    # this study's subject, built below; no linearisation method of the setup's own)
+    setup = prepare_tan(scenario=config.scenario, methods=[], map_path=None,
+                        runs_dir=config.runs_dir, seed=config.seed, neural_fit_variance=0.0,
+                        map_error_points=config.map_error_points, device=device)
+    setup.pin(config)
+    scenario, tile, seed, truth_terrain = (setup.scenario, setup.tile, setup.seed,
+                                           setup.truth_terrain)
     if config.neural_maps is None:
-        paths = find_neural_maps(config.runs_dir, tile.fingerprint())
+        paths = find_tile_maps(config.runs_dir, tile.fingerprint())
     else:
         paths = [Path(p) for p in config.neural_maps]
     config.neural_maps = [str(p) for p in paths]
@@ -512,7 +495,6 @@ def run(config: MapSizeStudyConfig, outputs: StudyOutputs) -> None:
     neural_entries = build_neural_maps(paths, config.quantizations, outputs.dir / "maps",
                                        tile=tile, baked=config.baked,
                                        scenario_name=scenario.name)
-    truth_terrain = true_terrain(scenario, tile, seed=seed)
     raw_bytes = int(tile.heights.size * 4)
     dem_bicubic = GridTerrain(tile, method="bicubic")
 
@@ -776,8 +758,6 @@ def _write_report(
     truth_description: str,
 ) -> None:
     """Tables, fronts, targets and the paper's storage claim."""
-    from neuralmap.terrain.codecs import CODEC_LABELS
-
     outputs.add_text(
         f"Tile **{tile.name}** ({tile.shape[0]} x {tile.shape[1]} nodes; raw float32 grid "
         f"{_fmt_bytes(raw_bytes)}), scenario **{scenario.name}**, {config.n_runs} Monte Carlo "

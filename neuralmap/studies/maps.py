@@ -10,6 +10,7 @@ import numpy as np
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import version_number
+from neuralmap.terrain.export import load_map, load_map_payload
 
 __all__ = [
     "MAP_FILENAME",
@@ -34,8 +35,6 @@ NO_MAP_MESSAGE = (
 def _map_tile_fingerprint(path: Path) -> str:
     """The tile fingerprint recorded in a map file ("" when unreadable)."""
     try:
-        from neuralmap.terrain.export import load_map, load_map_payload
-
         if path.suffix != ".pt":  # a latent-grid bitstream: its header names the tile
             return str(getattr(load_map(path), "tile_fingerprint", "") or "")
         payload = load_map_payload(path)

@@ -283,6 +283,8 @@ class StudyOutputs:
         if not self.tensorboard:
             return None
         if self._writer is None:
+            # here, not at the top: torch's TensorBoard writer takes ~0.7 s to import and a
+            # run with --tensorboard false never needs it
             from torch.utils.tensorboard import SummaryWriter
 
             self._writer = SummaryWriter(log_dir=str(self.dir))

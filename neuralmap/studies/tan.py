@@ -23,19 +23,24 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.map_error import map_error_correlation, measure_map_error
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.model import TanModel
 from neuralmap.nav.monte_carlo import run_monte_carlo
 from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
-from neuralmap.nav.tracking import TRACKER_METHOD
+from neuralmap.nav.simulator import simulate
+from neuralmap.nav.tracking import TRACKER_METHOD, TrackerOptions, run_tracker
 from neuralmap.studies.outputs import StudyOutputs
 from neuralmap.studies.setup import DEFAULT_METHODS, TanOptions, prepare_tan, void_exposure
 from neuralmap.studies.tan_report import (
+    ClaimCheck,
     build_results,
     check_claims,
     format_table,
     report_text,
 )
 from neuralmap.studies.trajectories import write_trajectories
+from neuralmap.terrain.grid import GridTerrain
 from neuralmap.viz.navigation import (
     plot_error_vs_time,
     plot_final_error_histogram,
@@ -177,8 +182,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
             device=device, dtype=dtype, tile=tile, truth_terrain=truth_terrain,
         )
     else:
-        from neuralmap.nav.simulator import simulate
-
         truth, runs = simulate(scenario, tile, n_runs=config.n_runs, seed=seed, dtype=dtype,
                                device=device, truth_terrain=truth_terrain), {}
     dem_bound = _dem_map_error(scenario, tile, truth_terrain, config)
@@ -263,9 +266,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
 def _dem_map_error(scenario: Any, tile: Any, truth_terrain: Any, config: Any) -> dict[str, Any]:
     """The bilinear DEM as a map: its error variance against the truth between the nodes and
     the error's correlation over one step's flight (the map-aware PCRB's noise)."""
-    from neuralmap.nav.map_error import map_error_correlation, measure_map_error
-    from neuralmap.terrain.grid import GridTerrain
-
     grid = GridTerrain(tile, method="bilinear")
     err = measure_map_error(grid, truth_terrain.model, tile, n_points=config.map_error_points,
                             seed=config.seed)
@@ -279,9 +279,6 @@ def _run_tracker(config: Any, scenario: Any, truth: Any, dem: dict[str, Any],
                  runs: dict[str, Any]) -> dict[str, Any]:
     """Runs the point-mass tracker (when asked for) on the bilinear DEM, R = altimeter
     variance + the DEM's measured error variance; adds its run in ``config.methods`` order."""
-    from neuralmap.nav.model import TanModel
-    from neuralmap.nav.tracking import TrackerOptions, run_tracker
-
     if TRACKER_METHOD not in config.methods:
         return {}
     model = TanModel.from_scenario(scenario)
@@ -327,8 +324,6 @@ def _add_map_aware_bound(results: dict[str, Any], bound: np.ndarray, dem: dict[s
 
 def _tracker_claims(results: dict[str, Any]) -> list[Any]:
     """The point-mass tracker's targets against both bounds (toolkit targets)."""
-    from neuralmap.studies.tan_report import ClaimCheck
-
     entry = results["methods"].get(TRACKER_METHOD)
     if not entry:
         return []

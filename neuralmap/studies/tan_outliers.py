@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from matplotlib.figure import Figure
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies.registry import POLICY_NAMES, make_policy, policy_label
@@ -364,8 +365,6 @@ def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str,
 def _figures(outputs: StudyOutputs, config: TanOutliersConfig,
              curves: dict[str, dict[str, list[float | None]]], pcrb_pos: np.ndarray,
              results: dict[str, Any]) -> None:
-    from matplotlib.figure import Figure
-
     for method, by_policy in curves.items():
         fig = plot_error_vs_time(
             np.arange(len(pcrb_pos)), by_policy, pcrb_pos,

@@ -54,7 +54,7 @@ def _wgs84(tile: DemTile, coords: np.ndarray) -> np.ndarray | None:
     crs = tile.projected.crs if tile.projected is not None else None
     if not crs:
         return None
-    try:
+    try:  # rasterio is the optional `geotiff` extra: without it, no lon/lat
         from rasterio.warp import transform
     except ImportError:
         return None

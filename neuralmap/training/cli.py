@@ -35,14 +35,14 @@ from __future__ import annotations
 import os
 import sys
 import warnings
+from argparse import ArgumentError
 from pathlib import Path
 from typing import Any
 
-import yaml
+from jsonargparse import ArgumentParser
 from lightning.pytorch.callbacks import ModelCheckpoint
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.io import load_yaml
 from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
 from neuralmap.training.cli_base import (
     EXIT_BAD_INPUT,
@@ -56,7 +56,8 @@ from neuralmap.training.module import TerrainFitModule
 from neuralmap.training.noise_cli import main_noise
 from neuralmap.training.region_cli import main_region
 
-__all__ = ["MODES", "default_config_path", "main", "main_map"]
+__all__ = ["MODES", "config_learn", "config_mode", "default_config_path", "main", "main_map",
+           "mode_parser"]
 
 #: The modes of ``train.py``: its first word (default ``map``).
 MODES = ("map", "noise", "region", "latent")
@@ -87,22 +88,57 @@ def _trainer_callbacks() -> tuple[list[Any], FitReport]:
     return callbacks, report
 
 
-def config_mode(argv: list[str]) -> str:
-    """The mode a ``--config`` file names with its top-level ``learn:`` key (else ``map``).
+def _config_files(argv: list[str]) -> list[str]:
+    """The ``--config`` / ``-c`` files of ``argv`` (``--config FILE`` and ``--config=FILE``)."""
+    files = [value for flag, value in zip(argv, argv[1:], strict=False)
+             if flag in ("--config", "-c")]
+    return files + [a.split("=", 1)[1] for a in argv if a.startswith("--config=")]
 
-    Lets ``python train.py --config configs/latent_map.yaml`` run the mode the config is
-    written for; the file is parsed in full by that mode's LightningCLI afterwards.
+
+def mode_parser() -> ArgumentParser:
+    """The jsonargparse pre-parser of ``train.py``'s mode: the ``learn`` key of a config.
+
+    Only ``learn`` is declared; the rest of the file is parsed in full, and checked, by the
+    chosen mode's LightningCLI afterwards.
     """
-    for flag, value in zip(argv, argv[1:], strict=False):
-        if flag in ("--config", "-c"):
-            try:
-                data = load_yaml(Path(value).read_text(encoding="utf-8"))
-            except (OSError, UnicodeDecodeError, yaml.YAMLError):
-                continue  # the mode's CLI reports an unreadable config
-            learn = data.get("learn") if isinstance(data, dict) else None
-            if learn in MODES:
-                return str(learn)
-    return "map"
+    parser = ArgumentParser(prog="train.py", exit_on_error=False)
+    parser.add_argument("--learn", type=str | None, default=None,
+                        help=f"What train.py learns: one of {', '.join(MODES)}.")
+    return parser
+
+
+def config_learn(argv: list[str]) -> str | None:
+    """The mode the ``--config`` files of ``argv`` name with their top-level ``learn:`` key
+    (the last file that has one, as jsonargparse layers configs); None when none does.
+
+    Files that are missing or not YAML are left to the mode's LightningCLI, which reports
+    them.
+
+    Raises:
+        SystemExit: 2 (one ``error:`` line) when ``learn`` is not a mode of :data:`MODES`.
+    """
+    parser = mode_parser()
+    mode = None
+    for path in _config_files(argv):
+        try:  # _skip_validation: the other keys belong to the mode's parser
+            learn = parser.parse_path(path, _skip_validation=True).get("learn")
+        except (ArgumentError, TypeError, OSError):
+            continue
+        if learn is None:
+            continue
+        if learn not in MODES:
+            print(f"error: {path}: learn: {learn!r} is not a train.py mode; use one of "
+                  f"{', '.join(MODES)}.", file=sys.stderr, flush=True)
+            raise SystemExit(EXIT_BAD_INPUT)
+        mode = str(learn)
+    return mode
+
+
+def config_mode(argv: list[str]) -> str:
+    """The mode of ``train.py`` without a mode word: the configs' ``learn`` key
+    (:func:`config_learn`), else ``map``. Lets ``python train.py --config
+    configs/latent_map.yaml`` run the mode the config is written for."""
+    return config_learn(argv) or "map"
 
 
 def main(args: list[str] | None = None) -> Path | None:
@@ -127,6 +163,12 @@ def main(args: list[str] | None = None) -> Path | None:
         if mode not in MODES:
             print(f"error: train.py mode {mode!r} is unknown; the first word is one of "
                   f"{', '.join(MODES)} (or an option, for map).", file=sys.stderr, flush=True)
+            raise SystemExit(EXIT_BAD_INPUT)
+        learn = config_learn(argv)
+        if learn is not None and learn != mode:
+            print(f"error: train.py {mode}: the config is written for `learn: {learn}`; run "
+                  f"`train.py {learn} ...` (or drop the mode word).", file=sys.stderr,
+                  flush=True)
             raise SystemExit(EXIT_BAD_INPUT)
     if mode == "noise":
         return main_noise(argv)

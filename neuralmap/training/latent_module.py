@@ -10,6 +10,7 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.terrain.latent.basis import check_basis
 from neuralmap.terrain.latent.encode import make_optimizer, quantizer_at
 from neuralmap.terrain.latent.latent_grid import LatentGrid, export_map
 from neuralmap.terrain.latent.map import LatentTerrainMap
@@ -17,7 +18,7 @@ from neuralmap.terrain.latent.objective import RateDistortion, check_rate_weight
 from neuralmap.terrain.latent.quality import map_quality
 
 #: Hyperparameters that fix the latent grid's shape (must match on resume).
-ARCHITECTURE_KEYS = ("levels", "hidden", "seed")
+ARCHITECTURE_KEYS = ("levels", "hidden", "seed", "basis", "wavelet")
 
 
 class LatentFitModule(pl.LightningModule):
@@ -47,7 +48,10 @@ class LatentFitModule(pl.LightningModule):
         seed: Seed of the MLP weights and between-node points.
         exact_start: Start from latents that reproduce every node exactly
             (:func:`~neuralmap.terrain.latent.latent_grid.exact_finest`); false keeps the
-            Laplacian-pyramid sweeps alone.
+            Laplacian-pyramid sweeps alone (pyramid basis).
+        basis: ``"wavelet"`` (critically sampled subbands of a CDF wavelet transform of
+            the B-spline coefficient grid) or ``"pyramid"`` (overcomplete B-spline levels).
+        wavelet: ``"cdf97"`` or ``"cdf53"`` (wavelet basis).
 
     Raises:
         NeuralMapError: ``rate_weight`` <= 0, or other out-of-range settings.
@@ -56,13 +60,15 @@ class LatentFitModule(pl.LightningModule):
     def __init__(self, levels: int = 6, hidden: int = 0, rate_weight: float = 3.0,
                  between_weight: float = 0.5, between_points: int = 8192, lr: float = 0.01,
                  init_step: float = 1.0, ste_fraction: float = 0.2, seed: int = 0,
-                 exact_start: bool = True) -> None:
+                 exact_start: bool = True, basis: str = "wavelet",
+                 wavelet: str = "cdf97") -> None:
         super().__init__()
         check_rate_weight(rate_weight)
         if not (math.isfinite(lr) and lr > 0):
             raise NeuralMapError(f"model.lr must be finite and > 0, got {lr}.")
         if not 0.0 <= ste_fraction <= 1.0:
             raise NeuralMapError(f"model.ste_fraction must be in [0, 1], got {ste_fraction}.")
+        check_basis(basis, wavelet)
         self.save_hyperparameters()
         self.grid: LatentGrid | None = None
         self.objective: RateDistortion | None = None
@@ -77,7 +83,9 @@ class LatentFitModule(pl.LightningModule):
             self.tile = tile
             self.grid = LatentGrid(tile, levels=hp.levels, hidden=hp.hidden,
                                    init_step=hp.init_step, seed=hp.seed,
-                                   exact_start=bool(hp.get("exact_start", True)))
+                                   exact_start=bool(hp.get("exact_start", True)),
+                                   basis=str(hp.get("basis", "wavelet")),
+                                   wavelet=str(hp.get("wavelet", "cdf97")))
             self.objective = RateDistortion(tile, rate_weight=hp.rate_weight,
                                             between_weight=hp.between_weight,
                                             between_points=hp.between_points)

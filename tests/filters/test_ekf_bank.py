@@ -53,6 +53,19 @@ def test_linear_update_matches_numpy_gaussian_sum() -> None:
     np.testing.assert_allclose(c[0].numpy(), cov, atol=1e-7)
 
 
+@pytest.mark.parametrize("per_axis", [3, 7, 11])
+def test_lattice_prior_keeps_the_prior_moments(per_axis: int) -> None:
+    """The mixture's mean and covariance are x0 and P0 (law of total variance)."""
+    x0 = torch.tensor([[5.0, -3.0, 1.0], [0.0, 2.0, -1.0]], dtype=torch.float64)
+    P0 = torch.diag(torch.tensor([400.0, 900.0, 4.0], dtype=torch.float64))
+    means, covs, logw = lattice_prior(x0, P0, per_axis=per_axis)
+    bank = GaussianSumEKF(means, covs, log_weights=logw, prune_threshold=0.0,
+                          merge_distance=0.0)
+    mean, cov = bank.mixture()
+    torch.testing.assert_close(mean, x0, atol=1e-9, rtol=0)
+    torch.testing.assert_close(cov, P0.expand(2, 3, 3), atol=1e-9, rtol=0)
+
+
 def test_merge_and_prune_keep_mixture_moments() -> None:
     """Merging close components keeps the mixture mean/cov; pruning drops tiny weights."""
     means = torch.tensor([[[0.0, 0.0], [0.1, 0.0], [50.0, 0.0]]], dtype=torch.float64)

@@ -231,11 +231,11 @@ def test_newest_map_of_the_scenarios_tile_is_preferred(tmp_path: Path, tiny_map:
     fingerprint = scenario_tile(load_scenario("tiny")).fingerprint()
     assert find_latest_map(tmp_path) == other
     assert find_latest_map(tmp_path, tile_fingerprint=fingerprint) == own
-    # the map-size study discovers maps the same way (it read another key of the file)
-    from neuralmap.studies.map_size import find_neural_maps
+    # the map-size study's discovery: the newest map of the tile in every experiment folder
+    from neuralmap.studies.maps import find_tile_maps
 
-    assert find_neural_maps(str(tmp_path), fingerprint) == [own]
-    assert find_neural_maps(str(tmp_path), other_tile.fingerprint()) == [other]
+    assert find_tile_maps(str(tmp_path), fingerprint) == [own]
+    assert find_tile_maps(str(tmp_path), other_tile.fingerprint()) == [other]
 
 
 def test_empty_scenario_file_is_refused(tmp_path: Path) -> None:

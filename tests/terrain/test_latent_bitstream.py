@@ -35,7 +35,7 @@ def _tile(seed: int = 0) -> DemTile:
 def trained() -> tuple[DemTile, LatentGrid, LatentTerrainMap]:
     tile = _tile()
     torch.manual_seed(0)
-    grid = LatentGrid(tile, levels=4, hidden=4, init_step=0.2)
+    grid = LatentGrid(tile, levels=4, hidden=4, init_step=0.2, basis="pyramid")
     objective = RateDistortion(tile, rate_weight=0.05, between_points=256)
     opt = torch.optim.Adam(grid.parameters(), lr=0.02)
     for _ in range(40):
@@ -78,7 +78,7 @@ def _with_zero_latents(m: LatentTerrainMap) -> LatentTerrainMap:
     zeros = [np.zeros_like(s) for s in m.symbols]
     return LatentTerrainMap(zeros, m.steps, m.scales * 0 + 1e-3, m.synthesis_vector,
                             m.feature_scale, hidden=m.hidden, tile_info=m.tile_info,
-                            metrics=m.metrics)
+                            metrics=m.metrics, basis=m.basis)
 
 
 def test_truncated_and_corrupted_files_are_refused(trained, tmp_path: Path):
@@ -130,3 +130,23 @@ def test_linear_synthesis_map_round_trips_and_matches_direct_decode(tmp_path: Pa
     xy = torch.from_numpy(tile.node_xy().reshape(-1, 2)).float()
     torch.testing.assert_close(loaded(xy).double().view(tile.shape), loaded.node_heights(),
                                atol=2e-3, rtol=0)
+
+
+def test_format_1_file_reads_as_the_pyramid(trained, tmp_path: Path):
+    """A format-1 file (uncompressed JSON header, no basis key) still loads as the pyramid."""
+    import json
+    import struct
+    import zlib
+
+    _, _, m = trained
+    data = encode_latent_map(m)
+    (length,) = struct.unpack("<I", data[10:14])
+    header = json.loads(zlib.decompress(data[14 : 14 + length]))
+    assert header.pop("basis") == "pyramid"
+    raw = json.dumps(header).encode()
+    body = MAGIC + struct.pack("<HI", 1, len(raw)) + raw + data[14 + length : -4]
+    path = tmp_path / "v1.nlat"
+    path.write_bytes(body + struct.pack("<I", zlib.crc32(body)))
+    loaded = load_map(path)
+    assert loaded.basis.name == "pyramid"
+    torch.testing.assert_close(loaded.coeffs, m.coeffs, rtol=0, atol=0)

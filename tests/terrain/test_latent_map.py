@@ -11,6 +11,7 @@ from neuralmap.terrain.grid import GridTerrain
 from neuralmap.terrain.latent import LatentTerrainMap
 from neuralmap.terrain.latent.encode import fit_latent_map
 from neuralmap.terrain.latent.synthesis import Synthesis
+from neuralmap.terrain.latent.wavelet import inverse_2d
 
 
 def _truth(x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -27,17 +28,19 @@ def _tile(ny: int = 36, nx: int = 44) -> DemTile:
     return DemTile(_truth(xx, yy), spacing=(30.0, 30.0), name="latent_test")
 
 
-@pytest.fixture(scope="module")
-def fitted() -> tuple[DemTile, LatentTerrainMap]:
+@pytest.fixture(scope="module", params=["wavelet", "pyramid"])
+def fitted(request) -> tuple[DemTile, LatentTerrainMap]:
     tile = _tile()
     latent_map, _ = fit_latent_map(tile, rate_weight=0.002, steps=150, levels=4, hidden=4,
-                                   lr=0.02, init_step=0.05, between_points=1024)
+                                   lr=0.02, init_step=0.05, between_points=1024,
+                                   basis=request.param)
     return tile, latent_map
 
 
 def _double(m: LatentTerrainMap) -> LatentTerrainMap:
     return LatentTerrainMap(m.symbols, m.steps, m.scales, m.synthesis_vector, m.feature_scale,
-                            hidden=m.hidden, tile_info=m.tile_info, dtype=torch.float64)
+                            hidden=m.hidden, tile_info=m.tile_info, dtype=torch.float64,
+                            basis=m.basis)
 
 
 def _bspline(x: np.ndarray) -> np.ndarray:
@@ -47,20 +50,24 @@ def _bspline(x: np.ndarray) -> np.ndarray:
 
 
 def test_query_equals_direct_multilevel_sum(fitted):
-    """Refined, folded coefficient grid == direct sum of every level's spline + MLP."""
+    """Refined, folded coefficient grid == direct sum of every level's spline + MLP (the
+    wavelet basis: the spline of the inverse-transformed subbands, one channel)."""
     tile, m = fitted
     m64 = _double(m)
     rng = np.random.default_rng(0)
     ny, nx = tile.shape
     uv = rng.uniform([0, 0], [nx - 1, ny - 1], size=(200, 2))
-    feats = np.zeros((200, m.levels))
-    for level, z in enumerate(m.decoded_latents):
+    grids = m.decoded_latents
+    if m.basis.name == "wavelet":
+        grids = [inverse_2d(grids, m.basis.wavelet)]
+    feats = np.zeros((200, len(grids)))
+    for level, z in enumerate(grids):
         s = 2.0**level
         c = z.numpy()
         wy = _bspline(uv[:, 1, None] / s - (np.arange(c.shape[0]) - 1)[None])
         wx = _bspline(uv[:, 0, None] / s - (np.arange(c.shape[1]) - 1)[None])
         feats[:, level] = np.einsum("mi,ij,mj->m", wy, c, wx)
-    synth = Synthesis(m.levels, m.hidden, torch.from_numpy(m.feature_scale))
+    synth = Synthesis(len(grids), m.hidden, torch.from_numpy(m.feature_scale))
     synth.load_parameter_vector(torch.from_numpy(m.synthesis_vector))
     expected = synth.double()(torch.from_numpy(feats)).detach().numpy()
     got = m64(torch.from_numpy(uv * 30.0)).numpy()
@@ -151,7 +158,7 @@ def test_exact_start_reproduces_every_node(exact: bool):
     rng = np.random.default_rng(3)
     heights = np.cumsum(rng.normal(0.0, 80.0, (23, 31)), axis=1)  # rough: 80 m per node
     tile = DemTile(heights, spacing=(2000.0, 2000.0), name="rough")
-    grid = LatentGrid(tile, levels=4, init_sweeps=2, exact_start=exact)
+    grid = LatentGrid(tile, levels=4, init_sweeps=2, exact_start=exact, basis="pyramid")
     latents = [z.detach().double() for z in grid.latents]
     nodes = node_values(node_lattice(latents, tile.shape)).sum(0).numpy() + heights.mean()
     err = np.abs(nodes - heights).max()

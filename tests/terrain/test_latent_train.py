@@ -23,6 +23,7 @@ def test_tiny_config_trains_and_exports(tmp_path: Path, capsys):
     assert path.name == "latent_map.nlat"
     latent_map = load_map(path)
     assert isinstance(latent_map, LatentTerrainMap)
+    assert latent_map.basis.name == "wavelet"  # the config's default basis
     tile = load_tile("synthetic:40x32")
     assert latent_map.tile_fingerprint == tile.fingerprint()
     assert latent_map.metrics["rmse_m"] > 0
@@ -39,6 +40,15 @@ def test_nonpositive_rate_weight_is_a_clear_error(tmp_path: Path, capsys, lam: s
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "error: latent map: the rate weight lambda (model.rate_weight) must be" in err
+
+
+def test_unknown_basis_is_a_clear_error(tmp_path: Path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main([*BASE, "--runs_dir", str(tmp_path), "--model.basis", "dct"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "error: latent map: unknown basis 'dct' (model.basis); use one of" in err
+    assert "Traceback" not in err
 
 
 def test_config_learn_key_picks_the_latent_mode(tmp_path: Path) -> None:

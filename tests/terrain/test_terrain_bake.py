@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -10,7 +11,6 @@ from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.bake import bake_to_grid
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet
-from neuralmap.terrain.grid import GridTerrain
 
 
 @pytest.mark.parametrize("oversample", [1, 2])
@@ -25,10 +25,34 @@ def test_baked_grid_holds_the_model_at_its_nodes(oversample: int) -> None:
     with torch.no_grad():
         expected = net(xy.float()).double()
     torch.testing.assert_close(grid(xy), expected, rtol=0, atol=1e-9)
-    # between nodes: the Keys bicubic of the baked node values (independent GridTerrain)
-    baked = DemTile(grid.heights.numpy(), grid.spacing, origin=tile.origin)
-    mid = xy[:50] + torch.tensor([7.0, 3.0], dtype=torch.float64)
-    torch.testing.assert_close(grid(mid), GridTerrain(baked, method="bicubic")(mid))
+    # between nodes: the Keys cubic convolution (a = -1/2) of the baked node values, by a
+    # NumPy reference, at interior points (their 4 x 4 stencil needs no padding)
+    heights = grid.heights.numpy()
+    nodes = DemTile(heights, grid.spacing, origin=tile.origin).node_xy()
+    gen = np.random.default_rng(0)
+    frac_idx = gen.uniform(1.0, np.array(heights.shape) - 3.0, size=(40, 2))  # (row, col)
+    row0, col0 = np.floor(frac_idx).astype(int).T
+    step_x, step_y = nodes[0, 1, 0] - nodes[0, 0, 0], nodes[1, 0, 1] - nodes[0, 0, 1]
+    mid = np.stack([nodes[0, 0, 0] + frac_idx[:, 1] * step_x,
+                    nodes[0, 0, 1] + frac_idx[:, 0] * step_y], -1)
+    ref = np.zeros(len(mid))
+    for n in range(len(mid)):  # test reference: one point at a time
+        wy = _keys(frac_idx[n, 0] - row0[n])
+        wx = _keys(frac_idx[n, 1] - col0[n])
+        block = heights[row0[n] - 1:row0[n] + 3, col0[n] - 1:col0[n] + 3]
+        ref[n] = wy @ block @ wx
+    torch.testing.assert_close(grid(torch.from_numpy(mid)), torch.from_numpy(ref),
+                               rtol=0, atol=1e-9)
+
+
+def _keys(t: float) -> np.ndarray:
+    """Keys (1981) cubic-convolution weights, a = -1/2, of the nodes at -1, 0, 1, 2 for a
+    point at ``t`` in [0, 1)."""
+    a = -0.5
+    s = np.abs(np.array([t + 1.0, t, 1.0 - t, 2.0 - t]))
+    near = (a + 2) * s**3 - (a + 3) * s**2 + 1
+    far = a * s**3 - 5 * a * s**2 + 8 * a * s - 4 * a
+    return np.where(s <= 1.0, near, far)
 
 
 def test_bad_oversample() -> None:

@@ -1,6 +1,8 @@
 """Latent-grid neural maps: multiresolution latents, a smooth kernel, a tiny decoder.
 
-A few latent grids at decreasing resolution (the Cool-chic / C3 / Instant-NGP line) are
+The stored latents are the subbands of a CDF 9/7 wavelet transform of one cubic B-spline
+coefficient grid (critically sampled, the default) or a few latent grids at decreasing
+resolution (the Cool-chic / C3 / Instant-NGP line; :mod:`.basis`, :mod:`.wavelet`),
 upsampled with the cubic B-spline kernel (:mod:`.bspline`), mixed by a linear synthesis
 plus a tiny tanh MLP (:mod:`.synthesis`), and stored as range-coded integer latents under a
 factorized Laplace entropy model (:mod:`.entropy`, :mod:`.bitstream`). Training state:

@@ -4,20 +4,23 @@ Layout (all integers little-endian; sizes in bytes)::
 
     offset  size   field
     0       8      magic b"NMLATENT"
-    8       2      format version (uint16), currently 1
+    8       2      format version (uint16), currently 2
     10      4      header length J (uint32)
-    14      J      header, UTF-8 JSON: {"tile_info": DemTile.describe(), "levels": L,
-                   "hidden": H, "ranges": [[min, max] per level], "metrics": {...}}
-    ..      12 L   float32 quantisation steps Delta_l, Laplace scales b_l, feature scales
-    ..      4(L+1) float32 linear synthesis weights w_l and bias b_0
-    ..      2 H(L+2) float16 MLP weights A (H x L, row-major), biases a, output weights v
+    14      J      header, zlib-compressed UTF-8 JSON (format 1: uncompressed): {"tile_info": DemTile.describe(), "levels": L,
+                   "hidden": H, "basis": "pyramid" | "wavelet", "wavelet": "cdf97",
+                   "ranges": [[min, max] per latent array], "metrics": {...}}
+    ..      8 S    float32 quantisation steps Delta_b, Laplace scales b_b (S latent arrays)
+    ..      4 C    float32 feature scales (C synthesis channels)
+    ..      4(C+1) float32 linear synthesis weights w and bias b_0
+    ..      2 H(C+2) float16 MLP weights A (H x C, row-major), biases a, output weights v
     ..      4      number of range-coder words W (uint32)
-    ..      4 W    uint32 words of the range coder (constriction), levels finest first,
-                   each level in C order with its Laplace(0, b_l) on [min_l, max_l]
+    ..      4 W    uint32 words of the range coder (constriction), latent arrays in
+                   storage order, each in C order with its Laplace(0, b) on [min, max]
     end-4   4      CRC32 (zlib) of every byte before it
 
-The latent shapes follow from the tile shape and ``L``
-(:func:`~neuralmap.terrain.latent.pyramid.level_shapes`). The file on disk is the map's
+The basis (:mod:`~neuralmap.terrain.latent.basis`) fixes ``S``, ``C`` and the latent
+shapes from the tile shape and ``L``: the pyramid ``S = C = L`` levels (format 1, which
+had no ``basis`` key, reads as the pyramid), the wavelet ``S = 3 L + 1`` subbands, ``C = 1``. The file on disk is the map's
 stored size; :func:`read_latent_map` checks the magic, version, length and CRC before
 decoding, so a truncated or corrupted file is refused with a clear error.
 """
@@ -35,12 +38,12 @@ import numpy as np
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import atomic_write_bytes
+from neuralmap.terrain.latent.basis import basis_from_header
 from neuralmap.terrain.latent.entropy import decode_levels, encode_levels, symbol_range
 from neuralmap.terrain.latent.map import LatentTerrainMap
-from neuralmap.terrain.latent.pyramid import level_shapes
 
 MAGIC = b"NMLATENT"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 _FIXED = len(MAGIC) + 2 + 4
 
 
@@ -58,16 +61,20 @@ def encode_latent_map(latent_map: LatentTerrainMap) -> bytes:
     levels, hidden = latent_map.levels, latent_map.hidden
     ranges = [list(symbol_range(s)) for s in latent_map.symbols]
     header = {
-        "tile_info": latent_map.tile_info,
+        # unset fields (None) are left out: every reader takes them with .get
+        "tile_info": {k: v for k, v in latent_map.tile_info.items() if v is not None},
         "levels": levels,
         "hidden": hidden,
+        **latent_map.basis.describe(),
         "ranges": ranges,
         "metrics": latent_map.metrics,
     }
-    header_bytes = json.dumps(header, separators=(",", ":"), allow_nan=False).encode()
+    header_bytes = zlib.compress(
+        json.dumps(header, separators=(",", ":"), allow_nan=False).encode(), 9)
     synth = latent_map.synthesis_vector
-    linear = synth[: levels + 1]
-    mlp = synth[levels + 1 :]
+    channels = latent_map.basis.channels
+    linear = synth[: channels + 1]
+    mlp = synth[channels + 1 :]
     words = encode_levels(latent_map.symbols, [float(b) for b in latent_map.scales])
     parts = [
         MAGIC,
@@ -127,14 +134,19 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
         )
     try:
         pos = _FIXED
-        header: dict[str, Any] = json.loads(body[pos : pos + header_len].decode())
+        raw = body[pos : pos + header_len]
+        header: dict[str, Any] = json.loads((zlib.decompress(raw) if version >= 2 else raw).decode())
         pos += header_len
-        levels, hidden = int(header["levels"]), int(header["hidden"])
-        floats = np.frombuffer(body, "<f4", 3 * levels, pos).astype(np.float32)
-        pos += 12 * levels
-        linear = np.frombuffer(body, "<f4", levels + 1, pos).astype(np.float32)
-        pos += 4 * (levels + 1)
-        n_mlp = hidden * (levels + 2)
+        hidden = int(header["hidden"])
+        info = header["tile_info"]
+        basis = basis_from_header(header, tuple(info["shape"]))  # type: ignore[arg-type]
+        shapes = basis.shapes(tuple(info["shape"]))  # type: ignore[arg-type]
+        count, channels = len(shapes), basis.channels
+        floats = np.frombuffer(body, "<f4", 2 * count + channels, pos).astype(np.float32)
+        pos += 4 * (2 * count + channels)
+        linear = np.frombuffer(body, "<f4", channels + 1, pos).astype(np.float32)
+        pos += 4 * (channels + 1)
+        n_mlp = hidden * (channels + 2)
         mlp = np.frombuffer(body, "<f2", n_mlp, pos).astype(np.float32)
         pos += 2 * n_mlp
         (n_words,) = struct.unpack("<I", body[pos : pos + 4])
@@ -143,19 +155,17 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
         pos += 4 * n_words
         if pos != len(body):
             raise ValueError(f"{len(body) - pos} trailing bytes")
-        info = header["tile_info"]
-        shapes = level_shapes(tuple(info["shape"]), levels)  # type: ignore[arg-type]
         ranges = [(int(lo), int(hi)) for lo, hi in header["ranges"]]
-        steps, scales, feature_scale = floats[:levels], floats[levels : 2 * levels], floats[2 * levels :]
+        steps, scales, feature_scale = floats[:count], floats[count : 2 * count], floats[2 * count :]
         symbols = decode_levels(words, shapes, [float(b) for b in scales], ranges)
     except NeuralMapError:
         raise
     except (KeyError, TypeError, ValueError, IndexError, struct.error,
-            UnicodeDecodeError) as exc:
+            UnicodeDecodeError, zlib.error) as exc:
         raise _damaged(where, f"{type(exc).__name__}: {exc}") from None
     return LatentTerrainMap(
         symbols, steps, scales, np.concatenate([linear, mlp]), feature_scale,
-        hidden=hidden, tile_info=info, metrics=header.get("metrics") or {},
+        hidden=hidden, tile_info=info, metrics=header.get("metrics") or {}, basis=basis,
     )
 
 

@@ -134,3 +134,37 @@ def cell_position(
     inside = uc == u
     cell = torch.nan_to_num(uc.detach().floor(), nan=0.0).clamp_(max=cells - 1.0)
     return cell.long(), uc - cell, inside
+
+
+def interpolation_operator(nodes: int) -> torch.Tensor:
+    """``(nodes + 2, nodes)`` float64 matrix from node values to interpolating coefficients.
+
+    The cubic B-spline coefficients ``c_{-1} .. c_n`` whose spline passes through the node
+    values, ``(c_{k-1} + 4 c_k + c_{k+1}) / 6 = h_k``, closed by the natural end conditions
+    ``c_{-1} - 2 c_0 + c_1 = 0`` and ``c_{n-2} - 2 c_{n-1} + c_n = 0`` (zero second
+    derivative at the border nodes, so the grid continues smoothly past the extent).
+    A dense solve, ``O(n^3)`` once per axis.
+    """
+    n = int(nodes)
+    system = torch.zeros(n + 2, n + 2, dtype=torch.float64)
+    rows = torch.arange(n)
+    for offset, tap in enumerate(NODE_TAPS):
+        system[rows, rows + offset] = tap
+    system[n, :3] = torch.tensor([1.0, -2.0, 1.0], dtype=torch.float64)
+    system[n + 1, n - 1 :] = torch.tensor([1.0, -2.0, 1.0], dtype=torch.float64)
+    rhs = torch.zeros(n + 2, n, dtype=torch.float64)
+    rhs[rows, rows] = 1.0
+    return torch.linalg.solve(system, rhs)
+
+
+def interpolating_coefficients(heights: torch.Tensor) -> torch.Tensor:
+    """``(ny + 2, nx + 2)`` node-lattice coefficients whose spline interpolates ``heights``.
+
+    Args:
+        heights: ``(ny, nx)`` node values (float64, no voids).
+
+    Returns:
+        Coefficients with :func:`node_values` equal to ``heights`` (float64).
+    """
+    ny, nx = heights.shape
+    return interpolation_operator(ny) @ heights.double() @ interpolation_operator(nx).T

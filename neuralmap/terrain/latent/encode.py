@@ -49,6 +49,8 @@ def fit_latent_map(
     init_sweeps: int = 12,
     seed: int = 0,
     exact_start: bool = True,
+    basis: str = "wavelet",
+    wavelet: str = "cdf97",
 ) -> tuple[LatentTerrainMap, dict[str, Any]]:
     """Fits a latent-grid map to ``tile`` and returns it as its file stores it.
 
@@ -66,6 +68,8 @@ def fit_latent_map(
         init_sweeps: Correction sweeps of the Laplacian-pyramid start.
         seed: Seed of the MLP and of the between-node points.
         exact_start: Start from latents that reproduce every node (:class:`LatentGrid`).
+        basis: Latent basis, ``"pyramid"`` or ``"wavelet"`` (:mod:`.basis`).
+        wavelet: Wavelet of the wavelet basis.
 
     Returns:
         ``(map, history)`` with the last step's loss terms in ``history``.
@@ -74,7 +78,8 @@ def fit_latent_map(
     objective = RateDistortion(tile, rate_weight=rate_weight, between_weight=between_weight,
                                between_points=between_points)
     grid = LatentGrid(tile, levels=levels, hidden=hidden, init_step=init_step,
-                      init_sweeps=init_sweeps, seed=seed, exact_start=exact_start)
+                      init_sweeps=init_sweeps, seed=seed, exact_start=exact_start,
+                      basis=basis, wavelet=wavelet)
     optimizer, scheduler = make_optimizer(grid, lr, steps)
     generator = torch.Generator().manual_seed(seed)
     terms = None

@@ -1,8 +1,9 @@
 """The trainable latent grid: continuous latents, learned quantisation, rate and distortion.
 
 Cool-chic-style training state of a latent-grid map (Ladune et al. 2023; C3, Kim et al.
-2024): per level ``l`` continuous latents ``z_l`` (metres), a learned quantisation step
-``Delta_l`` and a Laplace scale ``b_l`` of the factorized entropy model, plus the
+2024): per latent array ``l`` (a pyramid level or a wavelet subband, :mod:`.basis`)
+continuous latents ``z_l`` (metres), a learned quantisation step ``Delta_l`` and a Laplace
+scale ``b_l`` of the factorized entropy model, plus the
 :class:`~neuralmap.terrain.latent.synthesis.Synthesis`. The stored latents are the symbols
 ``q_l = round(z_l / Delta_l)`` and the decoded latents ``q_l Delta_l``. During training the
 rounding is relaxed, either by additive noise ``z / Delta + u``, ``u ~ U(-1/2, 1/2)``, or by
@@ -22,7 +23,13 @@ from torch import nn
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.grid import fill_voids_nearest
-from neuralmap.terrain.latent.bspline import bspline_weights, cell_position, node_values
+from neuralmap.terrain.latent.basis import LatentBasis, make_basis
+from neuralmap.terrain.latent.bspline import (
+    bspline_weights,
+    cell_position,
+    interpolating_coefficients,
+    node_values,
+)
 from neuralmap.terrain.latent.entropy import laplace_bits
 from neuralmap.terrain.latent.pyramid import laplacian_init, level_shapes, node_lattice
 from neuralmap.terrain.latent.synthesis import Synthesis
@@ -93,15 +100,34 @@ def exact_finest(heights: torch.Tensor, latents: list[torch.Tensor],
     return torch.linalg.pinv(a_y) @ residual @ torch.linalg.pinv(a_x).T
 
 
+def node_gains(basis: LatentBasis, shape: tuple[int, int]) -> torch.Tensor:
+    """``(S,)`` squared node response ``G_b`` of one unit latent in each latent array.
+
+    ``G_b = sum_nodes h^2`` for a unit coefficient at the centre of array ``b`` (float64
+    decode); a quantisation error of variance ``s^2`` there adds ``G_b s^2`` to the summed
+    squared node error, so steps ``Delta_b = Delta / sqrt(G_b)`` weigh every array alike.
+    """
+    shapes = basis.shapes(shape)
+    gains = []
+    for b, (my, mx) in enumerate(shapes):
+        unit = [torch.zeros(sh, dtype=torch.float64) for sh in shapes]
+        unit[b][my // 2, mx // 2] = 1.0
+        gains.append(float((node_values(basis.lattice(unit, shape)) ** 2).sum()))
+    return torch.tensor(gains, dtype=torch.float64).clamp(min=1e-6)
+
+
 class LatentGrid(nn.Module):
-    """Trainable latent pyramid + entropy model + synthesis for one tile.
+    """Trainable latents (wavelet subbands or pyramid levels) + entropy model + synthesis.
 
     Args:
         tile: The DEM tile (voids are filled nearest for the start and masked in the loss).
-        levels: Latent levels ``L`` (knot spacing ``2^l`` nodes).
+        levels: Wavelet levels ``J`` (``3 J + 1`` subbands) or pyramid levels ``L`` (knot
+            spacing ``2^l`` nodes).
         hidden: MLP hidden units (0 = linear synthesis only).
-        init_step: Initial quantisation step ``Delta_l`` of every level, metres.
-        init_sweeps: Correction sweeps per level of the Laplacian-pyramid start (12 brings
+        init_step: Initial quantisation step, metres: every pyramid level's, or the node
+            error scale of the wavelet subbands' steps ``init_step / sqrt(G_b)``
+            (:func:`node_gains`).
+        init_sweeps: Pyramid basis: correction sweeps per level of the Laplacian-pyramid start (12 brings
             the start to 0.07 m node RMSE on jacksboro, 3.9 m on topobathy; 2 left 1.1 m
             and 41 m, which 1000 Adam steps did not recover on topobathy).
         seed: Seed of the MLP's initial weights.
@@ -109,22 +135,25 @@ class LatentGrid(nn.Module):
             start reproduce every node exactly (least squares through the B-spline node
             operators, ``A_y c A_x^T = r``); without it the start keeps the residual the
             sweeps leave (3.9 m node RMSE on topobathy, a floor Adam did not get under).
+            Pyramid basis only.
+        basis: ``"pyramid"`` (overcomplete B-spline levels) or ``"wavelet"`` (the subbands
+            of a ``levels``-level wavelet transform of the B-spline coefficient grid,
+            started exactly from the coefficients that interpolate the nodes,
+            :func:`~neuralmap.terrain.latent.bspline.interpolating_coefficients`).
+        wavelet: ``"cdf97"`` or ``"cdf53"`` (wavelet basis).
 
     Raises:
-        NeuralMapError: ``levels`` < 1 or too many for the tile, ``hidden`` < 0,
-            ``init_step`` <= 0.
+        NeuralMapError: Unknown basis or wavelet, ``levels`` < 1 or too many for the
+            tile, ``hidden`` < 0, ``init_step`` <= 0.
     """
 
     def __init__(self, tile: DemTile, *, levels: int = 6, hidden: int = 0,
                  init_step: float = 1.0, init_sweeps: int = 12, seed: int = 0,
-                 exact_start: bool = True) -> None:
+                 exact_start: bool = True, basis: str = "wavelet",
+                 wavelet: str = "cdf97") -> None:
         super().__init__()
         ny, nx = tile.shape
-        if not 1 <= int(levels) <= 12 or 2 ** (levels - 1) > max(ny, nx):
-            raise NeuralMapError(
-                f"latent map: levels must be in 1..12 with 2^(levels-1) <= the tile's larger "
-                f"side ({max(ny, nx)} nodes), got {levels}."
-            )
+        self.basis = make_basis(basis, levels, (int(ny), int(nx)), wavelet=wavelet)
         if int(hidden) < 0:
             raise NeuralMapError(f"latent map: hidden must be >= 0, got {hidden}.")
         if not init_step > 0:
@@ -135,23 +164,28 @@ class LatentGrid(nn.Module):
         self.tile_info = tile.describe()
         filled = torch.as_tensor(fill_voids_nearest(tile.heights, tile.spacing))
         mean = float(filled.mean())
-        init = laplacian_init(filled - mean, self.levels, sweeps=max(1, int(init_sweeps)))
-        if exact_start:
-            init[0] = init[0] + exact_finest(filled - mean, init, self.shape)
-        node_feats = node_values(node_lattice(init, self.shape))
-        scale = node_feats.reshape(self.levels, -1).std(dim=1).clamp(min=1e-3)
+        if self.basis.name == "pyramid":
+            init = laplacian_init(filled - mean, self.levels, sweeps=max(1, int(init_sweeps)))
+            if exact_start:
+                init[0] = init[0] + exact_finest(filled - mean, init, self.shape)
+            step = torch.full((len(init),), float(init_step))
+        else:
+            init = self.basis.analyse(interpolating_coefficients(filled - mean))
+            step = (float(init_step) / node_gains(self.basis, self.shape).sqrt()).float()
+        node_feats = node_values(self.basis.lattice(init, self.shape))
+        scale = node_feats.reshape(self.basis.channels, -1).std(dim=1).clamp(min=1e-3)
         self.latents = nn.ParameterList([nn.Parameter(z.float()) for z in init])
-        step = torch.full((self.levels,), float(init_step))
         self.log_step = nn.Parameter(step.log())
         spread = torch.stack([z.float().abs().mean() for z in init]).clamp(min=1e-3) / step
         self.log_scale = nn.Parameter(spread.clamp(min=0.05).log())
-        self.synthesis = Synthesis(self.levels, self.hidden, scale.float(), bias=mean, seed=seed)
-        # node-evaluation operators (sparse, not state): features_l = A_y c_l A_x^T
-        shapes = level_shapes(self.shape, self.levels)
+        self.synthesis = Synthesis(self.basis.channels, self.hidden, scale.float(), bias=mean,
+                                   seed=seed)
+        # pyramid node-evaluation operators (sparse, not state): features_l = A_y c_l A_x^T
+        shapes = level_shapes(self.shape, self.levels) if self.basis.name == "pyramid" else []
         self._node_ops = [
             (node_operator(ny, 2**level, shapes[level][0]),
              node_operator(nx, 2**level, shapes[level][1]))
-            for level in range(self.levels)
+            for level in range(len(shapes))
         ]
 
     # ------------------------------------------------------------------ quantisation
@@ -193,15 +227,18 @@ class LatentGrid(nn.Module):
         return decoded, torch.stack(bits).sum()
 
     def symbols(self) -> list[np.ndarray]:
-        """The integer symbols ``round(z_l / Delta_l)`` per level (int32)."""
+        """The integer symbols ``round(z_l / Delta_l)`` per latent array (int32)."""
         with torch.no_grad():
             return [torch.round(z / s).to(torch.int32).numpy()
                     for z, s in zip(self.latents, self.steps, strict=True)]
 
     # ------------------------------------------------------------------ decoding
     def node_features(self, decoded: list[torch.Tensor]) -> torch.Tensor:
-        """``(ny, nx, L)`` features at every node: ``A_y c_l A_x^T`` per level (sparse
-        banded B-spline operators; equal to refining to the node lattice)."""
+        """``(ny, nx, C)`` features at every node: pyramid ``A_y c_l A_x^T`` per level
+        (sparse banded B-spline operators; equal to refining to the node lattice), wavelet
+        the node values of the inverse-transformed coefficient grid."""
+        if self.basis.name != "pyramid":
+            return node_values(self.basis.lattice(decoded, self.shape)).permute(1, 2, 0)
         feats = []
         for (op_y, op_x), c in zip(self._node_ops, decoded, strict=True):
             t = torch.sparse.mm(op_y, c.to(op_y.dtype))  # (ny, kx)
@@ -214,6 +251,9 @@ class LatentGrid(nn.Module):
 
     def point_heights(self, decoded: list[torch.Tensor], uv: torch.Tensor) -> torch.Tensor:
         """``(M,)`` heights at fractional node positions ``uv (M, 2)`` (east, north)."""
+        if self.basis.name != "pyramid":
+            lattice = self.basis.lattice(decoded, self.shape)
+            return self.synthesis(gather_features(lattice, uv[:, 0], uv[:, 1]))
         feats = [gather_features(c.unsqueeze(0), uv[:, 0] / 2**level, uv[:, 1] / 2**level)
                  for level, c in enumerate(decoded)]
         return self.synthesis(torch.cat(feats, dim=-1))
@@ -221,7 +261,8 @@ class LatentGrid(nn.Module):
     def config(self) -> dict[str, Any]:
         """Constructor-level description stored in the bitstream header."""
         return {"levels": self.levels, "hidden": self.hidden, "shape": list(self.shape),
-                "level_shapes": [list(s) for s in level_shapes(self.shape, self.levels)]}
+                **self.basis.describe(),
+                "level_shapes": [list(s) for s in self.basis.shapes(self.shape)]}
 
 
 def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None) -> Any:
@@ -235,6 +276,6 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None) -> Any:
             grid.symbols(), grid.steps.numpy(), grid.scales.numpy(),
             grid.synthesis.parameter_vector().numpy(),
             grid.synthesis.feature_scale.numpy(), hidden=grid.hidden,
-            tile_info=grid.tile_info, metrics=metrics,
+            tile_info=grid.tile_info, metrics=metrics, basis=grid.basis,
         )
     return stored_latent_map(latent_map)

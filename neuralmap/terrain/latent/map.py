@@ -1,8 +1,9 @@
 """LatentTerrainMap: a decoded latent-grid neural map as a :class:`TerrainModel`.
 
 Built from what the bitstream stores (integer symbols, quantisation steps, synthesis
-weights), it refines every latent level to the node lattice
-(:func:`~neuralmap.terrain.latent.pyramid.node_lattice`, exact) and folds the linear parts
+weights), it turns the latents into node-lattice B-spline coefficients once
+(:meth:`~neuralmap.terrain.latent.basis.LatentBasis.lattice`: the pyramid's levels refined
+exactly, or the inverse wavelet transform) and folds the linear parts
 of the synthesis into ``K = 1 + H`` coefficient channels
 (:meth:`~neuralmap.terrain.latent.synthesis.Synthesis.folded`). A query is then one 4 x 4
 gather of ``K``-vectors, the cubic B-spline weights, and ``H`` ``tanh``:
@@ -24,8 +25,8 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.base import TerrainModel
+from neuralmap.terrain.latent.basis import LatentBasis, make_basis
 from neuralmap.terrain.latent.bspline import bspline_matrix, cell_position
-from neuralmap.terrain.latent.pyramid import level_shapes, node_lattice
 from neuralmap.terrain.latent.synthesis import Synthesis
 
 
@@ -74,16 +75,17 @@ class LatentTerrainMap(TerrainModel):
     point, zero slope across the border), like :class:`~neuralmap.terrain.grid.GridTerrain`.
 
     Args:
-        symbols: Integer latents per level, finest first, shapes ``level_shapes``.
-        steps: ``(L,)`` quantisation steps (metres).
-        scales: ``(L,)`` Laplace scales of the entropy model (step units).
-        synthesis: ``(L + 1 + H L + 2 H,)`` synthesis parameters
-            (:meth:`Synthesis.parameter_vector` order).
-        feature_scale: ``(L,)`` feature scales of the synthesis.
+        symbols: Integer latents per latent array, shapes :meth:`LatentBasis.shapes`.
+        steps: ``(S,)`` quantisation steps (metres).
+        scales: ``(S,)`` Laplace scales of the entropy model (step units).
+        synthesis: ``(C + 1 + H C + 2 H,)`` synthesis parameters over ``C`` feature
+            channels (:meth:`Synthesis.parameter_vector` order).
+        feature_scale: ``(C,)`` feature scales of the synthesis.
         hidden: MLP hidden units ``H``.
         tile_info: :meth:`DemTile.describe` of the tile the map was fitted to.
         metrics: Fit metrics (stored in the file header).
         dtype: dtype of the coefficient buffer (float32 for speed; ``.double()`` works).
+        basis: The latent basis (default: the pyramid of ``len(symbols)`` levels).
 
     Raises:
         NeuralMapError: Inconsistent shapes.
@@ -105,6 +107,7 @@ class LatentTerrainMap(TerrainModel):
         tile_info: dict[str, Any],
         metrics: dict[str, Any] | None = None,
         dtype: torch.dtype = torch.float32,
+        basis: LatentBasis | None = None,
     ) -> None:
         super().__init__()
         self.tile_info = dict(tile_info)
@@ -116,10 +119,12 @@ class LatentTerrainMap(TerrainModel):
         ny, nx = self.shape
         self.extent = (self.origin[0], self.origin[0] + (nx - 1) * self.spacing[0],
                        self.origin[1], self.origin[1] + (ny - 1) * self.spacing[1])
-        self.levels = len(symbols)
+        self.basis = basis if basis is not None else make_basis(
+            "pyramid", len(symbols), self.shape)  # type: ignore[arg-type]
+        self.levels = self.basis.levels
         self.hidden = int(hidden)
         self.metrics: dict[str, Any] = dict(metrics or {})
-        expected = level_shapes(self.shape, self.levels)  # type: ignore[arg-type]
+        expected = self.basis.shapes(self.shape)  # type: ignore[arg-type]
         got = [tuple(s.shape) for s in symbols]
         if got != expected:
             raise NeuralMapError(
@@ -131,12 +136,10 @@ class LatentTerrainMap(TerrainModel):
         self.scales = np.asarray(scales, np.float32).copy()
         self.feature_scale = np.asarray(feature_scale, np.float32).copy()
         self.synthesis_vector = np.asarray(synthesis, np.float32).copy()
-        synth = Synthesis(self.levels, self.hidden, torch.from_numpy(self.feature_scale))
+        synth = Synthesis(self.basis.channels, self.hidden, torch.from_numpy(self.feature_scale))
         synth.load_parameter_vector(torch.from_numpy(self.synthesis_vector))
         mix, bias, inner_bias, outer = synth.folded()
-        decoded = [torch.from_numpy(s).double() * float(d)
-                   for s, d in zip(self.symbols, self.steps, strict=True)]
-        lattice = node_lattice(decoded, self.shape)  # type: ignore[arg-type]
+        lattice = self.basis.lattice(self.decoded_latents, self.shape)  # type: ignore[arg-type]
         coeffs = torch.einsum("lyx,lk->yxk", lattice, mix)  # (ny + 2, nx + 2, K)
         self.register_buffer("coeffs", coeffs.reshape(-1, coeffs.shape[-1]).to(dtype).contiguous())
         self.register_buffer("bias", bias.to(dtype))
@@ -147,12 +150,13 @@ class LatentTerrainMap(TerrainModel):
 
     def extra_repr(self) -> str:
         """Short description for ``print(model)``."""
-        return (f"tile={self.tile_name!r}, shape={self.shape}, levels={self.levels}, "
+        return (f"tile={self.tile_name!r}, shape={self.shape}, basis={self.basis.name}, "
+                f"levels={self.levels}, "
                 f"hidden={self.hidden}")
 
     @property
     def decoded_latents(self) -> list[torch.Tensor]:
-        """Decoded latents ``q_l Delta_l`` per level (float64, finest first)."""
+        """Decoded latents ``q_b Delta_b`` per latent array (float64, storage order)."""
         return [torch.from_numpy(s).double() * float(d)
                 for s, d in zip(self.symbols, self.steps, strict=True)]
 
@@ -235,10 +239,10 @@ class LatentTerrainMap(TerrainModel):
 
     def node_heights(self) -> torch.Tensor:
         """``(ny, nx)`` heights at the tile's nodes (float64 decode, for metrics)."""
-        synth = Synthesis(self.levels, self.hidden, torch.from_numpy(self.feature_scale))
+        synth = Synthesis(self.basis.channels, self.hidden, torch.from_numpy(self.feature_scale))
         synth.load_parameter_vector(torch.from_numpy(self.synthesis_vector))
         from neuralmap.terrain.latent.bspline import node_values
 
-        feats = node_values(node_lattice(self.decoded_latents, self.shape))  # type: ignore[arg-type]
+        feats = node_values(self.basis.lattice(self.decoded_latents, self.shape))  # type: ignore[arg-type]
         with torch.no_grad():
             return synth.double()(feats.permute(1, 2, 0))

@@ -50,6 +50,7 @@ class LatentMapReport(pl.Callback):
                         "file_bytes": path.stat().st_size,
                         "raw_grid_bytes": int(tile.shape[0] * tile.shape[1] * 4),
                         "rate_weight": float(pl_module.hparams.rate_weight),
+                        "basis": str(pl_module.hparams.get("basis", "wavelet")),
                         "levels": int(pl_module.hparams.levels),
                         "hidden": int(pl_module.hparams.hidden),
                         "global_step": int(trainer.global_step)})

@@ -95,10 +95,12 @@ def _propagate_sigma_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, 
     tmp2 = np.empty((15, 15))
     idx = np.empty((15, 15), dtype=np.int64)
     count = np.empty(15, dtype=np.int64)
+    C = np.empty((3, 3))
+    fn = np.empty(3)
     for r in range(n_runs):
         for s in range(n_points):
             if healthy[r]:
-                _error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G)
+                _error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)
                 _discretize_nb(F, G, intervals[s], phi, qd, tmp, idx, count)
                 _sandwich(phi, P[r], tmp2, tmp, idx, count)
                 for i in range(15):

@@ -274,12 +274,12 @@ def _skew_into(M, r, c, x, y, z, sign):  # type: ignore[no-untyped-def]
 
 
 @_njit
-def _error_model_nb(state, accel, qc, tau_g, tau_a, F, G):  # type: ignore[no-untyped-def]
-    """F and G Q_c Gᵀ (15, 15) of one solution (as error_dynamics / continuous_noise)."""
+def _error_model_nb(state, accel, qc, tau_g, tau_a, F, G, C, fn):  # type: ignore[no-untyped-def]
+    """F and G Q_c Gᵀ (15, 15) of one solution (as error_dynamics / continuous_noise);
+    ``C`` (3, 3) and ``fn`` (3,) are scratch buffers."""
     lat, h = state[0], state[2]
     v0, v1 = state[3], state[4]
     q0, q1, q2, q3 = state[6], state[7], state[8], state[9]
-    C = np.empty((3, 3))
     C[0, 0] = q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3
     C[0, 1] = 2 * (q1 * q2 - q0 * q3)
     C[0, 2] = 2 * (q1 * q3 + q0 * q2)
@@ -299,7 +299,6 @@ def _error_model_nb(state, accel, qc, tau_g, tau_a, F, G):  # type: ignore[no-un
     ie0, ie1, ie2 = WGS84_OMEGA * math.cos(lat), 0.0, -WGS84_OMEGA * s
     ve_rn = v1 / (rn + h)
     en0, en1, en2 = ve_rn, -v0 / (rm + h), -ve_rn * math.tan(lat)
-    fn = np.empty(3)
     for i in range(3):
         fn[i] = C[i, 0] * accel[0] + C[i, 1] * accel[1] + C[i, 2] * accel[2]
     F[:, :] = 0.0
@@ -360,7 +359,11 @@ def _nonzeros(A, idx, count):  # type: ignore[no-untyped-def]
 def _sandwich(A, B, out, tmp, idx, count):  # type: ignore[no-untyped-def]
     """out = A B Aᵀ (15×15) for a symmetric B: ``A (A B)ᵀ`` on the lower triangle, mirrored.
 
-    ``idx``/``count``: the nonzeros of A's rows (:func:`_nonzeros`).
+    ``idx``/``count``: the nonzeros of A's rows (:func:`_nonzeros`). Both products run
+    row by row (``out[i, :] += a · W[k, :]``, contiguous inner loops that vectorise), the
+    second on ``W = (A B)ᵀ`` (``tmp`` transposed in place): each element is summed over
+    the same k in the same ascending order as a dot product, so the numbers are those of
+    ``acc += A[i, k] · (A B)[j, k]``.
     """
     for i in range(15):
         for j in range(15):
@@ -370,14 +373,30 @@ def _sandwich(A, B, out, tmp, idx, count):  # type: ignore[no-untyped-def]
             a = A[i, k]
             for j in range(15):
                 tmp[i, j] += a * B[k, j]
+    _lower_products(A, tmp, out, idx, count, 0)
+    for i in range(15):
+        for j in range(i):
+            out[j, i] = out[i, j]
+
+
+@_njit
+def _lower_products(A, M, out, idx, count, first):  # type: ignore[no-untyped-def]
+    """out[i, j] = Σ_k A[i, k] M[j, k] for j ≤ i over A's nonzeros with k ≥ ``first``
+    (ascending k). Uses M's transpose, written into M's rows in place (M is scratch)."""
+    for i in range(15):  # M ← Mᵀ
+        for j in range(i):
+            v = M[i, j]
+            M[i, j] = M[j, i]
+            M[j, i] = v
     for i in range(15):
         for j in range(i + 1):
-            acc = 0.0
-            for c in range(count[i]):
-                k = idx[i, c]
-                acc += A[i, k] * tmp[j, k]
-            out[i, j] = acc
-            out[j, i] = acc
+            out[i, j] = 0.0
+        for c in range(count[i]):
+            k = idx[i, c]
+            if k >= first:
+                a = A[i, k]
+                for j in range(i + 1):
+                    out[i, j] += a * M[k, j]
 
 
 @_njit
@@ -414,14 +433,10 @@ def _discretize_nb(F, G, T, phi, qd, tmp, idx, count):  # type: ignore[no-untype
                                     + phi[i, base + 2] * G[base + 2, base + j])
         for d in range(9, 15):
             tmp[i, d] = phi[i, d] * G[d, d]
-    for i in range(15):  # qd = ½ (Φ (Φ G)ᵀ + G) T, lower triangle mirrored
+    _lower_products(phi, tmp, qd, idx, count, 3)  # qd = ½ (Φ (Φ G)ᵀ + G) T, mirrored
+    for i in range(15):
         for j in range(i + 1):
-            acc = 0.0
-            for c in range(count[i]):
-                k = idx[i, c]
-                if k >= 3:
-                    acc += phi[i, k] * tmp[j, k]
-            v = 0.5 * (acc + G[i, j]) * T
+            v = 0.5 * (qd[i, j] + G[i, j]) * T
             qd[i, j] = v
             qd[j, i] = v
 
@@ -437,9 +452,11 @@ def _propagate_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_la
     tmp2 = np.empty((15, 15))
     idx = np.empty((15, 15), dtype=np.int64)
     count = np.empty(15, dtype=np.int64)
+    C = np.empty((3, 3))
+    fn = np.empty(3)
     for r in range(n_runs):
         for s in range(n_points):
-            _error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G)
+            _error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)
             _discretize_nb(F, G, intervals[s], phi, qd, tmp, idx, count)
             if s == n_points - 1:
                 phi_last[r] = phi

@@ -16,8 +16,10 @@ concerned through the update mask and counted.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
@@ -35,8 +37,8 @@ from neuralmap.ins.kernels import mechanize_block, propagate_block
 from neuralmap.ins.measurement import check_lever_arm, gnss_measurement_model
 from neuralmap.ins.trajectory import Trajectory, check_continuity
 
-__all__ = ["LooselyCoupledConfig", "LooselyCoupledResult", "initial_covariance",
-           "run_loosely_coupled"]
+__all__ = ["LooselyCoupledConfig", "LooselyCoupledResult", "LooselyCoupledVariant",
+           "initial_covariance", "run_loosely_coupled", "run_loosely_coupled_variants"]
 
 _DEG = math.pi / 180.0
 
@@ -113,6 +115,7 @@ class LooselyCoupledResult:
             frozen after their solution became non-finite: ``failed_runs``, samples the
             filter froze when their covariance lost positive definiteness:
             ``frozen_samples``).
+        elapsed_s: Wall time of this filter (s), without the IMU simulation.
     """
 
     time: torch.Tensor
@@ -126,6 +129,7 @@ class LooselyCoupledResult:
     applied: torch.Tensor
     healthy: torch.Tensor
     counts: dict[str, int] = field(default_factory=dict)
+    elapsed_s: float = 0.0
 
 
 
@@ -176,6 +180,175 @@ def initial_covariance(config: LooselyCoupledConfig, *, dtype: torch.dtype) -> t
     return torch.diag(torch.tensor(diag, dtype=dtype) ** 2)
 
 
+@dataclass
+class LooselyCoupledVariant:
+    """One filter of a lockstep run (:func:`run_loosely_coupled_variants`).
+
+    Attributes:
+        config: Filter settings.
+        policy: Optional update policy (see :func:`run_loosely_coupled`).
+        measurement_noise: Optional ``(epoch index, base R) -> R`` hook.
+    """
+
+    config: LooselyCoupledConfig
+    policy: FilterPolicy | None = None
+    measurement_noise: Callable[[int, torch.Tensor], torch.Tensor] | None = None
+
+
+class _ClosedLoop:
+    """The closed-loop error-state EKF of one variant over the N runs (state between
+    blocks); the IMU samples come from outside, shared by every variant."""
+
+    def __init__(self, traj: Trajectory, gnss: GnssRecord, quality: Any, counts: dict[str, int],
+                 variant: LooselyCoupledVariant, draw0: torch.Tensor,
+                 epoch_of: dict[int, int]) -> None:
+        config = variant.config.validate()
+        self.config, self.policy = config, variant.policy
+        self.measurement_noise = variant.measurement_noise
+        self.traj, self.gnss, self.quality = traj, gnss, quality
+        self.epoch_of = epoch_of
+        self.elapsed_s = 0.0
+        n = draw0.shape[0]
+        self.n = n
+        dtype = traj.states.dtype
+        device = traj.states.device
+        kw = {"dtype": dtype, "device": device}
+        self.counts = dict(counts)
+        grade = imu_grade(config.grade)
+        self.arm = (gnss.lever_arm if config.lever_arm is None
+                    else check_lever_arm(config.lever_arm, where="run_loosely_coupled")).to(**kw)
+        self.qc = process_noise_density(grade).to(dtype=dtype, device=device)
+        self.tau_g, self.tau_a = grade.gyro_corr_time, grade.accel_corr_time
+        p0 = initial_covariance(config, dtype=dtype).to(device)
+        chol = torch.linalg.cholesky(p0[:9, :9])
+        e0 = draw0.to(device) @ chol.T
+        self.y = inject(traj.states[0].expand(n, 10), e0)
+        self.ekf = BatchedEKF(torch.zeros(n, 15, **kw), p0)
+        self.zeros = torch.zeros(n, 15, **kw)
+        self.bg_hat = torch.zeros(n, 3, **kw)
+        self.ba_hat = torch.zeros(n, 3, **kw)
+        self.m = 6 if config.use_velocity else 3
+        k_epochs = quality.n_epochs
+        self.out = {name: torch.full((n, k_epochs, 3), math.nan, **kw)
+                    for name in ("pos", "vel", "att")}
+        self.std = torch.full((n, k_epochs, 15), math.nan, **kw)
+        self.nees_p = torch.full((n, k_epochs), math.nan, **kw)
+        self.nees_n = torch.full((n, k_epochs), math.nan, **kw)
+        self.nis = torch.full((n, k_epochs), math.nan, **kw)
+        self.applied = torch.zeros(n, k_epochs, dtype=torch.bool, device=device)
+        self.counts["skipped_epochs"] = 0
+        self.quality_takers = quality_members(self.policy)
+        if self.policy is not None:
+            self.policy.reset()
+        self.counts["nan_measurements"] = 0
+        self.failed = torch.zeros(n, dtype=torch.bool, device=device)
+        self.y_good = self.y
+
+    def record(self, j: int, k: int) -> None:
+        n, y = self.n, self.y
+        truth = self.traj.states[k].expand(n, 10)
+        err = navigation_error(truth, y)
+        self.out["pos"][:, j] = err[:, :3]
+        self.out["vel"][:, j] = y[:, 3:6] - truth[:, 3:6]
+        self.out["att"][:, j] = total_attitude_error(truth, y)
+        P = self.ekf.P
+        self.std[:, j] = P.diagonal(dim1=-2, dim2=-1).sqrt()
+        pr = torch.linalg.cholesky_ex(P[:, :3, :3])[0]
+        w = torch.linalg.solve_triangular(pr, err[:, :3, None], upper=False)
+        self.nees_p[:, j] = w.square().sum((-2, -1))
+        pn = torch.linalg.cholesky_ex(P[:, :9, :9])[0]
+        w = torch.linalg.solve_triangular(pn, err[:, :, None], upper=False)
+        self.nees_n[:, j] = w.square().sum((-2, -1))
+
+    def update(self, j: int, gyro: torch.Tensor) -> None:
+        quality, gnss, config, n, m = self.quality, self.gnss, self.config, self.n, self.m
+        y = self.y
+        valid = bool(quality.valid[j])
+        if not valid:
+            self.counts["skipped_epochs"] += 1
+            return
+        pos, vel = gnss.position[:, j], gnss.velocity[:, j]
+        finite = torch.isfinite(pos).all(-1) & torch.isfinite(vel).all(-1)
+        self.counts["nan_measurements"] += int((~finite).sum())
+        pos = torch.where(finite[:, None], pos, y[:, :3])
+        vel = torch.where(finite[:, None], vel, y[:, 3:6])
+        resid, H = gnss_measurement_model(y, gyro, self.arm, pos, vel)
+        sig = torch.cat([quality.sigma_pos[j], quality.sigma_vel[j]]) * config.r_scale
+        R = torch.diag(sig[:m].square())
+        if self.measurement_noise is not None:
+            R = self.measurement_noise(j, R)
+        if self.quality_takers:
+            sig_h = quality.sigma_pos[j, :2].square().mean().sqrt()
+            indicators = {name: value.expand(n) for name, value in (
+                ("pdop", quality.pdop[j]), ("fix_ratio", quality.fix_ratio[j]),
+                ("satellites", quality.n_sats[j]), ("sigma_m", sig_h))}
+            for taker in self.quality_takers:
+                taker.set_quality(indicators)
+        ekf = self.ekf
+        diag = ekf.update(resid[:, :m], H[:, :m], R, mask=finite, policy=self.policy)
+        self.nis[:, j] = torch.where(diag.applied, diag.nis, math.nan)
+        self.applied[:, j] = diag.applied
+        x = ekf.x
+        y = correct(y, x[:, :9])
+        self.y, self.y_good = _guard(y, self.y_good, self.failed)
+        self.bg_hat = self.bg_hat - x[:, 9:12]
+        self.ba_hat = self.ba_hat - x[:, 12:15]
+        ekf.x = self.zeros
+
+    def first(self, raw_g: torch.Tensor) -> None:
+        """The epoch at sample 0 (if any), on the first measured sample."""
+        tick = time.perf_counter()
+        if 0 in self.epoch_of:
+            self.update(self.epoch_of[0], raw_g - self.bg_hat)
+            self.record(self.epoch_of[0], 0)
+        self.elapsed_s += time.perf_counter() - tick
+
+    def block(self, gyro: torch.Tensor, accel: torch.Tensor, start: int, end: int) -> None:
+        """Advances over samples ``start … end`` (``gyro``/``accel``: ``(N, L + 1, 3)``
+        measured samples, the first one that of ``start``); updates at ``end`` if an
+        epoch falls there."""
+        tick = time.perf_counter()
+        dt = self.traj.dt
+        device = self.traj.states.device
+        ekf = self.ekf
+        every = self.config.propagate_every
+        stops = list(range(every, end - start, every))
+        j = self.epoch_of.get(end)
+        if j is not None:  # every epoch is a propagation point
+            stops.append(end - start)
+        states, y, y_good = mechanize_block(self.y, self.y_good, self.failed, gyro, accel,
+                                            self.bg_hat, self.ba_hat, dt, stops)
+        states, self.y, self.y_good = states.to(device), y.to(device), y_good.to(device)
+        if stops:
+            f_stops = accel[:, stops] - self.ba_hat[:, None]
+            intervals = [(b - a) * dt for a, b in zip([0, *stops], stops, strict=False)]
+            # all but the last point here; the last one is the filter's predict (health
+            # check, and the process noise that policies read)
+            P, phi, qd = propagate_block(ekf.P, ekf.healthy, states, f_stops, intervals,
+                                         self.qc, self.tau_g, self.tau_a)
+            P, phi, qd = _freeze_overflow(P, phi, qd, ekf.P, self.failed)
+            if len(stops) > 1:
+                ekf.P = P
+            ekf.predict(phi, qd)
+        if j is not None:
+            self.update(j, gyro[:, -1] - self.bg_hat)
+            self.record(j, end)
+        self.elapsed_s += time.perf_counter() - tick
+
+    def result(self) -> LooselyCoupledResult:
+        counts = self.counts
+        counts["failed_runs"] = int(self.failed.sum())
+        # samples the filter froze (P or S lost positive definiteness, non-finite values)
+        counts["frozen_samples"] = int((~self.ekf.healthy).sum())
+        return LooselyCoupledResult(
+            time=self.quality.time, position_error=self.out["pos"],
+            velocity_error=self.out["vel"], attitude_error=self.out["att"], std=self.std,
+            nees_position=self.nees_p, nees_navigation=self.nees_n, nis=self.nis,
+            applied=self.applied, healthy=self.ekf.healthy & ~self.failed, counts=counts,
+            elapsed_s=self.elapsed_s,
+        )
+
+
 def run_loosely_coupled(
     traj: Trajectory,
     imu: ImuErrorProcess,
@@ -218,7 +391,50 @@ def run_loosely_coupled(
     Device: everything runs on the trajectory's device (``traj.to(device)``); the IMU
     process and the GNSS record must live there too.
     """
-    config.validate()
+    variant = LooselyCoupledVariant(config, policy=policy, measurement_noise=measurement_noise)
+    return run_loosely_coupled_variants(traj, imu, gnss, {"filter": variant},
+                                        generator=generator, progress=progress)["filter"]
+
+
+def run_loosely_coupled_variants(
+    traj: Trajectory,
+    imu: ImuErrorProcess,
+    gnss: GnssRecord,
+    variants: dict[str, LooselyCoupledVariant],
+    *,
+    generator: torch.Generator,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, LooselyCoupledResult]:
+    """Several filters over the same runs in lockstep: the IMU samples of each stretch
+    between GNSS epochs are drawn once and fed to every filter.
+
+    Each filter gets exactly the numbers :func:`run_loosely_coupled` would give it on a
+    generator in the same state (the initial-error draw, then the IMU samples, are the same
+    for every variant), at the cost of one IMU simulation for all of them.
+
+    Args:
+        traj, imu, gnss, generator: As in :func:`run_loosely_coupled`.
+        variants: Name to filter (settings and policy); policies must be distinct objects.
+        progress: Optional callback, called with (IMU samples advanced) × (filters) after
+            each stretch.
+
+    Returns:
+        Name to :class:`LooselyCoupledResult` (``elapsed_s``: that filter's own time,
+        without the shared IMU simulation).
+
+    Raises:
+        NeuralMapError: As :func:`run_loosely_coupled`; no variants; a policy shared by two.
+    """
+    if not variants:
+        raise NeuralMapError("run_loosely_coupled_variants: pass at least one variant.")
+    policies = [id(v.policy) for v in variants.values() if v.policy is not None]
+    if len(set(policies)) != len(policies):
+        raise NeuralMapError(
+            "run_loosely_coupled_variants: two variants share one policy object; a policy "
+            "keeps state (windows, factors), so build one per variant."
+        )
+    for v in variants.values():
+        v.config.validate()
     n = imu.n_runs
     if gnss.position.shape[0] != n:
         raise NeuralMapError(
@@ -226,25 +442,8 @@ def run_loosely_coupled(
             f"IMU process has {n}; simulate both with the same n_runs."
         )
     dtype = traj.states.dtype
-    device = traj.states.device
-    kw = {"dtype": dtype, "device": device}
     check_continuity(traj)
     quality, counts = sanitize_quality(gnss.quality)
-    grade = imu_grade(config.grade)
-    arm = (gnss.lever_arm if config.lever_arm is None
-           else check_lever_arm(config.lever_arm, where="run_loosely_coupled")).to(**kw)
-    qc = process_noise_density(grade).to(dtype=dtype, device=device)
-    tau_g, tau_a = grade.gyro_corr_time, grade.accel_corr_time
-    p0 = initial_covariance(config, dtype=dtype).to(device)
-    chol = torch.linalg.cholesky(p0[:9, :9])
-    e0 = torch.randn(n, 9, generator=generator, dtype=dtype).to(device) @ chol.T
-    y = inject(traj.states[0].expand(n, 10), e0)
-    ekf = BatchedEKF(torch.zeros(n, 15, **kw), p0)
-    zeros = torch.zeros(n, 15, **kw)
-    bg_hat = torch.zeros(n, 3, **kw)
-    ba_hat = torch.zeros(n, 3, **kw)
-    m = 6 if config.use_velocity else 3
-    k_epochs = quality.n_epochs
     index = quality.imu_index.tolist()
     if any(b <= a for a, b in zip(index, index[1:], strict=False)) or (
             index and (index[0] < 0 or index[-1] >= traj.n_samples)):
@@ -254,74 +453,12 @@ def run_loosely_coupled(
             "against this trajectory (simulate_gnss) or sort it by time."
         )
     epoch_of = {int(i): j for j, i in enumerate(index)}
-    out = {name: torch.full((n, k_epochs, 3), math.nan, **kw)
-           for name in ("pos", "vel", "att")}
-    std = torch.full((n, k_epochs, 15), math.nan, **kw)
-    nees_p = torch.full((n, k_epochs), math.nan, **kw)
-    nees_n = torch.full((n, k_epochs), math.nan, **kw)
-    nis = torch.full((n, k_epochs), math.nan, **kw)
-    applied = torch.zeros(n, k_epochs, dtype=torch.bool, device=device)
-    counts["skipped_epochs"] = 0
-    quality_takers = quality_members(policy)
-    if policy is not None:
-        policy.reset()
-    counts["nan_measurements"] = 0
-    dt = traj.dt
-
-    def record(j: int, k: int) -> None:
-        truth = traj.states[k].expand(n, 10)
-        err = navigation_error(truth, y)
-        out["pos"][:, j] = err[:, :3]
-        out["vel"][:, j] = y[:, 3:6] - truth[:, 3:6]
-        out["att"][:, j] = total_attitude_error(truth, y)
-        P = ekf.P
-        std[:, j] = P.diagonal(dim1=-2, dim2=-1).sqrt()
-        pr = torch.linalg.cholesky_ex(P[:, :3, :3])[0]
-        w = torch.linalg.solve_triangular(pr, err[:, :3, None], upper=False)
-        nees_p[:, j] = w.square().sum((-2, -1))
-        pn = torch.linalg.cholesky_ex(P[:, :9, :9])[0]
-        w = torch.linalg.solve_triangular(pn, err[:, :, None], upper=False)
-        nees_n[:, j] = w.square().sum((-2, -1))
-
-    def update(j: int, gyro: torch.Tensor) -> None:
-        nonlocal y, y_good, bg_hat, ba_hat
-        valid = bool(quality.valid[j])
-        if not valid:
-            counts["skipped_epochs"] += 1
-            return
-        pos, vel = gnss.position[:, j], gnss.velocity[:, j]
-        finite = torch.isfinite(pos).all(-1) & torch.isfinite(vel).all(-1)
-        counts["nan_measurements"] += int((~finite).sum())
-        pos = torch.where(finite[:, None], pos, y[:, :3])
-        vel = torch.where(finite[:, None], vel, y[:, 3:6])
-        resid, H = gnss_measurement_model(y, gyro, arm, pos, vel)
-        sig = torch.cat([quality.sigma_pos[j], quality.sigma_vel[j]]) * config.r_scale
-        R = torch.diag(sig[:m].square())
-        if measurement_noise is not None:
-            R = measurement_noise(j, R)
-        if quality_takers:
-            sig_h = quality.sigma_pos[j, :2].square().mean().sqrt()
-            indicators = {name: value.expand(n) for name, value in (
-                ("pdop", quality.pdop[j]), ("fix_ratio", quality.fix_ratio[j]),
-                ("satellites", quality.n_sats[j]), ("sigma_m", sig_h))}
-            for taker in quality_takers:
-                taker.set_quality(indicators)
-        diag = ekf.update(resid[:, :m], H[:, :m], R, mask=finite, policy=policy)
-        nis[:, j] = torch.where(diag.applied, diag.nis, math.nan)
-        applied[:, j] = diag.applied
-        x = ekf.x
-        y = correct(y, x[:, :9])
-        y, y_good = _guard(y, y_good, failed)
-        bg_hat = bg_hat - x[:, 9:12]
-        ba_hat = ba_hat - x[:, 12:15]
-        ekf.x = zeros
-
-    failed = torch.zeros(n, dtype=torch.bool, device=device)
-    y_good = y
+    draw0 = torch.randn(n, 9, generator=generator, dtype=dtype)
+    filters = {name: _ClosedLoop(traj, gnss, quality, counts, v, draw0, epoch_of)
+               for name, v in variants.items()}
     raw_g, raw_a = imu.measure(traj.gyro[0], traj.accel[0])
-    if 0 in epoch_of:
-        update(epoch_of[0], raw_g - bg_hat)
-        record(epoch_of[0], 0)
+    for f in filters.values():
+        f.first(raw_g)
     with torch.no_grad():
         # One block per stretch between GNSS epochs: IMU samples, mechanisation and the
         # covariance propagation of the whole stretch at once (the same numbers as one
@@ -335,37 +472,10 @@ def run_loosely_coupled(
                                              traj.accel[start + 1:end + 1])
             gyro = torch.cat([raw_g[:, None], new_g], 1)
             accel = torch.cat([raw_a[:, None], new_a], 1)
-            every = config.propagate_every
-            stops = list(range(every, end - start, every))
-            j = epoch_of.get(end)
-            if j is not None:  # every epoch is a propagation point
-                stops.append(end - start)
-            states, y, y_good = mechanize_block(y, y_good, failed, gyro, accel, bg_hat, ba_hat,
-                                                dt, stops)
-            states, y, y_good = states.to(device), y.to(device), y_good.to(device)
-            if stops:
-                f_stops = accel[:, stops] - ba_hat[:, None]
-                intervals = [(b - a) * dt for a, b in zip([0, *stops], stops, strict=False)]
-                # all but the last point here; the last one is the filter's predict (health
-                # check, and the process noise that policies read)
-                P, phi, qd = propagate_block(ekf.P, ekf.healthy, states, f_stops, intervals,
-                                             qc, tau_g, tau_a)
-                P, phi, qd = _freeze_overflow(P, phi, qd, ekf.P, failed)
-                if len(stops) > 1:
-                    ekf.P = P
-                ekf.predict(phi, qd)
+            for f in filters.values():
+                f.block(gyro, accel, start, end)
             raw_g, raw_a = gyro[:, -1], accel[:, -1]
-            if j is not None:
-                update(j, raw_g - bg_hat)
-                record(j, end)
             if progress is not None:
-                progress(end - start)
+                progress((end - start) * len(filters))
             start = end
-    counts["failed_runs"] = int(failed.sum())
-    # samples the filter froze (P or S lost positive definiteness, non-finite values)
-    counts["frozen_samples"] = int((~ekf.healthy).sum())
-    return LooselyCoupledResult(
-        time=quality.time, position_error=out["pos"], velocity_error=out["vel"],
-        attitude_error=out["att"], std=std, nees_position=nees_p, nees_navigation=nees_n,
-        nis=nis, applied=applied, healthy=ekf.healthy & ~failed, counts=counts,
-    )
+    return {name: f.result() for name, f in filters.items()}

@@ -57,8 +57,11 @@ _MASK64 = (1 << 64) - 1
 
 
 #: Allocations at or above this size go to their own memory maps (returned to the system
-#: when freed); see :func:`bound_allocator`.
-MMAP_THRESHOLD_BYTES = 1 << 20
+#: when freed); see :func:`bound_allocator`. Above a filter step's temporaries (a batch's
+#: ``(8192, 5, 5)`` covariance is 1.6 MiB), below a batch's histories (hundreds of MiB).
+MMAP_THRESHOLD_BYTES = 32 << 20
+#: Free memory at the top of the heap kept for reuse rather than returned (trimmed).
+TRIM_THRESHOLD_BYTES = 64 << 20
 
 
 def bound_allocator() -> bool:
@@ -67,15 +70,21 @@ def bound_allocator() -> bool:
     glibc raises its mmap threshold dynamically after large blocks are freed, so the
     per-block tensors of later seed blocks are carved from the heap, which fragments: the
     resident memory of a long chunked run then creeps up (measured: +100 MiB after 20 k
-    jacksboro runs). A fixed threshold (``mallopt(M_MMAP_THRESHOLD, 1 MiB)``, as the
-    ``MALLOC_MMAP_THRESHOLD_`` environment variable) keeps it flat.
+    jacksboro runs). A fixed threshold (``mallopt(M_MMAP_THRESHOLD, 32 MiB)``, as the
+    ``MALLOC_MMAP_THRESHOLD_`` environment variable) keeps it flat: a filter batch's
+    histories (hundreds of MiB) get their own maps, returned when freed, while a filter
+    step's temporaries reuse the heap (at 1 MiB every step's batch covariance was a fresh
+    map, and its page faults were about a third of a 1 M-run Monte Carlo's CPU time);
+    ``M_TRIM_THRESHOLD`` 64 MiB keeps the heap top from being returned and refaulted.
     """
     import ctypes
     import ctypes.util
 
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return bool(libc.mallopt(-3, MMAP_THRESHOLD_BYTES))  # -3 = M_MMAP_THRESHOLD
+        # -3 = M_MMAP_THRESHOLD, -1 = M_TRIM_THRESHOLD
+        return bool(libc.mallopt(-3, MMAP_THRESHOLD_BYTES)) and bool(
+            libc.mallopt(-1, TRIM_THRESHOLD_BYTES))
     except (OSError, AttributeError):
         return False
 
@@ -186,11 +195,20 @@ class ChunkedResult:
     err: dict[str, torch.Tensor] | None = None
 
 
+def _all_finite(x: torch.Tensor) -> torch.Tensor:
+    """``(N,)``: every entry of run n finite; the same as ``isfinite(x).flatten(1).all(1)``
+    from two reductions (NaN propagates through both, ±inf shows in one) instead of a
+    boolean copy of the whole history (the covariance history of a filter batch is
+    hundreds of MiB; the copy took a large share of a chunk's time)."""
+    flat = x.flatten(1)
+    return torch.isfinite(flat.amax(1)) & torch.isfinite(flat.amin(1))
+
+
 def _block_reduce(run: Any, sizes: list[int]) -> list[dict[str, torch.Tensor]]:
     """Per seed block: per-run values and per-step sums of one method's chunk run."""
     err = run.err.detach().to("cpu", torch.float64)
     P = run.P.detach().to("cpu", torch.float64)
-    finite = torch.isfinite(err).flatten(1).all(1) & torch.isfinite(P).flatten(1).all(1)
+    finite = _all_finite(err) & _all_finite(P)
     included = ~run.off_map.cpu() & finite
     pos2 = err[..., 0] ** 2 + err[..., 1] ** 2
     vel2 = err[..., 3] ** 2 + err[..., 4] ** 2

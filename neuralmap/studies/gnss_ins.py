@@ -41,7 +41,11 @@ from neuralmap.filters.policy import FilterPolicy
 from neuralmap.ins.earth import position_offset_ned
 from neuralmap.ins.gnss import UrbanEffects, simulate_gnss
 from neuralmap.ins.imu_model import ImuErrorProcess, imu_grade
-from neuralmap.ins.loosely_coupled import LooselyCoupledConfig, run_loosely_coupled
+from neuralmap.ins.loosely_coupled import (
+    LooselyCoupledConfig,
+    LooselyCoupledVariant,
+    run_loosely_coupled_variants,
+)
 from neuralmap.ins.measurement import check_lever_arm
 from neuralmap.ins.metrics import navigation_summary
 from neuralmap.ins.trajectory import short_drive, urban_drive
@@ -87,6 +91,9 @@ class GnssInsStudyConfig(StudyConfig):
         quality_weight: Quantisation parameter of every quality indicator (0.1–0.5).
         divergence_m: A run diverged when its horizontal error ever exceeds this.
         warmup_s: Initial transient left out of NEES/NIS/attitude statistics.
+        workers: Processes the variants are dealt to (round robin; each process simulates
+            the IMU once and filters its variants in lockstep). The results do not depend
+            on it (bit-identical).
     """
 
     study: str = "gnss_ins"
@@ -111,6 +118,7 @@ class GnssInsStudyConfig(StudyConfig):
     quality_weight: float = 0.3
     divergence_m: float = 20.0
     warmup_s: float = 10.0
+    workers: int = 2
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
@@ -163,6 +171,9 @@ class GnssInsStudyConfig(StudyConfig):
             )
         if not self.alpha_cap >= 1:
             raise NeuralMapError(f"--alpha_cap must be >= 1, got {self.alpha_cap}.")
+        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or (
+                self.workers < 1):
+            raise NeuralMapError(f"--workers must be an integer >= 1, got {self.workers!r}.")
         if self.propagate_every < 1:
             raise NeuralMapError(f"--propagate_every must be >= 1, got {self.propagate_every}.")
         if self.dtype != "float64":
@@ -289,6 +300,56 @@ def _figures(outputs: StudyOutputs, *, traj: Any, quality: Any,
     plt.close(fig)
 
 
+def _drive(config: GnssInsStudyConfig) -> Any:
+    """The study's reference trajectory (the same in every process)."""
+    dt = 1.0 / config.imu_rate_hz
+    if config.drive == "urban":
+        return urban_drive(duration=config.duration_s, distance=config.distance_m, dt=dt)
+    return short_drive(duration=config.duration_s, dt=dt)
+
+
+def _run_group(config: GnssInsStudyConfig, names: list[str], *, traj: Any = None,
+               progress: Any = None) -> dict[str, Any]:
+    """Filters the variants ``names`` in lockstep on the study's draws (seeded with the
+    study's seed, so every group and every variant sees the same IMU and GNSS errors).
+
+    Returns:
+        ``{"runs": name -> LooselyCoupledResult, "quality": GNSS quality record,
+        "imu_s": the IMU simulation's share of the time}``.
+    """
+    traj = _drive(config) if traj is None else traj
+    dt = 1.0 / config.imu_rate_hz
+    effects = UrbanEffects.urban(traj.duration) if config.urban_effects else UrbanEffects()
+    gen = torch.Generator().manual_seed(int(config.seed or 0))
+    tick = time.perf_counter()
+    imu = ImuErrorProcess(config.imu_grade, n_runs=config.n_runs, dt=dt, generator=gen)
+    rec = simulate_gnss(traj, n_runs=config.n_runs, lever_arm=config.lever_arm_m,
+                        generator=gen, effects=effects)
+    variants = {name: LooselyCoupledVariant(
+        LooselyCoupledConfig(grade=config.imu_grade, propagate_every=config.propagate_every,
+                             r_scale=config.r_scale if name == "r_scaled" else 1.0),
+        policy=build_policy(name, config)) for name in names}
+    runs = run_loosely_coupled_variants(traj, imu, rec, variants, generator=gen,
+                                        progress=progress)
+    spent = time.perf_counter() - tick
+    return {"runs": runs, "quality": rec.quality,
+            "imu_s": spent - sum(r.elapsed_s for r in runs.values())}
+
+
+def _run_group_worker(job: tuple[GnssInsStudyConfig, list[str], int, int]) -> dict[str, Any]:
+    """A worker process's group (:func:`_run_group`), with its own progress lines."""
+    config, names, index, count = job
+    if config.threads is not None:
+        torch.set_num_threads(int(config.threads))
+    traj = _drive(config)
+    bar = progress_bar(total=len(names) * (traj.n_samples - 1),
+                       desc=f"gnss_ins worker {index + 1}/{count} ({', '.join(names)})",
+                       unit="IMU sample")
+    out = _run_group(config, names, traj=traj, progress=bar.update)
+    bar.close()
+    return out
+
+
 def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
     """Runs the GNSS/INS Monte Carlo study and fills ``outputs``.
 
@@ -299,47 +360,45 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
     seed = 0 if config.seed is None else int(config.seed)
     config.seed = seed
     started = time.perf_counter()
-    dt = 1.0 / config.imu_rate_hz
-    if config.drive == "urban":
-        traj = urban_drive(duration=config.duration_s, distance=config.distance_m, dt=dt)
-    else:
-        traj = short_drive(duration=config.duration_s, dt=dt)
-    effects = UrbanEffects.urban(traj.duration) if config.urban_effects else UrbanEffects()
+    traj = _drive(config)
     print(f"gnss_ins: {config.drive} drive {traj.duration:.0f} s, {traj.distance / 1000:.2f} km, "
           f"{config.imu_rate_hz:g} Hz IMU ({config.imu_grade}), {config.n_runs} runs, variants "
-          f"{', '.join(config.variants)}", flush=True)
-    runs: dict[str, Any] = {}
-    summaries: dict[str, dict[str, Any]] = {}
+          f"{', '.join(config.variants)}; {config.workers} worker(s)", flush=True)
+    groups = [g for g in (config.variants[i::config.workers] for i in range(config.workers))
+              if g]
     timing: dict[str, float] = {}
-    quality = None
-    # IMU samples over all variants (each sample advances every run): progress lines with
-    # the rate and the time left in logs, a bar on a terminal
-    bar = progress_bar(total=len(config.variants) * (traj.n_samples - 1), desc="gnss_ins",
-                       unit="IMU sample")
-    for name in config.variants:
-        gen = torch.Generator().manual_seed(seed)  # the same draws for every variant
-        imu = ImuErrorProcess(config.imu_grade, n_runs=config.n_runs, dt=dt, generator=gen)
-        rec = simulate_gnss(traj, n_runs=config.n_runs, lever_arm=config.lever_arm_m,
-                            generator=gen, effects=effects)
-        quality = rec.quality
-        cfg = LooselyCoupledConfig(
-            grade=config.imu_grade, propagate_every=config.propagate_every,
-            r_scale=config.r_scale if name == "r_scaled" else 1.0,
-        )
-        tick = time.perf_counter()
-        bar.set_description(f"gnss_ins {name} ({config.n_runs} runs)")
-        runs[name] = run_loosely_coupled(traj, imu, rec, cfg, generator=gen,
-                                         policy=build_policy(name, config), progress=bar.update)
-        timing[f"filter_{name}"] = time.perf_counter() - tick
-        summaries[name] = navigation_summary(runs[name], rec.quality,
-                                             divergence_m=config.divergence_m,
+    tick = time.perf_counter()
+    if len(groups) == 1:
+        # IMU samples over all variants (each sample advances every run): progress lines
+        # with the rate and the time left in logs, a bar on a terminal
+        bar = progress_bar(total=len(config.variants) * (traj.n_samples - 1),
+                           desc=f"gnss_ins ({config.n_runs} runs)", unit="IMU sample")
+        outs = [_run_group(config, groups[0], traj=traj, progress=bar.update)]
+        bar.close()
+    else:
+        import concurrent.futures
+        import multiprocessing
+
+        context = multiprocessing.get_context("spawn")
+        with concurrent.futures.ProcessPoolExecutor(len(groups), mp_context=context) as pool:
+            outs = list(pool.map(_run_group_worker, [(config, g, i, len(groups))
+                                                     for i, g in enumerate(groups)]))
+    timing["filters_wall"] = time.perf_counter() - tick
+    found: dict[str, Any] = {}
+    for i, out in enumerate(outs):
+        found.update(out["runs"])
+        timing[f"imu_simulation_worker{i}"] = out["imu_s"]
+    quality = outs[0]["quality"]
+    runs = {name: found[name] for name in config.variants}
+    summaries: dict[str, dict[str, Any]] = {}
+    for name, res in runs.items():
+        timing[f"filter_{name}"] = res.elapsed_s
+        summaries[name] = navigation_summary(res, quality, divergence_m=config.divergence_m,
                                              warmup_s=config.warmup_s)
-        horiz = runs[name].position_error[..., :2].norm(dim=-1).square().mean(0).sqrt()
+        horiz = res.position_error[..., :2].norm(dim=-1).square().mean(0).sqrt()
         outputs.log_curve(f"{name}/horizontal_rmse_m", horiz.tolist())
         outputs.log_scalar(f"{name}/rmse_horizontal_m", summaries[name]["rmse_horizontal_m"])
-        print(f"  {name}: {timing[f'filter_{name}']:.1f} s", flush=True)
-    bar.close()
-    assert quality is not None
+        print(f"  {name}: {res.elapsed_s:.1f} s", flush=True)
 
     outputs.add_text(
         f"Drive: {config.drive}, {traj.duration:.0f} s, {traj.distance / 1000:.2f} km; IMU "

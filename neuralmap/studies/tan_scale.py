@@ -10,7 +10,7 @@ final error, divergence by the filter's own bound), not the PCRB comparison.
 
 Examples:
     python evaluate.py --config configs/tan_scale.yaml
-    python evaluate.py --config configs/tan_scale.yaml --n_runs 1000000 --workers 2
+    python evaluate.py --config configs/tan_scale.yaml --n_runs 100000 --workers 1
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ class TanScaleConfig(TanOptions):
     experiment: str = "tan_scale"
     threads: int | None = 1
     progress: bool = True
-    n_runs: int = 400_000
+    n_runs: int = 1_000_000
     methods: list[str] = field(default_factory=lambda: ["bilinear", "nine_point"])
     chunk_runs: int = BATCH_RUNS
     batch_runs: int = BATCH_RUNS

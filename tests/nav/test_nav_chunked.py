@@ -95,3 +95,18 @@ def test_two_processes_equal_one(setup) -> None:  # noqa: ANN001
               "chunk_runs": 2}
     _same(run_monte_carlo_chunked(scenario, methods, **kwargs),
           run_monte_carlo_chunked(scenario, methods, devices=2, **kwargs))
+
+
+def test_all_finite_equals_the_boolean_reference() -> None:
+    from neuralmap.nav.chunked import _all_finite
+
+    x = torch.randn(7, 4, 5, 5, dtype=torch.float64) * 1e300
+    x[1, 2, 0, 3] = float("nan")
+    x[3, 0, 4, 4] = float("inf")
+    x[4, 3, 1, 1] = -float("inf")
+    x[5, 1, 2, 2] = float("nan")
+    x[5, 2, 2, 2] = float("inf")
+    x[6] = torch.finfo(torch.float64).max  # finite however large
+    expected = torch.isfinite(x).flatten(1).all(1)
+    assert expected.tolist() == [True, False, True, False, False, False, True]
+    assert torch.equal(_all_finite(x), expected)

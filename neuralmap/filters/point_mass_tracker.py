@@ -382,8 +382,15 @@ class PointMassTracker:
 
     # ------------------------------------------------------------------ lattice helpers
     def _log_gauss(self, u: torch.Tensor, cu: torch.Tensor) -> torch.Tensor:
-        """``(N, G, G)`` ``log N(o; u, cu)`` (cell coordinates) up to a per-run constant."""
-        inv = torch.linalg.inv(cu)
+        """``(N, G, G)`` ``log N(o; u, cu)`` (cell coordinates) up to a per-run constant.
+
+        ``cu``'s eigenvalues are floored at 1/12 cell² (the variance of one uniform cell: a
+        lattice cannot hold a narrower posterior), so a posterior collapsed onto one cell
+        or one line of cells stays invertible; wider posteriors are unchanged.
+        """
+        vals, vecs = torch.linalg.eigh(_sym(cu))
+        floored = vals.clamp_min(1.0 / 12.0)
+        inv = (vecs / floored[:, None, :]) @ vecs.transpose(1, 2)
         dx = (self._off[None, :] - u[:, 0:1])[:, None, :]  # (N, 1, G) along columns
         dy = (self._off[None, :] - u[:, 1:2])[:, :, None]  # (N, G, 1) along rows
         a, b, c = (inv[:, i, j, None, None] for i, j in ((0, 0), (0, 1), (1, 1)))
@@ -769,7 +776,7 @@ class PointMassTracker:
         tiny = torch.finfo(self.dtype).tiny
         log_r = w_o.clamp_min(tiny).log() - self._log_gauss(u_o, cu_o)
         log_r = (log_r - log_r.amax((1, 2), keepdim=True)).clamp_min(_LOG_R_FLOOR)
-        gzu = torch.linalg.solve(cu_o, czu_o.transpose(1, 2)).transpose(1, 2)
+        gzu = torch.linalg.lstsq(cu_o, czu_o.transpose(1, 2)).solution.transpose(1, 2)
         resid = mu_o - mz_o[:, :, None, None] - self._affine(gzu, u_o)
         chans = torch.cat([log_r[:, None], resid], 1)
         out = nnf.grid_sample(chans, uv.to(chans.dtype), mode="bilinear", padding_mode="border",

@@ -293,6 +293,7 @@ class PointMassTracker:
                 f"PointMassTracker: E, F, c must have shapes (2, {nz}), ({nz}, {nz}), ({nz},); "
                 f"got {tuple(self.E.shape)}, {tuple(self.F.shape)}, {tuple(self.c.shape)}.")
         self._off = torch.arange(self.cells, **kw) - self.half
+        self._moments_cache: tuple[torch.Tensor, torch.Tensor, int, int, _Moments] | None = None
         self._f_identity = bool(torch.equal(self.F, torch.eye(nz, **kw)))
         self.recoveries = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.regrids = torch.zeros_like(self.recoveries)
@@ -430,13 +431,25 @@ class PointMassTracker:
         return ms, css, lm.mz, _sym(P + lm.czz_b), czs
 
     # ------------------------------------------------------------------ moments
+    def _lattice_moments(self, w: torch.Tensor, mu: torch.Tensor) -> _Moments:
+        """:class:`_Moments` of ``(w, mu)``, reused while both tensors are the same objects
+        at the same version (an in-place change bumps the version): a step asks for the
+        moments of one state up to six times."""
+        cached = self._moments_cache
+        if (cached is not None and cached[0] is w and cached[1] is mu
+                and cached[2] == w._version and cached[3] == mu._version):
+            return cached[4]
+        lm = _Moments(w, mu, self._off)
+        self._moments_cache = (w, mu, w._version, mu._version, lm)
+        return lm
+
     def points(self) -> torch.Tensor:
         """``(N, G, G, 2)`` cell coordinates in the state space."""
         return self._points(self.centre, self.axes)
 
     def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean ``(N, 2+nz)`` and covariance ``(N, 2+nz, 2+nz)`` of the whole state."""
-        lm = _Moments(self.weights, self.lin_mean, self._off)
+        lm = self._lattice_moments(self.weights, self.lin_mean)
         ms, css, mz, czz, czs = self._state_moments(lm, self.lin_cov, self.centre, self.axes)
         mean = torch.cat([ms, mz], 1)
         top = torch.cat([css, czs.transpose(1, 2)], 2)
@@ -452,7 +465,7 @@ class PointMassTracker:
         cells) gets the Gaussian with the target moments on a fresh lattice instead.
         """
         w, mu, P, centre, axes = state
-        lm = _Moments(w, mu, self._off)
+        lm = self._lattice_moments(w, mu)
         thin = torch.linalg.eigvalsh(lm.cu)[:, 0] < MIN_CELL_VARIANCE
         if fallback and bool(thin.any()):
             idx = thin.nonzero().reshape(-1)
@@ -462,7 +475,7 @@ class PointMassTracker:
             gauss = self._gaussian_state(mean_t, _sym(cov_t))
             state = tuple(t.index_copy(0, idx, g) for t, g in zip(state, gauss, strict=True))
             w, mu, P, centre, axes = state
-            lm = _Moments(w, mu, self._off)
+            lm = self._lattice_moments(w, mu)
         css = _sym(axes @ lm.cu @ axes.transpose(1, 2))
         root = _sqrtm2(css)
         iroot = _sqrtm2(css, inverse=True)
@@ -495,7 +508,7 @@ class PointMassTracker:
         """Runs whose masses sit in too few cells (``MIN_CELL_VARIANCE``): their Gaussian
         fit, with the cells' own spread ``A Aᵀ / 12`` added, on a fresh lattice; returns the
         lattice moments of the state."""
-        lm = _Moments(self.weights, self.lin_mean, self._off)
+        lm = self._lattice_moments(self.weights, self.lin_mean)
         thin = torch.linalg.eigvalsh(lm.cu)[:, 0] < MIN_CELL_VARIANCE
         if not bool(thin.any()):
             return lm
@@ -514,7 +527,7 @@ class PointMassTracker:
                                strict=True):
             getattr(self, name).index_copy_(0, idx, value)
         self.regrids += thin.long()
-        return _Moments(self.weights, self.lin_mean, self._off)
+        return self._lattice_moments(self.weights, self.lin_mean)
 
     # ------------------------------------------------------------------ predict
     def predict(self, *, Q_s: torch.Tensor, Q_z: torch.Tensor,

@@ -430,7 +430,9 @@ def run_acquisition(
 def _run_tracker(inputs: TanInputs, terrain: Any, cfg: AcquisitionConfig,
                  name: str) -> AcquisitionResult:
     """The point-mass tracker (:func:`neuralmap.nav.tracking.run_tracker`) from the prior:
-    ``cfg.cells`` (or 64) cells per axis, likelihood flattening while cells are coarse."""
+    ``cfg.cells`` cells per axis (None: 32 when the first cells, ``2 · 5σ0 / 31``, are at most
+    ``max_spacing_m``, else 64), likelihood flattening while cells are coarse, a lost track
+    widened to at least the prior's σ."""
     from types import SimpleNamespace
 
     from neuralmap.nav.tracking import TrackerOptions, run_tracker
@@ -440,8 +442,16 @@ def _run_tracker(inputs: TanInputs, terrain: Any, cfg: AcquisitionConfig,
                             ins_error=inputs.ins_error, on_map=inputs.on_map,
                             extent=inputs.extent,
                             t=torch.arange(k1, dtype=inputs.radar.dtype) * inputs.dt)
-    options = TrackerOptions(cells=int(cfg.cells or 64), dtype=cfg.dtype,
-                             flatten_likelihood=cfg.flatten_likelihood)
+    cells = cfg.cells
+    sigma = float(torch.linalg.eigvalsh(torch.as_tensor(inputs.P0, dtype=torch.float64)
+                                        [:2, :2]).max().clamp_min(0.0).sqrt())
+    if cells is None:  # the smaller lattice when its first cells are fine enough
+        span = TrackerOptions.span_sigma
+        cells = 32 if 2.0 * span * sigma / 31.0 <= cfg.max_spacing_m else 64
+    # a lost track re-acquires over the prior's own uncertainty
+    options = TrackerOptions(cells=int(cells), dtype=cfg.dtype,
+                             flatten_likelihood=cfg.flatten_likelihood,
+                             widen_min_sigma_m=max(TrackerOptions.widen_min_sigma_m, sigma))
     res = run_tracker(truth, terrain, P0=inputs.P0, Q=inputs.Q, R=inputs.R, dt=inputs.dt,
                       options=options, method=name)
     n = inputs.radar.shape[0]

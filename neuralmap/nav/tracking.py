@@ -52,6 +52,12 @@ class TrackerOptions:
         flatten_likelihood: Add the map's height spread over each cell to the likelihood
             variance (:func:`neuralmap.nav.acquisition.cell_height_variance`): needed while
             the cells are coarser than the terrain's detail (large initial errors).
+        min_cell_blur: Smallest cell step in units of one step's horizontal transition
+            spread ``b = sqrt(λ_max(Q_s) + T² λ_max(P0_v))`` (the lattice's minimum
+            half-width is ``min_cell_blur · b · (G − 1) / 2``); 0 = no floor. A lattice
+            finer than the transition blur gains nothing in accuracy, but the blur kernel
+            of its prediction grows with it (all runs share the longest kernel, which goes
+            to an FFT above 9 taps): with 1.5 the kernel stays below one cell σ (≤ 9 taps).
     """
 
     cells: int = 32
@@ -62,16 +68,23 @@ class TrackerOptions:
     widen_min_sigma_m: float = 50.0
     chunk_runs: int = 0
     flatten_likelihood: bool = False
+    min_cell_blur: float = 1.5
     extra: dict[str, Any] = field(default_factory=dict)
 
-    def tracker_config(self) -> TrackerConfig:
-        """The :class:`TrackerConfig` (validated)."""
+    def tracker_config(self, blur_m: float = 0.0) -> TrackerConfig:
+        """The :class:`TrackerConfig` (validated); ``blur_m`` = one step's transition
+        spread ``b`` (m) for the lattice floor (``min_cell_blur``)."""
         if self.dtype not in ("float32", "float64"):
             raise NeuralMapError(
                 f"tracker: dtype must be 'float32' or 'float64', got {self.dtype!r}.")
+        if not self.min_cell_blur >= 0.0:
+            raise NeuralMapError(
+                f"tracker: min_cell_blur must be >= 0, got {self.min_cell_blur!r}.")
+        extra = dict(self.extra)
+        extra.setdefault("min_half_width", self.min_cell_blur * blur_m * 0.5 * (self.cells - 1))
         return TrackerConfig(cells=self.cells, span_sigma=self.span_sigma,
                              principal_axes=self.principal_axes, lost_window=self.lost_window,
-                             widen_min_sigma=self.widen_min_sigma_m, **self.extra).validate()
+                             widen_min_sigma=self.widen_min_sigma_m, **extra).validate()
 
 
 @dataclass
@@ -140,7 +153,6 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
         NeuralMapError: ``P0`` not positive definite, bad options, ``R`` not > 0.
     """
     opts = options or TrackerOptions()
-    cfg = opts.tracker_config()
     if not (R > 0 and R < float("inf")):
         raise NeuralMapError(f"tracker: R must be finite and > 0 m², got {R!r}.")
     pm_dtype = torch.float32 if opts.dtype == "float32" else torch.float64
@@ -148,6 +160,10 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
     n, k1 = truth.radar.shape
     P0 = torch.as_tensor(P0, dtype=torch.float64)
     Q = torch.as_tensor(Q, dtype=torch.float64)
+    blur = (torch.linalg.eigvalsh(0.5 * (Q[:2, :2] + Q[:2, :2].T))[-1].clamp_min(0.0)
+            + float(dt) ** 2 * torch.linalg.eigvalsh(0.5 * (P0[3:, 3:] + P0[3:, 3:].T))[-1]
+            .clamp_min(0.0)).sqrt()
+    cfg = opts.tracker_config(blur_m=float(blur))
     E, F, c = _tan_matrices(float(dt), pm_dtype)
     err = torch.empty(n, k1, N_STATES, dtype=out_dtype, device=device)
     P_hist = torch.empty(n, k1, N_STATES, N_STATES, dtype=out_dtype, device=device)

@@ -442,6 +442,35 @@ def format_table(results: Mapping[str, Any], *, markdown: bool = False) -> str:
     return "\n".join(out)
 
 
+#: Position σ (m) at which the report prints the derived R.
+_NOISE_REPORT_SIGMAS = (0.0, 10.0, 20.0, 40.0, 100.0, 300.0)
+
+
+def noise_section(noise: Mapping[str, Any]) -> list[str]:
+    """Markdown lines: how the EKF methods' R was built and, when measured, its value at a
+    few position σ per method (the full tables are in results.json, ``noise``)."""
+    if not noise:
+        return []
+    lines = ["## Measurement noise R of the EKF methods", "", str(noise.get("rule", "")), ""]
+    methods = noise.get("methods") or {}
+    if not methods:
+        return lines
+    if noise.get("pilot_runs"):
+        lines.append(f"Pilot flights: {noise['pilot_runs']} runs (seed {noise['pilot_seed']}, "
+                     f"independent of the study's), {noise['iterations']} iterations; "
+                     "altimeter variance "
+                     f"{noise['altimeter_R_m2']:g} m². R [m²] at the position σ (per axis):")
+    lines.append("")
+    header = "| method | " + " | ".join(f"σ = {s:g} m" for s in _NOISE_REPORT_SIGMAS) + " |"
+    lines += [header, "|---|" + "---:|" * len(_NOISE_REPORT_SIGMAS)]
+    for name, table in methods.items():
+        sig = table["sigmas_m"]
+        cells = [f"{float(np.interp(s, sig, table['R_m2'])):.1f}" for s in _NOISE_REPORT_SIGMAS]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    lines.append("")
+    return lines
+
+
 def report_text(results: Mapping[str, Any]) -> str:
     """The TAN study's own report sections: setup, metrics table, off-map runs, divergence
     rule and timing (the title, figures and claims table come from
@@ -542,6 +571,8 @@ def report_text(results: Mapping[str, Any]) -> str:
         + f"per method (truth left the map; an estimate that left it counts as diverged): {off_text}."
     )
     lines.append("")
+
+    lines += noise_section(results.get("noise") or {})
 
     lines.append("## Divergence rule")
     lines.append("")

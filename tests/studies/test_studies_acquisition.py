@@ -31,3 +31,17 @@ def test_wide_start_spread_counts_off_map_runs_and_finishes(tmp_path: Path) -> N
         assert rows[key]["n_included"] == 40 - off["off_map"]
         assert rows[key]["n_off_map"] == off["off_map"]
     assert "off-map" in (folder / "report.md").read_text()
+
+
+def test_tracker_rows_fly_the_first_n_runs_tracker_runs(tmp_path: Path) -> None:
+    from neuralmap.studies.cli import main
+
+    code = main(["--config", str(REPO / "configs" / "acquisition_tiny.yaml"),
+                 "--runs_dir", str(tmp_path / "runs"), "--n_runs", "12", "--n_runs_tracker", "5",
+                 "--sigmas_m", "[60.0]", "--methods", "[ekf,point_mass_tracker]",
+                 "--flat_leg", "false"])
+    assert code == 0
+    results = json.loads((tmp_path / "runs" / "acquisition_tiny" / "version_0" /
+                          "results.json").read_text())
+    rows = results["sigmas"]["60"]
+    assert rows["grid/ekf"]["n_included"] == 12 and rows["grid/point_mass_tracker"]["n_included"] == 5

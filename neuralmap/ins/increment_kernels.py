@@ -17,7 +17,14 @@ import numpy as np
 import torch
 
 from neuralmap.ins import kernels
-from neuralmap.ins.kernels import _discretize_nb, _error_model_nb, _njit, _sandwich, _step
+from neuralmap.ins.kernels import (
+    _discretize_nb,
+    _error_model_nb,
+    _njit,
+    _propagation_scratch,
+    _sandwich,
+    _step,
+)
 
 __all__ = ["mechanize_increments", "propagate_with_sigma"]
 
@@ -87,16 +94,7 @@ def mechanize_increments(
 @_njit
 def _propagate_sigma_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, var):  # type: ignore[no-untyped-def]
     n_runs, n_points = states.shape[0], states.shape[1]
-    F = np.empty((15, 15))
-    G = np.empty((15, 15))
-    phi = np.empty((15, 15))
-    qd = np.empty((15, 15))
-    tmp = np.empty((15, 15))
-    tmp2 = np.empty((15, 15))
-    idx = np.empty((15, 15), dtype=np.int64)
-    count = np.empty(15, dtype=np.int64)
-    C = np.empty((3, 3))
-    fn = np.empty(3)
+    F, G, phi, qd, tmp, tmp2, idx, count, C, fn = _propagation_scratch()
     for r in range(n_runs):
         for s in range(n_points):
             if healthy[r]:

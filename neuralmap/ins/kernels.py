@@ -442,18 +442,18 @@ def _discretize_nb(F, G, T, phi, qd, tmp, idx, count):  # type: ignore[no-untype
 
 
 @_njit
+def _propagation_scratch():  # type: ignore[no-untyped-def]
+    """Work arrays of one covariance propagation point: F, G, Φ, Q_d, two 15 × 15 scratch
+    matrices, the sparsity index and counts, the attitude matrix and the specific force."""
+    return (np.empty((15, 15)), np.empty((15, 15)), np.empty((15, 15)), np.empty((15, 15)),
+            np.empty((15, 15)), np.empty((15, 15)), np.empty((15, 15), dtype=np.int64),
+            np.empty(15, dtype=np.int64), np.empty((3, 3)), np.empty(3))
+
+
+@_njit
 def _propagate_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_last, qd_last):  # type: ignore[no-untyped-def]
     n_runs, n_points = states.shape[0], states.shape[1]
-    F = np.empty((15, 15))
-    G = np.empty((15, 15))
-    phi = np.empty((15, 15))
-    qd = np.empty((15, 15))
-    tmp = np.empty((15, 15))
-    tmp2 = np.empty((15, 15))
-    idx = np.empty((15, 15), dtype=np.int64)
-    count = np.empty(15, dtype=np.int64)
-    C = np.empty((3, 3))
-    fn = np.empty(3)
+    F, G, phi, qd, tmp, tmp2, idx, count, C, fn = _propagation_scratch()
     for r in range(n_runs):
         for s in range(n_points):
             _error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)

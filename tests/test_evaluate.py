@@ -15,7 +15,7 @@ import torch
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TINY_CONFIG = REPO_ROOT / "configs" / "tan_tiny.yaml"
 METHODS = ["neural", "bilinear", "nine_point", "mean_point", "lsq_adaptive", "lsq_min",
-           "point_mass_tracker"]
+           "point_mass_ekf", "point_mass_tracker"]
 
 
 def _load_module(name: str, path: Path) -> ModuleType:
@@ -147,6 +147,15 @@ def test_evaluate_end_to_end(
     # the run is a real filter: the estimate beats the prior's radial RMS error
     prior = results["scenario"]["init_pos_sigma_m"] * math.sqrt(2.0)
     assert results["methods"]["bilinear"]["rmse_pos_converged_m"] < 0.7 * prior
+    # the point-mass-started EKF: R = altimeter + the DEM table at sigma = 0 (both filters)
+    # + the table's excess over it (the EKF), so the EKF's R is the measured table
+    started = results["point_mass_ekf"]
+    table = started["table"]
+    assert started["R_shared_m2"] == pytest.approx(
+        results["scenario"]["R_m2"] + table["variance_m2"][0], rel=1e-12)
+    assert table["sigmas_m"][0] == 0.0
+    claims = [c["claim"] for c in results["claims"] if "recommended EKF method" in c["claim"]]
+    assert len(claims) == 1 and claims[0].startswith("toolkit target: point_mass_ekf")
 
     report = (folder / "report.md").read_text()
     assert "![" in report and "error_vs_time.png" in report

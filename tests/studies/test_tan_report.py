@@ -54,10 +54,17 @@ def _metrics(sigma: float, *, vel: float = 1.0, rate: float = 0.0, ratio: float 
     }
 
 
-def _results(neural: float = 20.0, classical: tuple[float, ...] = (60.0, 70.0), **kw) -> dict:
+#: Registered classical linearisation methods the fake results use.
+CLASSIC = ("bilinear", "nine_point", "mean_point", "lsq_min")
+
+
+def _results(neural: float = 20.0, classical: tuple[float, ...] = (60.0, 70.0),
+             extra: dict[str, float] | None = None, **kw) -> dict:
     metrics = {"neural": _metrics(neural, **kw)}
     for i, value in enumerate(classical):
-        metrics[f"classic{i}"] = _metrics(value)
+        metrics[CLASSIC[i]] = _metrics(value)
+    for name, value in (extra or {}).items():
+        metrics[name] = _metrics(value)
     return build_results(
         method_metrics=metrics,
         t=list(range(K1)),
@@ -161,6 +168,16 @@ def test_claims_improvement_verdicts(neural: float, classical: tuple, verdict: s
     assert f"{mean_delta:+.1f}" in checks[2].measured
 
 
+def test_claims_compare_with_linearisations_only() -> None:
+    """The point-mass tracker and the point-mass-started EKF are not classical
+    linearisations: a better tracker must not change the neural-vs-classical verdict."""
+    plain = check_claims(_results(20.0, (60.0, 70.0)))
+    with_others = check_claims(_results(20.0, (60.0, 70.0), extra={
+        "point_mass_tracker": 5.0, "point_mass_ekf": 6.0}))
+    assert with_others[2].verdict == plain[2].verdict == "holds"
+    assert with_others[2].measured == plain[2].measured
+
+
 def test_claims_limits_and_targets() -> None:
     checks = check_claims(_results(20.0, vel=3.0, rate=0.01, ratio=1.4))
     assert [c.verdict for c in checks] == ["holds"] * 5
@@ -190,15 +207,15 @@ def test_claims_need_enough_converged_runs() -> None:
     assert all("not enough converged runs (neural: 3 of 98" in c.verdict for c in checks[:3])
     assert checks[4].verdict == "does not hold"  # the divergence target still judges
     results = _results(20.0, (60.0, 70.0))
-    results["methods"]["classic1"].update(n_converged=0, n_diverged=98)
+    results["methods"][CLASSIC[1]].update(n_converged=0, n_diverged=98)
     checks = check_claims(results)
     assert checks[0].verdict == "holds"
-    assert "classic1: 0 of 98" in checks[2].verdict
+    assert f"{CLASSIC[1]}: 0 of 98" in checks[2].verdict
 
 
 def test_tables_and_report_text() -> None:
     results = _results()
-    results["methods"]["classic0"]["pcrb_ratio_all"] = None
+    results["methods"][CLASSIC[0]]["pcrb_ratio_all"] = None
     text = format_table(results)
     lines = text.splitlines()
     assert lines[0].split()[0] == "method" and len(lines) == 2 + 3 + 1  # header, rule, 3, PCRB

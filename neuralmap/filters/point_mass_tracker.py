@@ -58,10 +58,17 @@ distribution); the per-cell means get ``μ ← μ + Δz̄ + G (s − m_t)`` so t
 round-off (float64: ≤ 1e-9 of σ; tested against a fine fixed-grid reference).
 
 **Lost track**: the mean NIS over the last ``lost_window`` updates above
-``χ²_{lost_prob}(W) / W`` widens the run's grid (a Gaussian around its mean with the
-covariance times ``widen_factor²``, at least ``widen_min_sigma`` per axis); a run widened
-more than ``max_widenings`` times, or whose covariance stops being finite, is flagged
-``lost`` (counted and reported; its estimate is held, never NaN).
+``χ²_{lost_prob}(W) / W`` widens the run's grid. The first ``local_widenings`` times it is a
+Gaussian around the run's mean with the covariance times ``widen_factor²``, at least
+``widen_min_sigma`` per axis (a track that slipped by a few σ); after that the run
+**re-acquires from the open-loop prior** ``N(m_ol, P_ol)``: the prior propagated through
+every prediction with no measurement (``m_ol ← A m_ol + u``, ``P_ol ← A P_ol Aᵀ + Q`` with
+``A = [[I, E], [0, F]]``), i.e. the dead-reckoning bound of the error, which holds the
+truth wherever the grid lost it (a track that locked onto a wrong terrain match
+kilometres away). A run widened more than ``max_widenings`` times, or whose covariance
+stops being finite, is flagged ``lost`` (counted and reported; its estimate is held,
+never NaN). A tracker started mid-flight gets the open-loop prior of the original prior
+from :meth:`PointMassTracker.set_open_loop`.
 """
 
 from __future__ import annotations
@@ -115,6 +122,8 @@ class TrackerConfig:
         lost_prob: χ² probability of the lost-track threshold.
         widen_factor: Standard-deviation factor of a widened grid.
         widen_min_sigma: Smallest per-axis σ of a widened grid (state units).
+        local_widenings: Widenings around the run's own mean before a lost run re-acquires
+            from the open-loop prior (module docstring).
         max_widenings: Widenings after which a run counts as lost beyond recovery.
     """
 
@@ -130,7 +139,8 @@ class TrackerConfig:
     lost_prob: float = 0.9999
     widen_factor: float = 3.0
     widen_min_sigma: float = 50.0
-    max_widenings: int = 3
+    local_widenings: int = 2
+    max_widenings: int = 4
 
     def validate(self) -> TrackerConfig:
         """Checks ranges; raises :class:`NeuralMapError` naming the bad option."""
@@ -153,7 +163,7 @@ class TrackerConfig:
             raise bad("max_spacing", "None or > 0")
         if not 0.0 <= self.weight_floor < 1e-3:
             raise bad("weight_floor", "in [0, 1e-3)")
-        for key in ("lost_window", "max_widenings"):
+        for key in ("lost_window", "local_widenings", "max_widenings"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise bad(key, "an integer >= 0")
@@ -304,6 +314,7 @@ class PointMassTracker:
         self._step = 0
         self._q_next = torch.zeros(n, 2, **kw)
         self.reset(mean, cov)
+        self.set_open_loop(mean, cov)
 
     # ------------------------------------------------------------------ set-up
     def reset(self, mean: torch.Tensor, cov: torch.Tensor, mask: torch.Tensor | None = None) -> None:
@@ -340,6 +351,52 @@ class PointMassTracker:
             self._set(*full)
         else:
             self._set_rows(mask, *full)
+
+    def set_open_loop(self, mean: torch.Tensor, cov: torch.Tensor) -> None:
+        """Sets the open-loop prior ``N(m_ol, P_ol)`` a lost run re-acquires from (module
+        docstring); the constructor sets it to the prior. A tracker started mid-flight (from
+        another filter's posterior) passes the original prior propagated to now.
+
+        Args:
+            mean: ``(2 + nz,)`` or ``(N, 2 + nz)``.
+            cov: ``(2+nz, 2+nz)`` or ``(N, 2+nz, 2+nz)``, symmetric positive definite.
+
+        Raises:
+            NeuralMapError: Bad shapes, non-finite entries or ``cov`` not positive definite.
+        """
+        n, d, kw = self.n_runs, 2 + self.nz, {"dtype": self.dtype, "device": self.device}
+        mean = torch.as_tensor(mean, **kw)
+        cov = torch.as_tensor(cov, **kw)
+        if tuple(mean.shape) not in ((d,), (n, d)) or tuple(cov.shape) not in ((d, d), (n, d, d)):
+            raise NeuralMapError(
+                f"PointMassTracker.set_open_loop: mean must have shape ({d},) or ({n}, {d}) and "
+                f"cov ({d}, {d}) or ({n}, {d}, {d}); got {tuple(mean.shape)}, "
+                f"{tuple(cov.shape)}.")
+        cov = _sym(cov.expand(n, d, d))
+        if not bool(torch.isfinite(mean).all()) or not bool(_cholesky_ok(cov).all()):
+            raise NeuralMapError("PointMassTracker.set_open_loop: the open-loop prior must be "
+                                 "finite with a symmetric positive definite covariance.")
+        self._open_mean = mean.expand(n, d).clone()
+        self._open_cov = cov.clone()
+
+    def open_loop(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The open-loop prior ``(m_ol (N, 2+nz), P_ol (N, 2+nz, 2+nz))`` (module docstring)."""
+        return self._open_mean, self._open_cov
+
+    def _predict_open_loop(self, qs: torch.Tensor, qz: torch.Tensor, u: torch.Tensor) -> None:
+        """``m_ol ← A m_ol + u``, ``P_ol ← A P_ol Aᵀ + blkdiag(Q_s, Q_z)``, ``A = [[I, E],
+        [0, F]]``: the prior through one prediction without a measurement."""
+        n, nz, kw = self.n_runs, self.nz, {"dtype": self.dtype, "device": self.device}
+        A = torch.eye(2 + nz, **kw)
+        A[:2, 2:] = self.E
+        A[2:, 2:] = self.F
+        m = self._open_mean @ A.T
+        m[:, :2] += u
+        Q = torch.zeros(n, 2 + nz, 2 + nz, **kw)
+        Q[:, :2, :2] = qs
+        Q[:, 2:, 2:] = qz
+        self._open_mean = m
+        self._open_cov = _sym(A @ self._open_cov @ A.T + Q)
 
     def _gaussian_state(self, mean: torch.Tensor, cov: torch.Tensor,
                         q: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
@@ -596,6 +653,7 @@ class PointMassTracker:
         self._set(*state)
         self._guard(torch.isfinite(ms_t).all(1) & _cholesky_ok(css_t) & _cholesky_ok(czz_t))
         self._q_next = torch.diagonal(qs + E @ P @ E.T, dim1=1, dim2=2)
+        self._predict_open_loop(qs, qz, u)
 
     # ------------------------------------------------------------------ update
     def update(self, measurement: torch.Tensor,
@@ -690,7 +748,8 @@ class PointMassTracker:
                              widened=widened)
 
     def _lost_test(self, nis: torch.Tensor, active: torch.Tensor) -> torch.Tensor:
-        """Widens runs whose mean NIS over the window says the track is lost."""
+        """Widens runs whose mean NIS over the window says the track is lost: around their
+        mean for the first ``local_widenings`` times, then to the open-loop prior."""
         cfg = self.config
         widened = torch.zeros_like(active)
         if cfg.lost_window <= 0:
@@ -712,6 +771,10 @@ class PointMassTracker:
             ok = _cholesky_ok(infl)
             infl = torch.where(ok[:, None, None], infl, torch.eye(d, dtype=cov.dtype,
                                                                   device=cov.device))
+            # local widenings first; then re-acquire from the open-loop prior
+            reacquire = widened & (self.widenings >= cfg.local_widenings)
+            mean = torch.where(reacquire[:, None], self._open_mean, mean)
+            infl = torch.where(reacquire[:, None, None], self._open_cov, infl)
             self._set_rows(widened, *self._gaussian_state(mean, infl))
             self.widenings += widened.long()
             self._nis_count = torch.where(widened, 0, self._nis_count)

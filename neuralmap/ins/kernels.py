@@ -501,14 +501,14 @@ def propagate_block(
     """
     from neuralmap.ins.error_model import continuous_noise, discretize, error_dynamics
 
-    n, points = states.shape[0], states.shape[1]
+    points = states.shape[1]
     if HAVE_NUMBA and P.device.type == "cpu" and P.dtype == torch.float64:
+        from neuralmap.ins.covariance_kernels import propagate_lanes
+
         p = P.detach().contiguous().numpy().copy()
-        phi_last = np.empty((n, 15, 15))
-        qd_last = np.empty((n, 15, 15))
-        _propagate_nb(p, healthy.numpy(), states.contiguous().numpy(),
-                      accel.contiguous().numpy(), np.asarray(intervals, dtype=np.float64),
-                      qc.numpy(), float(tau_g), float(tau_a), phi_last, qd_last)
+        phi_last, qd_last = propagate_lanes(
+            p, healthy.numpy(), states.contiguous().numpy(), accel.contiguous().numpy(),
+            np.asarray(intervals, dtype=np.float64), qc.numpy(), tau_g, tau_a)
         return torch.from_numpy(p), torch.from_numpy(phi_last), torch.from_numpy(qd_last)
     ok = healthy.reshape(-1, 1, 1)
     phi = qd = P

@@ -452,6 +452,9 @@ def _propagation_scratch():  # type: ignore[no-untyped-def]
 
 @_njit
 def _propagate_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_last, qd_last):  # type: ignore[no-untyped-def]
+    """The covariance propagation run by run (the reference of the lane-vectorised
+    :func:`~neuralmap.ins.covariance_kernels.propagate_lanes`, which gives the same
+    numbers and is what :func:`propagate_block` calls)."""
     n_runs, n_points = states.shape[0], states.shape[1]
     F, G, phi, qd, tmp, tmp2, idx, count, C, fn = _propagation_scratch()
     for r in range(n_runs):
@@ -482,7 +485,8 @@ def propagate_block(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Error covariance over S propagation points; the last step is left to the filter.
 
-    For each point s: ``F`` and ``G Q_c Gᵀ`` of the solution there
+    Compiled: :func:`~neuralmap.ins.covariance_kernels.propagate_lanes` (8 runs per SIMD
+    lane group). For each point s: ``F`` and ``G Q_c Gᵀ`` of the solution there
     (:func:`~neuralmap.ins.error_model.error_dynamics`,
     :func:`~neuralmap.ins.error_model.continuous_noise`), ``Φ_s, Q_d,s``
     (:func:`~neuralmap.ins.error_model.discretize` over the interval), and for

@@ -15,10 +15,9 @@ concerned through the update mask and counted.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -39,12 +38,7 @@ from neuralmap.ins.measurement import check_lever_arm, gnss_measurement_model
 from neuralmap.ins.trajectory import Trajectory, check_continuity
 
 __all__ = ["LooselyCoupledConfig", "LooselyCoupledResult", "LooselyCoupledVariant",
-           "initial_covariance", "merge_results", "run_loosely_coupled",
-           "run_loosely_coupled_variants"]
-
-#: Counts of :class:`LooselyCoupledResult` that add up over runs; the others count epochs
-#: or quality indicators shared by every run.
-PER_RUN_COUNTS = ("nan_measurements", "failed_runs", "frozen_samples")
+           "initial_covariance", "run_loosely_coupled", "run_loosely_coupled_variants"]
 
 _DEG = math.pi / 180.0
 
@@ -410,7 +404,6 @@ def run_loosely_coupled_variants(
     *,
     generator: torch.Generator,
     progress: Callable[[int], None] | None = None,
-    runs: slice | None = None,
 ) -> dict[str, LooselyCoupledResult]:
     """Several filters over the same runs in lockstep: the IMU samples of each stretch
     between GNSS epochs are drawn once and fed to every filter.
@@ -424,11 +417,6 @@ def run_loosely_coupled_variants(
         variants: Name to filter (settings and policy); policies must be distinct objects.
         progress: Optional callback, called with (IMU samples advanced) × (filters) after
             each stretch.
-        runs: Optional contiguous share of the N runs to filter (``slice(a, b)``, step 1):
-            the IMU and the initial errors are still drawn for all N runs (the same random
-            numbers), only these runs are filtered. Runs do not interact, so the shares of
-            several calls joined by :func:`merge_results` equal one call over all runs
-            (bit-identical; worker processes use this).
 
     Returns:
         Name to :class:`LooselyCoupledResult` (``elapsed_s``: that filter's own time,
@@ -466,21 +454,9 @@ def run_loosely_coupled_variants(
         )
     epoch_of = {int(i): j for j, i in enumerate(index)}
     draw0 = torch.randn(n, 9, generator=generator, dtype=dtype)
-    rows = slice(None) if runs is None else runs
-    if runs is not None:
-        if runs.step not in (None, 1) or len(range(n)[runs]) == 0:
-            raise NeuralMapError(
-                f"run_loosely_coupled_variants: runs = {runs!r} must be a non-empty "
-                f"contiguous slice of the {n} runs."
-            )
-        draw0 = draw0[rows]
-        gnss = dataclasses.replace(gnss, position=gnss.position[rows],
-                                   velocity=gnss.velocity[rows],
-                                   position_error=gnss.position_error[rows])
     filters = {name: _ClosedLoop(traj, gnss, quality, counts, v, draw0, epoch_of)
                for name, v in variants.items()}
     raw_g, raw_a = imu.measure(traj.gyro[0], traj.accel[0])
-    raw_g, raw_a = raw_g[rows], raw_a[rows]
     for f in filters.values():
         f.first(raw_g)
     with torch.no_grad():
@@ -494,7 +470,6 @@ def run_loosely_coupled_variants(
         for end in ends:
             new_g, new_a = imu.measure_block(traj.gyro[start + 1:end + 1],
                                              traj.accel[start + 1:end + 1])
-            new_g, new_a = new_g[rows], new_a[rows]
             gyro = torch.cat([raw_g[:, None], new_g], 1)
             accel = torch.cat([raw_a[:, None], new_a], 1)
             for f in filters.values():
@@ -504,36 +479,3 @@ def run_loosely_coupled_variants(
                 progress((end - start) * len(filters))
             start = end
     return {name: f.result() for name, f in filters.items()}
-
-
-def merge_results(parts: Sequence[LooselyCoupledResult]) -> LooselyCoupledResult:
-    """Joins the results of consecutive shares of the runs (``runs=`` of
-    :func:`run_loosely_coupled_variants`) into the result over all of them.
-
-    Per-run tensors are concatenated along the run axis; the counts in
-    :data:`PER_RUN_COUNTS` are summed, the others (epochs, quality indicators) are the same
-    in every share and kept once; ``elapsed_s`` is the sum (the filter's CPU time).
-
-    Raises:
-        NeuralMapError: No parts, or shares whose shared counts or epochs differ.
-    """
-    if not parts:
-        raise NeuralMapError("merge_results: pass at least one result.")
-    first = parts[0]
-    counts: dict[str, int] = {}
-    for part in parts:
-        if not torch.equal(part.time, first.time):
-            raise NeuralMapError("merge_results: the parts have different GNSS epochs.")
-        for key, value in part.counts.items():
-            if key in PER_RUN_COUNTS:
-                counts[key] = counts.get(key, 0) + value
-            elif counts.setdefault(key, value) != value:
-                raise NeuralMapError(
-                    f"merge_results: count {key!r} is shared by all runs but differs "
-                    f"between the parts ({counts[key]} vs {value})."
-                )
-    joined = {f.name: torch.cat([getattr(p, f.name) for p in parts])
-              for f in dataclasses.fields(LooselyCoupledResult)
-              if f.name not in ("time", "counts", "elapsed_s")}
-    return LooselyCoupledResult(time=first.time, counts=counts,
-                                elapsed_s=sum(p.elapsed_s for p in parts), **joined)

@@ -44,7 +44,6 @@ from neuralmap.ins.imu_model import ImuErrorProcess, imu_grade
 from neuralmap.ins.loosely_coupled import (
     LooselyCoupledConfig,
     LooselyCoupledVariant,
-    merge_results,
     run_loosely_coupled_variants,
 )
 from neuralmap.ins.measurement import check_lever_arm
@@ -54,7 +53,7 @@ from neuralmap.progress import progress_bar
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
-__all__ = ["VARIANTS", "GnssInsStudyConfig", "run"]
+__all__ = ["VARIANTS", "VARIANT_COST", "GnssInsStudyConfig", "deal_variants", "run"]
 
 #: Known variants (see the module docstring).
 VARIANTS = ("plain", "r_scaled", "inflation", "quality", "quality_inflation", "windowed",
@@ -64,6 +63,10 @@ VARIANTS = ("plain", "r_scaled", "inflation", "quality", "quality_inflation", "w
 #: the literal single-epoch factor on all of P⁻, reported beside it.
 TUNED = "quality_windowed"
 _DEG = 180.0 / math.pi
+#: Relative CPU cost of a variant's filter where it is not 1 (cProfile, 200 runs: the
+#: variational filter's three fixed-point iterations per update make it about 1.2× the
+#: others, which are within ±5 % of each other); used to balance the worker processes.
+VARIANT_COST = {"variational": 1.2}
 
 
 @dataclass
@@ -92,10 +95,9 @@ class GnssInsStudyConfig(StudyConfig):
         quality_weight: Quantisation parameter of every quality indicator (0.1–0.5).
         divergence_m: A run diverged when its horizontal error ever exceeds this.
         warmup_s: Initial transient left out of NEES/NIS/attitude statistics.
-        workers: Processes the runs are split over (consecutive shares of about
-            ``n_runs / workers`` runs; each process simulates the IMU and GNSS errors of
-            all runs, the same draws, and filters its share with every variant in
-            lockstep). The results do not depend on it (bit-identical).
+        workers: Processes the variants are dealt to (by cost, :func:`deal_variants`; each
+            process simulates the IMU once and filters its variants in lockstep). The
+            results do not depend on it (bit-identical).
     """
 
     study: str = "gnss_ins"
@@ -311,10 +313,9 @@ def _drive(config: GnssInsStudyConfig) -> Any:
 
 
 def _run_group(config: GnssInsStudyConfig, names: list[str], *, traj: Any = None,
-               progress: Any = None, runs: slice | None = None) -> dict[str, Any]:
+               progress: Any = None) -> dict[str, Any]:
     """Filters the variants ``names`` in lockstep on the study's draws (seeded with the
-    study's seed, so every group and every variant sees the same IMU and GNSS errors),
-    over the share ``runs`` of the runs (default all).
+    study's seed, so every group and every variant sees the same IMU and GNSS errors).
 
     Returns:
         ``{"runs": name -> LooselyCoupledResult, "quality": GNSS quality record,
@@ -332,33 +333,49 @@ def _run_group(config: GnssInsStudyConfig, names: list[str], *, traj: Any = None
         LooselyCoupledConfig(grade=config.imu_grade, propagate_every=config.propagate_every,
                              r_scale=config.r_scale if name == "r_scaled" else 1.0),
         policy=build_policy(name, config)) for name in names}
-    results = run_loosely_coupled_variants(traj, imu, rec, variants, generator=gen,
-                                           progress=progress, runs=runs)
+    runs = run_loosely_coupled_variants(traj, imu, rec, variants, generator=gen,
+                                        progress=progress)
     spent = time.perf_counter() - tick
-    return {"runs": results, "quality": rec.quality,
-            "imu_s": spent - sum(r.elapsed_s for r in results.values())}
+    return {"runs": runs, "quality": rec.quality,
+            "imu_s": spent - sum(r.elapsed_s for r in runs.values())}
 
 
-def _shares(n_runs: int, workers: int) -> list[slice]:
-    """Consecutive shares of the runs, one per worker (sizes differ by at most one)."""
-    count = min(workers, n_runs)
-    bounds = [i * n_runs // count for i in range(count + 1)]
-    return [slice(a, b) for a, b in zip(bounds, bounds[1:], strict=False)]
+def deal_variants(variants: list[str], workers: int) -> list[list[str]]:
+    """Deals the variants to worker processes: costliest first, each to the worker with
+    the least work so far (longest-processing-time rule, :data:`VARIANT_COST`).
+
+    Splitting the runs instead (every worker all variants on half the runs) was measured
+    slower: each worker then pays every variant's per-epoch torch overhead, which hardly
+    shrinks with the number of runs (a 30 s drive, 200 runs: 5.3–5.5 CPU-s for nine
+    variants on 100 runs against 4.8–5.0 for five on 200).
+
+    Args:
+        variants: Variant names, in the config's order.
+        workers: Worker processes (≥ 1).
+
+    Returns:
+        The non-empty groups, each in the config's order.
+    """
+    count = max(1, min(workers, len(variants)))
+    loads = [0.0] * count
+    groups: list[list[str]] = [[] for _ in range(count)]
+    for name in sorted(variants, key=lambda v: -VARIANT_COST.get(v, 1.0)):  # stable
+        i = min(range(count), key=lambda w: loads[w])
+        groups[i].append(name)
+        loads[i] += VARIANT_COST.get(name, 1.0)
+    return [sorted(g, key=variants.index) for g in groups if g]
 
 
-def _run_group_worker(job: tuple[GnssInsStudyConfig, slice, int, int]) -> dict[str, Any]:
-    """A worker process's share of the runs with every variant (:func:`_run_group`), with
-    its own progress lines."""
-    config, runs, index, count = job
+def _run_group_worker(job: tuple[GnssInsStudyConfig, list[str], int, int]) -> dict[str, Any]:
+    """A worker process's group (:func:`_run_group`), with its own progress lines."""
+    config, names, index, count = job
     if config.threads is not None:
         torch.set_num_threads(int(config.threads))
     traj = _drive(config)
-    bar = progress_bar(total=len(config.variants) * (traj.n_samples - 1),
-                       desc=f"gnss_ins worker {index + 1}/{count} (runs {runs.start}-"
-                            f"{runs.stop - 1})",
+    bar = progress_bar(total=len(names) * (traj.n_samples - 1),
+                       desc=f"gnss_ins worker {index + 1}/{count} ({', '.join(names)})",
                        unit="IMU sample")
-    out = _run_group(config, list(config.variants), traj=traj, progress=bar.update,
-                     runs=runs)
+    out = _run_group(config, names, traj=traj, progress=bar.update)
     bar.close()
     return out
 
@@ -377,30 +394,31 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
     print(f"gnss_ins: {config.drive} drive {traj.duration:.0f} s, {traj.distance / 1000:.2f} km, "
           f"{config.imu_rate_hz:g} Hz IMU ({config.imu_grade}), {config.n_runs} runs, variants "
           f"{', '.join(config.variants)}; {config.workers} worker(s)", flush=True)
-    shares = _shares(config.n_runs, config.workers)
+    groups = deal_variants(config.variants, config.workers)
     timing: dict[str, float] = {}
     tick = time.perf_counter()
-    if len(shares) == 1:
+    if len(groups) == 1:
         # IMU samples over all variants (each sample advances every run): progress lines
         # with the rate and the time left in logs, a bar on a terminal
         bar = progress_bar(total=len(config.variants) * (traj.n_samples - 1),
                            desc=f"gnss_ins ({config.n_runs} runs)", unit="IMU sample")
-        outs = [_run_group(config, list(config.variants), traj=traj, progress=bar.update)]
+        outs = [_run_group(config, groups[0], traj=traj, progress=bar.update)]
         bar.close()
     else:
         import concurrent.futures
         import multiprocessing
 
         context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(len(shares), mp_context=context) as pool:
-            outs = list(pool.map(_run_group_worker, [(config, share, i, len(shares))
-                                                     for i, share in enumerate(shares)]))
+        with concurrent.futures.ProcessPoolExecutor(len(groups), mp_context=context) as pool:
+            outs = list(pool.map(_run_group_worker, [(config, g, i, len(groups))
+                                                     for i, g in enumerate(groups)]))
     timing["filters_wall"] = time.perf_counter() - tick
+    found: dict[str, Any] = {}
     for i, out in enumerate(outs):
+        found.update(out["runs"])
         timing[f"imu_simulation_worker{i}"] = out["imu_s"]
     quality = outs[0]["quality"]
-    runs = {name: merge_results([out["runs"][name] for out in outs])
-            for name in config.variants}
+    runs = {name: found[name] for name in config.variants}
     summaries: dict[str, dict[str, Any]] = {}
     for name, res in runs.items():
         timing[f"filter_{name}"] = res.elapsed_s

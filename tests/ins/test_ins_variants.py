@@ -16,7 +16,6 @@ from neuralmap.ins.imu_model import ImuErrorProcess
 from neuralmap.ins.loosely_coupled import (
     LooselyCoupledConfig,
     LooselyCoupledVariant,
-    merge_results,
     run_loosely_coupled,
     run_loosely_coupled_variants,
 )
@@ -87,37 +86,6 @@ def test_lockstep_equals_each_variant_alone() -> None:
     assert not torch.equal(other.position_error, together["plain"].position_error)
 
 
-def test_shares_of_the_runs_joined_equal_all_runs() -> None:
-    # worker processes filter consecutive shares of the runs on the same draws
-    study = GnssInsStudyConfig()
-    names = ["plain", "quality_windowed", "variational"]
-
-    def variants() -> dict[str, LooselyCoupledVariant]:
-        return {n: LooselyCoupledVariant(LooselyCoupledConfig(propagate_every=4),
-                                         policy=build_policy(n, study)) for n in names}
-
-    traj, imu, rec, gen = _case()
-    whole = run_loosely_coupled_variants(traj, imu, rec, variants(), generator=gen)
-    parts = []
-    for share in (slice(0, 2), slice(2, 5)):
-        traj, imu, rec, gen = _case()
-        parts.append(run_loosely_coupled_variants(traj, imu, rec, variants(), generator=gen,
-                                                  runs=share))
-    for name in names:
-        joined = merge_results([p[name] for p in parts])
-        for field in FIELDS:
-            a, b = getattr(joined, field), getattr(whole[name], field)
-            assert torch.equal(torch.nan_to_num(a), torch.nan_to_num(b)), (name, field)
-            assert torch.equal(a.isnan(), b.isnan()), (name, field)
-        assert joined.counts == whole[name].counts
-    traj, imu, rec, gen = _case()
-    for bad in (slice(3, 3), slice(0, 5, 2)):
-        with pytest.raises(NeuralMapError, match="contiguous slice"):
-            run_loosely_coupled_variants(traj, imu, rec, variants(), generator=gen, runs=bad)
-    with pytest.raises(NeuralMapError, match="at least one"):
-        merge_results([])
-
-
 def test_shared_policy_is_refused() -> None:
     traj, imu, rec, gen = _case()
     policy = build_policy("quality_windowed", GnssInsStudyConfig())
@@ -156,3 +124,14 @@ def test_bad_workers_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
 
     assert cli.main(["--config", str(TINY), "--workers", "0"]) == 2
     assert "workers" in capsys.readouterr().err
+
+
+def test_variants_are_dealt_by_cost() -> None:
+    from neuralmap.studies.gnss_ins import VARIANTS, deal_variants
+
+    groups = deal_variants(list(VARIANTS), 2)
+    assert sorted(v for g in groups for v in g) == sorted(VARIANTS)
+    assert all(g == sorted(g, key=list(VARIANTS).index) for g in groups)
+    assert [len(g) for g in groups] == [4, 5]  # the costlier variational filter: 4 + 1.2
+    assert deal_variants(["plain"], 2) == [["plain"]]
+    assert deal_variants(list(VARIANTS), 1) == [list(VARIANTS)]

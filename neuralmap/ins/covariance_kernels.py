@@ -3,10 +3,12 @@
 The propagation point of :func:`~neuralmap.ins.kernels.propagate_block` (error model,
 ``Φ = I + FT + (FT)²/2``, ``Q_d = ½ (Φ G Q_c Gᵀ Φᵀ + G Q_c Gᵀ) T`` and
 ``P ← Φ P Φᵀ + Q_d``; :mod:`neuralmap.ins.error_model`, SEEDS 003 eqs. 1–2) computed for
-a group of runs at once: every matrix is stored ``(15, 15, W)`` with the W runs (lanes)
-innermost, so each multiply-add of the matrix products is one contiguous loop over the
-lanes that the compiler turns into SIMD instructions, and the index bookkeeping is paid
-once per group instead of once per run.
+a group of :data:`LANES` = 8 runs at once: every matrix is stored ``(15, 15, 8)`` with the
+runs (lanes) innermost, each multiply-add of the matrix products works on the 8 lanes at
+once (kept in registers; numba's SLP vectoriser, switched on while these kernels compile,
+turns it into vector instructions), and the index bookkeeping is paid once per group
+instead of once per run. A last, partial group repeats its last run in the spare lanes
+(their results are dropped).
 
 Only the structural nonzeros of ``F`` and ``Φ`` enter the products (:data:`F_PATTERN`,
 :data:`PHI_PATTERN`, from the block structure of the error equations); every element is
@@ -282,7 +284,7 @@ def propagate_lanes(
     phi_last = np.empty((n, 15, 15))
     qd_last = np.empty((n, 15, 15))
     with _slp_vectorize():
-            _propagate_lanes_nb(P, healthy, states, accel, intervals, qc, float(tau_g),
+        _propagate_lanes_nb(P, healthy, states, accel, intervals, qc, float(tau_g),
                             float(tau_a), phi_last, qd_last, _F_IDX, _F_COUNT, _PHI_IDX,
                             _PHI_COUNT)
     return phi_last, qd_last

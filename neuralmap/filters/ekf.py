@@ -403,7 +403,8 @@ class BatchedEKF:
         return bool(bound < q_min)
 
     def predict(
-        self, F: torch.Tensor, Q: torch.Tensor, *, policy: FilterPolicy | None = None
+        self, F: torch.Tensor, Q: torch.Tensor, *, policy: FilterPolicy | None = None,
+        trusted_noise: bool = False,
     ) -> None:
         """Time update of every healthy sample: ``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q``.
 
@@ -420,13 +421,25 @@ class BatchedEKF:
                 (symmetric positive semi-definite).
             policy: Optional :class:`~neuralmap.filters.policy.FilterPolicy` whose
                 ``process_noise`` hook may return an adapted per-sample ``Q`` (Sage-Husa).
+            trusted_noise: A per-sample ``Q`` comes from a model that makes it finite and
+                exactly symmetric (e.g. the INS error model's ``Q_d``): only its shape is
+                checked, not finiteness, symmetry and semi-definiteness (a per-sample
+                Cholesky test per call). The numbers are the same (the validation's
+                symmetrisation leaves an exactly symmetric ``Q`` unchanged); a ``Q`` that is
+                not positive semi-definite still fails the health check of the commit.
 
         Raises:
             NeuralMapError: Wrong shapes, non-finite shared ``F``, or ``Q`` not symmetric
                 positive semi-definite / with negative variances.
         """
         plan: TransitionPlan = self._cached("F", F, self._transition)
-        Q, q_min, q_max = self._cached("Q", Q, self._process_noise)
+        if trusted_noise and getattr(Q, "ndim", 0) == 3:
+            Q = self._float(Q, "Q", "BatchedEKF.predict")
+            check_matrix_shape(Q, name="Q", where="BatchedEKF.predict", n=self._n,
+                               batch=self._batch)
+            q_min = q_max = 0.0
+        else:
+            Q, q_min, q_max = self._cached("Q", Q, self._process_noise)
         if policy is not None:
             n, batch = self._n, self._batch
             F_b = plan.F if plan.F.ndim == 3 else plan.F.expand(batch, n, n)

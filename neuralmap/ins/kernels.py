@@ -452,6 +452,9 @@ def _propagation_scratch():  # type: ignore[no-untyped-def]
 
 @_njit
 def _propagate_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_last, qd_last):  # type: ignore[no-untyped-def]
+    """The covariance propagation run by run (the reference of the lane-vectorised
+    :func:`~neuralmap.ins.covariance_kernels.propagate_lanes`, which gives the same
+    numbers and is what :func:`propagate_block` calls)."""
     n_runs, n_points = states.shape[0], states.shape[1]
     F, G, phi, qd, tmp, tmp2, idx, count, C, fn = _propagation_scratch()
     for r in range(n_runs):
@@ -482,7 +485,8 @@ def propagate_block(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Error covariance over S propagation points; the last step is left to the filter.
 
-    For each point s: ``F`` and ``G Q_c Gᵀ`` of the solution there
+    Compiled: :func:`~neuralmap.ins.covariance_kernels.propagate_lanes` (8 runs per SIMD
+    lane group). For each point s: ``F`` and ``G Q_c Gᵀ`` of the solution there
     (:func:`~neuralmap.ins.error_model.error_dynamics`,
     :func:`~neuralmap.ins.error_model.continuous_noise`), ``Φ_s, Q_d,s``
     (:func:`~neuralmap.ins.error_model.discretize` over the interval), and for
@@ -501,14 +505,14 @@ def propagate_block(
     """
     from neuralmap.ins.error_model import continuous_noise, discretize, error_dynamics
 
-    n, points = states.shape[0], states.shape[1]
+    points = states.shape[1]
     if HAVE_NUMBA and P.device.type == "cpu" and P.dtype == torch.float64:
+        from neuralmap.ins.covariance_kernels import propagate_lanes
+
         p = P.detach().contiguous().numpy().copy()
-        phi_last = np.empty((n, 15, 15))
-        qd_last = np.empty((n, 15, 15))
-        _propagate_nb(p, healthy.numpy(), states.contiguous().numpy(),
-                      accel.contiguous().numpy(), np.asarray(intervals, dtype=np.float64),
-                      qc.numpy(), float(tau_g), float(tau_a), phi_last, qd_last)
+        phi_last, qd_last = propagate_lanes(
+            p, healthy.numpy(), states.contiguous().numpy(), accel.contiguous().numpy(),
+            np.asarray(intervals, dtype=np.float64), qc.numpy(), tau_g, tau_a)
         return torch.from_numpy(p), torch.from_numpy(phi_last), torch.from_numpy(qd_last)
     ok = healthy.reshape(-1, 1, 1)
     phi = qd = P

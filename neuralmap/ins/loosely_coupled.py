@@ -329,7 +329,7 @@ class _ClosedLoop:
             P, phi, qd = _freeze_overflow(P, phi, qd, ekf.P, self.failed)
             if len(stops) > 1:
                 ekf.P = P
-            ekf.predict(phi, qd)
+            ekf.predict(phi, qd, trusted_noise=True)  # Q_d: finite (frozen runs: 0), symmetric
         if j is not None:
             self.update(j, gyro[:, -1] - self.bg_hat)
             self.record(j, end)

@@ -329,3 +329,28 @@ def test_second_update_after_one_predict_does_not_reuse_q() -> None:
     ekf.P = ekf.P.clone()
     ekf.update(torch.zeros(1, 1, dtype=F64), H, 1.0, policy=policy)
     assert seen[2] is None
+
+
+def test_trusted_noise_predict_gives_the_same_numbers() -> None:
+    # a per-sample Q that is finite and exactly symmetric: skipping its validation changes
+    # no number; the health check still flags an indefinite Q
+    import torch
+
+    from neuralmap.filters import BatchedEKF
+
+    gen = torch.Generator().manual_seed(0)
+    n, batch = 5, 4
+    a = torch.randn(batch, n, n, generator=gen, dtype=torch.float64)
+    F = torch.eye(n, dtype=torch.float64) + 0.1 * a
+    b = torch.randn(batch, n, n, generator=gen, dtype=torch.float64)
+    Q = b @ b.transpose(1, 2) * 1e-2
+    P0 = torch.eye(n, dtype=torch.float64)
+    checked = BatchedEKF(torch.zeros(batch, n, dtype=torch.float64), P0)
+    trusted = BatchedEKF(torch.zeros(batch, n, dtype=torch.float64), P0)
+    checked.predict(F, Q)
+    trusted.predict(F, Q, trusted_noise=True)
+    assert torch.equal(checked.P, trusted.P) and torch.equal(checked.x, trusted.x)
+    bad = Q.clone()
+    bad[1] = -10.0 * torch.eye(n, dtype=torch.float64)
+    trusted.predict(F, bad, trusted_noise=True)
+    assert trusted.healthy.tolist() == [True, False, True, True]

@@ -124,3 +124,14 @@ def test_bad_workers_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
 
     assert cli.main(["--config", str(TINY), "--workers", "0"]) == 2
     assert "workers" in capsys.readouterr().err
+
+
+def test_variants_are_dealt_by_cost() -> None:
+    from neuralmap.studies.gnss_ins import VARIANTS, deal_variants
+
+    groups = deal_variants(list(VARIANTS), 2)
+    assert sorted(v for g in groups for v in g) == sorted(VARIANTS)
+    assert all(g == sorted(g, key=list(VARIANTS).index) for g in groups)
+    assert [len(g) for g in groups] == [4, 5]  # the costlier variational filter: 4 + 1.2
+    assert deal_variants(["plain"], 2) == [["plain"]]
+    assert deal_variants(list(VARIANTS), 1) == [list(VARIANTS)]

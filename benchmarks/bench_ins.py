@@ -269,10 +269,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rate", type=float, default=200.0, help="IMU rate (Hz)")
     parser.add_argument("--every", type=int, default=10, help="IMU samples per propagation")
     parser.add_argument("--threads", type=int, default=1, help="torch.set_num_threads")
+    parser.add_argument("--repeats", type=int, default=3,
+                        help="interleaved timings of the block and per-sample filters (best of)")
     parser.add_argument("--quick", action="store_true", help="small sizes: a smoke test")
     args = parser.parse_args(argv)
     if args.quick:
-        args.n, args.duration, args.rate = 16, 4.0, 50.0
+        args.n, args.duration, args.rate, args.repeats = 16, 4.0, 50.0, 1
     from neuralmap.ins.kernels import HAVE_NUMBA
 
     torch.set_num_threads(args.threads)
@@ -298,20 +300,30 @@ def main(argv: list[str] | None = None) -> int:
                         simulate_gnss(warm, n_runs=2, lever_arm=LEVER_ARM,
                                       generator=torch.Generator().manual_seed(2)),
                         cfg, generator=torch.Generator().manual_seed(3))
+    paired: dict[int, list[float]] = {}
     for n in (args.n, 1):
         gyro, accel = _record_imu(n, traj, dt, seed=1)
         rec = simulate_gnss(traj, n_runs=n, lever_arm=LEVER_ARM,
                             generator=torch.Generator().manual_seed(2))
-        new, t_new = _timed(run_loosely_coupled, traj, RecordedImu(gyro, accel), rec, cfg,
+        # the two filters alternate, best of --repeats each: the machine's load moves
+        # between two back-to-back timings, much less across interleaved pairs
+        t_new = t_old = math.inf
+        for _ in range(max(1, args.repeats) if old is not None else 1):
+            new, t = _timed(run_loosely_coupled, traj, RecordedImu(gyro, accel), rec, cfg,
                             generator=torch.Generator().manual_seed(3))
+            t_new = min(t_new, t)
+            if old is not None:
+                prev, t_prev = _timed(old, traj, RecordedImu(gyro, accel), rec, cfg,
+                                      generator=torch.Generator().manual_seed(3))
+                t_old = min(t_old, t_prev)
+                paired.setdefault(n, []).append(t_prev / t)
         rows.append((f"block filter (this toolkit), N = {n}", n, t_new, n * k / t_new))
         results[("new", n)] = new
         if old is not None:
-            prev, t_old = _timed(old, traj, RecordedImu(gyro, accel), rec, cfg,
-                                 generator=torch.Generator().manual_seed(3))
             rows.append((f"per-sample filter (c9af50c), N = {n}", n, t_old, n * k / t_old))
             print(f"# N = {n}: block vs per-sample filter, largest difference of the recorded "
-                  f"errors and σ: {_max_difference(new, prev):.2e}")
+                  f"errors and σ: {_max_difference(new, prev):.2e}; ratio of each interleaved "
+                  f"pair: {', '.join(f'{r:.1f}x' for r in paired[n])}")
     n = args.n
     gen = torch.Generator().manual_seed(0)
     imu = ImuErrorProcess("tactical_mems", n_runs=n, dt=dt, generator=gen)
@@ -360,7 +372,8 @@ def main(argv: list[str] | None = None) -> int:
                  / rate[f"per-sample filter (c9af50c), N = {args.n}"])
         ratio1 = (rate["block filter (this toolkit), N = 1"]
                   / rate["per-sample filter (c9af50c), N = 1"])
-        print(f"\nblock / per-sample filter: {ratio:.1f}x at N = {args.n} (target >= 10x), "
+        print(f"\nblock / per-sample filter (best of {max(1, args.repeats)} interleaved "
+              f"timings each): {ratio:.1f}x at N = {args.n} (target >= 10x), "
               f"{ratio1:.1f}x at N = 1")
     print(f"block filter at N = 1 / NumPy loop: "
           f"{rate['block filter (this toolkit), N = 1'] / np_rate:.1f}x (target >= 1x)")

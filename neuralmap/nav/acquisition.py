@@ -64,6 +64,7 @@ __all__ = [
     "TanInputs",
     "acquisition_time",
     "cell_height_variance",
+    "cells_on_map",
     "handoff_ready",
     "lattice_bilinear",
     "lost_lock",
@@ -112,6 +113,12 @@ class AcquisitionConfig:
         fallback_window: NIS window W of the lost-lock test (0 disables fall-back).
         fallback_prob: Probability of the χ² threshold of the mean NIS.
         reacquire_sigma_m: Smallest per-axis standard deviation of a re-acquisition grid.
+        map_support: Give grid cells whose position ``p_ins − δp`` lies off the map zero
+            likelihood (the truth flies over the map; the study excludes runs whose truth
+            leaves it). Without it, cells beyond the border read the clamped edge heights
+            and can pull an acquiring run's mean off the map (jacksboro, σ0 = 1 km, 999
+            runs: 6 estimates left the map for 1–4 steps while acquiring, each counted
+            diverged though all converged to < 15 m).
         tracker_cells: Lattice cells per axis of the tracker that ``point_mass_tracker``
             hands off to (:mod:`neuralmap.nav.tracker_handoff`).
         bank_per_axis: EKF-bank components per axis (K = per_axis²).
@@ -139,6 +146,7 @@ class AcquisitionConfig:
     fallback_window: int = 20
     fallback_prob: float = 0.99999
     reacquire_sigma_m: float = 200.0
+    map_support: bool = True
     tracker_cells: int = 32
     bank_per_axis: int = 7
     bank_span_sigma: float = 2.5
@@ -343,6 +351,29 @@ def lattice_bilinear(
     h10 = flat[nx:].index_select(0, idx).view(shape)
     h11 = flat[nx + 1 :].index_select(0, idx).view(shape)
     return torch.lerp(south, torch.lerp(h10, h11, fu), fv)
+
+
+def cells_on_map(ins_xy: torch.Tensor, centre: torch.Tensor, spacing: torch.Tensor,
+                 offsets: torch.Tensor, extent: tuple[float, ...]) -> torch.Tensor:
+    """``(N, G, G)`` bool: the cell's position ``p_ins − s`` lies on the map.
+
+    Separable (rows ``i`` along y, columns ``j`` along x, as :func:`lattice_bilinear`):
+    the test runs per grid row and column ``(N, G)`` and one outer product per cell.
+
+    Args:
+        ins_xy: ``(N, 2)`` INS horizontal positions.
+        centre: ``(N, 2)`` grid centres (state space: INS − truth).
+        spacing: ``(N, 2)`` grid spacings.
+        offsets: ``(G,)`` cell offsets.
+        extent: Map extent ``(xmin, xmax, ymin, ymax)``.
+    """
+    xmin, xmax, ymin, ymax = extent
+    dt = centre.dtype
+    xs = ins_xy[:, 0:1].to(dt) - (centre[:, 0:1] + spacing[:, 0:1] * offsets)  # (N, G)
+    ys = ins_xy[:, 1:2].to(dt) - (centre[:, 1:2] + spacing[:, 1:2] * offsets)
+    inx = (xs >= xmin) & (xs <= xmax)
+    iny = (ys >= ymin) & (ys <= ymax)
+    return iny[:, :, None] & inx[:, None, :]
 
 
 def cell_height_variance(heights: torch.Tensor) -> torch.Tensor:
@@ -647,6 +678,9 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
             else:
                 pred = _terrain_fn(terrain, ins_xy)(pm.points())
             cell_var = cell_height_variance(pred) if cfg.flatten_likelihood else None
+            if cfg.map_support:  # the truth flies over the map: off-map cells get 0
+                on = cells_on_map(ins_xy, pm.centre, pm.spacing, pm.offsets, inputs.extent)
+                pred = pred.masked_fill(~on, math.nan)
             upd_pm = pm.update(y, pred, R=inputs.R, cell_variance=cell_var)
             recoveries.index_add_(0, rows, upd_pm.recovered.long())
             updates += rows.numel() * pm.cells**2
@@ -690,8 +724,15 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
                     hold = torch.where(lost, 0, hold)
                     since = torch.where(lost, 0, since)
         if pm is not None and handing and rows.numel() > 0:
-            ready = handoff_ready(pm.gaussian_affinity().to(dtype), pm.cov().to(dtype),
-                                  max_sigma=cfg.handoff_sigma_m,
+            cov_pm = pm.cov().to(dtype)
+            # the affinity (a pass over every cell) only where the size test passes
+            small = torch.linalg.eigvalsh(cov_pm.double())[:, -1].clamp_min(0.0).sqrt() <= (
+                cfg.handoff_sigma_m)
+            affinity = torch.zeros(cov_pm.shape[0], dtype=dtype, device=device)
+            cand = small.nonzero().reshape(-1)
+            if cand.numel() > 0:
+                affinity[cand] = pm.gaussian_affinity(cand).to(dtype)
+            ready = handoff_ready(affinity, cov_pm, max_sigma=cfg.handoff_sigma_m,
                                   min_affinity=cfg.handoff_affinity)
             ready = ready[: rows.numel()]  # runs appended by a fall-back this step: not yet
             if ready.numel() < rows.numel():

@@ -103,6 +103,10 @@ class AcquisitionStudyConfig(StudyConfig):
     study: str = "acquisition"
     experiment: str = "acquisition"
     progress: bool = True
+    # one torch thread: on the shared 2-core machine two threads made the small batched
+    # ops of the EKF rows many times slower whenever other work ran (neural EKF, 200 runs,
+    # σ0 = 100 m: 76.8 s with two threads at load 6, against ~3 s with one)
+    threads: int | None = 1
     scenario: str = "jacksboro"
     sigmas_m: list[float] = field(default_factory=lambda: [100.0, 300.0, 1000.0, 3000.0])
     n_runs: int = 1000

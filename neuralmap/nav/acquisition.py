@@ -6,7 +6,10 @@ grid-based Bayes filter (:class:`~neuralmap.filters.point_mass.PointMassFilter`,
 point-mass filter of Bergman, Ljung and Gustafsson; horizontal error on the grid, altitude
 error Rao-Blackwellised per cell) or the EKF bank
 (:class:`~neuralmap.filters.ekf_bank.GaussianSumEKF`) over all Monte Carlo runs at once,
-and hands each run to the 5-state TAN EKF once its posterior is unimodal and small.
+and hands each run to the 5-state TAN EKF (``point_mass_ekf``) or to the whole-flight
+point-mass tracker (``point_mass_tracker``, :mod:`neuralmap.nav.tracker_handoff`) once its
+posterior is unimodal and small. Grid cells whose position lies off the map get zero
+likelihood (``map_support``).
 
 Measurement per cell (the TAN altimeter model, SEEDS 004): with the INS error
 ``δX = [δp, δh, δv]`` (INS − truth), ``y = h_ins − h_radar = t(p_ins − δp) + δh − v``, i.e.

@@ -467,7 +467,9 @@ def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: l
         f"divergence: {results['divergence_rule']} Grid: "
         f"{config.grid_cells or f'up to {config.max_cells}'}² cells over ±4σ0 (at most "
         f"{config.max_spacing_m:g} m apart when the count allows), {config.grid_dtype}; "
-        "point mass → EKF keeps the prior's grid, point mass alone re-centres and "
+        "point mass → EKF and point mass → tracker (the whole-flight point-mass tracker, "
+        "started from the grid posterior's moments at hand-off) keep the prior's grid, "
+        "point mass alone re-centres and "
         f"re-sizes it (adaptive: {config.adaptive_point_mass}). Wall time and "
         "cell-updates/s on this machine (shared CPUs: compare within the table)."
     )

@@ -202,6 +202,8 @@ class GaussianSumEKF:
 
         Loops over the component index (not over runs): component ``i`` absorbs every
         lighter live component ``j`` with ``(x_j − x_i)ᵀ P_i⁻¹ (x_j − x_i) < merge_distance``.
+        Each pass works on the runs where component ``i`` is alive only (after acquisition
+        most runs keep a few of their K components), and merges on the runs that grab one.
         """
         n, k, d = self.n_runs, self.n_components, self.n_states
         x = self.ekf.x.reshape(n, k, d)
@@ -209,35 +211,41 @@ class GaussianSumEKF:
         w = self.log_weights.exp()
         changed = False
         for i in range(k):
-            wi = w[:, i]
-            live_i = wi > 0
-            if not bool(live_i.any()):
+            rows = (w[:, i] > 0).nonzero().reshape(-1)
+            if rows.numel() == 0:
                 continue
-            diff = x - x[:, i : i + 1]  # (n, k, d)
-            chol = torch.linalg.cholesky_ex(P[:, i])
-            sol = torch.cholesky_solve(diff.transpose(1, 2), chol.L)  # (n, d, k)
-            dist = (diff.transpose(1, 2) * sol).sum(1)  # (n, k)
-            grab = ((dist < self.merge_distance) & (w > 0) & (w <= wi[:, None])
-                    & live_i[:, None] & (chol.info == 0)[:, None])
+            xr, wr = x.index_select(0, rows), w.index_select(0, rows)
+            wi = wr[:, i]
+            diff = xr - xr[:, i : i + 1]  # (m, k, d)
+            chol = torch.linalg.cholesky_ex(P[rows, i])
+            sol = torch.cholesky_solve(diff.transpose(1, 2), chol.L)  # (m, d, k)
+            dist = (diff.transpose(1, 2) * sol).sum(1)  # (m, k)
+            grab = ((dist < self.merge_distance) & (wr > 0) & (wr <= wi[:, None])
+                    & (chol.info == 0)[:, None])
             grab[:, i] = False
-            if not bool(grab.any()):
+            took = grab.any(1)
+            if not bool(took.any()):
                 continue
-            changed = True
-            gw = torch.where(grab, w, 0.0)
-            gw[:, i] = wi
+            if not changed:
+                x, P = x.clone(), P.clone()
+                changed = True
+            sel = took.nonzero().reshape(-1)
+            rr = rows.index_select(0, sel)
+            g, xs, ws = grab.index_select(0, sel), xr.index_select(0, sel), wr.index_select(0, sel)
+            Ps = P.index_select(0, rr)
+            gw = torch.where(g, ws, 0.0)
+            gw[:, i] = ws[:, i]
             tot = gw.sum(1)
-            mean = (gw[..., None] * x).sum(1) / tot[:, None]
-            dx = x - mean[:, None]
-            cov = (gw[..., None, None] * (P + dx[..., :, None] * dx[..., None, :])).sum(1)
+            mean = (gw[..., None] * xs).sum(1) / tot[:, None]
+            dx = xs - mean[:, None]
+            cov = (gw[..., None, None] * (Ps + dx[..., :, None] * dx[..., None, :])).sum(1)
             cov = cov / tot[:, None, None]
             cov = 0.5 * (cov + cov.transpose(1, 2))
-            took = grab.any(1)
-            x = x.clone()
-            P = P.clone()
-            x[:, i] = torch.where(took[:, None], mean, x[:, i])
-            P[:, i] = torch.where(took[:, None, None], cov, P[:, i])
-            w = torch.where(grab, 0.0, w)
-            w[:, i] = torch.where(took, tot, wi)
+            x[rr, i] = mean
+            P[rr, i] = cov
+            wn = torch.where(g, 0.0, ws)
+            wn[:, i] = tot
+            w = w.index_copy(0, rr, wn)
         if changed:
             self.ekf.x = x.reshape(n * k, d)
             self.ekf.P = P.reshape(n * k, d, d)

@@ -59,6 +59,7 @@ import torch
 import torch.nn.functional as nnf
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.underflow import exp_or_zero, log_or_neg_inf
 
 __all__ = ["PointMassConfig", "PointMassFilter", "PointMassUpdate", "convolve_axis", "gaussian_kernels"]
 
@@ -395,7 +396,7 @@ class PointMassFilter:
         ia, ib, ic = (c / det)[:, None, None], (-b / det)[:, None, None], (a / det)[:, None, None]
         logw = -0.5 * (ia * dx * dx + 2.0 * ib * dx * dy + ic * dy * dy)
         logw = logw - logw.amax(dim=(1, 2), keepdim=True)
-        w = logw.exp()
+        w = exp_or_zero(logw, out_of_place=False)
         return w / w.sum(dim=(1, 2), keepdim=True)
 
     def take(self, index: torch.Tensor) -> PointMassFilter:
@@ -474,17 +475,25 @@ class PointMassFilter:
         v = self.scalar_var + (w * self.scalar_mean**2).sum((1, 2)) - m * m
         return m, v.clamp_min(0.0)
 
-    def gaussian_affinity(self) -> torch.Tensor:
-        """``(N,)`` Bhattacharyya coefficient between the grid posterior and its Gaussian fit.
+    def gaussian_affinity(self, index: torch.Tensor | None = None) -> torch.Tensor:
+        """``(N,)`` (or ``(K,)`` for ``index``) Bhattacharyya coefficient between the grid
+        posterior and its Gaussian fit.
 
         ``BC = Σ_ij sqrt(w_ij g_ij)`` with ``g`` the normalised masses of ``N(s̄, Σ + D/12)``
         on the same grid (``D = diag(spacing²)``: a posterior inside one cell still fits).
         1 for a Gaussian posterior; about ``1/√M`` for M well-separated equal modes.
+
+        Args:
+            index: ``(K,)`` runs to evaluate (None = all); the value of a run does not
+                depend on the others.
         """
-        cov = self.cov()
-        cov = cov + torch.diag_embed(self.spacing**2 / 12.0)
-        g = self._gaussian_weights(self.mean(), cov, self.centre, self.spacing)
-        return (self.weights * g).sqrt().sum((1, 2))
+        cov = self.cov() + torch.diag_embed(self.spacing**2 / 12.0)
+        mean, centre, spacing, w = self.mean(), self.centre, self.spacing, self.weights
+        if index is not None:
+            cov, mean, centre, spacing, w = (t.index_select(0, index)
+                                             for t in (cov, mean, centre, spacing, w))
+        g = self._gaussian_weights(mean, cov, centre, spacing)
+        return (w * g).sqrt().sum((1, 2))
 
     # ------------------------------------------------------------------ predict
     def _kernels(self, sigma_cells: torch.Tensor, half_len: int) -> torch.Tensor:
@@ -643,10 +652,11 @@ class PointMassFilter:
         else:
             resp = None
         loglik = torch.nan_to_num(loglik, nan=-math.inf)
-        logw = self.weights.log().add_(loglik)
+        logw = log_or_neg_inf(self.weights).add_(loglik)
         peak = logw.amax((1, 2), keepdim=True)
         finite_peak = torch.isfinite(peak).reshape(n)
-        w = logw.sub_(torch.where(torch.isfinite(peak), peak, 0.0)).exp_()
+        w = exp_or_zero(logw.sub_(torch.where(torch.isfinite(peak), peak, 0.0)),
+                        out_of_place=False)
         total = w.sum((1, 2))
         log_lik = torch.where(finite_peak, const + peak.reshape(n) + total.log(), -math.inf)
         use = finite_peak & (total > 0) & torch.isfinite(total)

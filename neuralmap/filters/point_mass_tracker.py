@@ -83,6 +83,7 @@ import torch.nn.functional as nnf
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.point_mass import convolve_axis, gaussian_kernels
+from neuralmap.filters.underflow import exp_or_zero, log_or_neg_inf
 
 __all__ = ["PointMassTracker", "TrackerConfig", "TrackerUpdate"]
 
@@ -461,7 +462,7 @@ class PointMassTracker:
 
     @staticmethod
     def _normalised(logw: torch.Tensor) -> torch.Tensor:
-        w = (logw - logw.amax((1, 2), keepdim=True)).exp()
+        w = exp_or_zero(logw - logw.amax((1, 2), keepdim=True), out_of_place=False)
         return w / w.sum((1, 2), keepdim=True)
 
     def _points(self, centre: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
@@ -713,10 +714,10 @@ class PointMassTracker:
             loglik = -0.5 * (nu * nu / s_cell + torch.log(s_cell / s_run[:, None, None]))
         if not all_finite:
             loglik = torch.where(finite_cell, loglik, -math.inf)
-        logw = w.log() + loglik
+        logw = log_or_neg_inf(w) + loglik
         peak = logw.amax((1, 2), keepdim=True)
         fin = torch.isfinite(peak).reshape(n)
-        wn = (logw - torch.where(torch.isfinite(peak), peak, 0.0)).exp()
+        wn = exp_or_zero(logw - torch.where(torch.isfinite(peak), peak, 0.0), out_of_place=False)
         total = wn.sum((1, 2))
         log_lik = torch.where(fin, -0.5 * (_LOG_2PI + s_run.log()) + peak.reshape(n)
                               + total.log(), -math.inf)

@@ -6,7 +6,10 @@ grid-based Bayes filter (:class:`~neuralmap.filters.point_mass.PointMassFilter`,
 point-mass filter of Bergman, Ljung and Gustafsson; horizontal error on the grid, altitude
 error Rao-Blackwellised per cell) or the EKF bank
 (:class:`~neuralmap.filters.ekf_bank.GaussianSumEKF`) over all Monte Carlo runs at once,
-and hands each run to the 5-state TAN EKF once its posterior is unimodal and small.
+and hands each run to the 5-state TAN EKF (``point_mass_ekf``) or to the whole-flight
+point-mass tracker (``point_mass_tracker``, :mod:`neuralmap.nav.tracker_handoff`) once its
+posterior is unimodal and small. Grid cells whose position lies off the map get zero
+likelihood (``map_support``).
 
 Measurement per cell (the TAN altimeter model, SEEDS 004): with the INS error
 ``δX = [δp, δh, δv]`` (INS − truth), ``y = h_ins − h_radar = t(p_ins − δp) + δh − v``, i.e.
@@ -54,6 +57,7 @@ from neuralmap.filters.ekf_bank import GaussianSumEKF, lattice_prior
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter
 from neuralmap.nav.monte_carlo import FilterRun
 from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+from neuralmap.nav.tracker_handoff import grid_posterior_moments
 from neuralmap.terrain.base import inside_extent
 
 __all__ = [
@@ -63,6 +67,7 @@ __all__ = [
     "TanInputs",
     "acquisition_time",
     "cell_height_variance",
+    "cells_on_map",
     "handoff_ready",
     "lattice_bilinear",
     "lost_lock",
@@ -72,8 +77,8 @@ __all__ = [
 
 #: ``ekf`` (the TAN EKF alone), ``bank`` (EKF bank), ``point_mass`` (grid all the way),
 #: ``point_mass_ekf`` (grid, hand-off to the EKF, fall-back on lost lock),
-#: ``point_mass_tracker`` (the Rao-Blackwellised tracker whose grid follows the posterior,
-#: :mod:`neuralmap.nav.tracking`, the whole flight).
+#: ``point_mass_tracker`` (grid, hand-off to the Rao-Blackwellised tracker whose lattice
+#: follows the posterior, :mod:`neuralmap.nav.tracker_handoff`; fall-back as for the EKF).
 ACQUISITION_METHODS = ("ekf", "bank", "point_mass", "point_mass_ekf", "point_mass_tracker")
 
 
@@ -111,6 +116,14 @@ class AcquisitionConfig:
         fallback_window: NIS window W of the lost-lock test (0 disables fall-back).
         fallback_prob: Probability of the χ² threshold of the mean NIS.
         reacquire_sigma_m: Smallest per-axis standard deviation of a re-acquisition grid.
+        map_support: Give grid cells whose position ``p_ins − δp`` lies off the map zero
+            likelihood (the truth flies over the map; the study excludes runs whose truth
+            leaves it). Without it, cells beyond the border read the clamped edge heights
+            and can pull an acquiring run's mean off the map (jacksboro, σ0 = 1 km, 999
+            runs: 6 estimates left the map for 1–4 steps while acquiring, each counted
+            diverged though all converged to < 15 m).
+        tracker_cells: Lattice cells per axis of the tracker that ``point_mass_tracker``
+            hands off to (:mod:`neuralmap.nav.tracker_handoff`).
         bank_per_axis: EKF-bank components per axis (K = per_axis²).
         bank_span_sigma: Half-width of the bank's lattice, prior σ.
         bank_prune: Relative weight under which a bank component is pruned.
@@ -136,6 +149,8 @@ class AcquisitionConfig:
     fallback_window: int = 20
     fallback_prob: float = 0.99999
     reacquire_sigma_m: float = 200.0
+    map_support: bool = True
+    tracker_cells: int = 32
     bank_per_axis: int = 7
     bank_span_sigma: float = 2.5
     bank_prune: float = 1e-4
@@ -162,6 +177,11 @@ class AcquisitionConfig:
             raise NeuralMapError(
                 f"AcquisitionConfig: 'fallback_prob' must be in (0, 1), got {self.fallback_prob!r}."
             )
+        if isinstance(self.tracker_cells, bool) or not isinstance(self.tracker_cells, int) or (
+                self.tracker_cells < 8):
+            raise NeuralMapError(
+                f"AcquisitionConfig: 'tracker_cells' must be an integer >= 8, got "
+                f"{self.tracker_cells!r}.")
         for key in ("handoff_hold", "min_acquire_steps", "fallback_window", "bank_per_axis"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
@@ -336,6 +356,29 @@ def lattice_bilinear(
     return torch.lerp(south, torch.lerp(h10, h11, fu), fv)
 
 
+def cells_on_map(ins_xy: torch.Tensor, centre: torch.Tensor, spacing: torch.Tensor,
+                 offsets: torch.Tensor, extent: tuple[float, ...]) -> torch.Tensor:
+    """``(N, G, G)`` bool: the cell's position ``p_ins − s`` lies on the map.
+
+    Separable (rows ``i`` along y, columns ``j`` along x, as :func:`lattice_bilinear`):
+    the test runs per grid row and column ``(N, G)`` and one outer product per cell.
+
+    Args:
+        ins_xy: ``(N, 2)`` INS horizontal positions.
+        centre: ``(N, 2)`` grid centres (state space: INS − truth).
+        spacing: ``(N, 2)`` grid spacings.
+        offsets: ``(G,)`` cell offsets.
+        extent: Map extent ``(xmin, xmax, ymin, ymax)``.
+    """
+    xmin, xmax, ymin, ymax = extent
+    dt = centre.dtype
+    xs = ins_xy[:, 0:1].to(dt) - (centre[:, 0:1] + spacing[:, 0:1] * offsets)  # (N, G)
+    ys = ins_xy[:, 1:2].to(dt) - (centre[:, 1:2] + spacing[:, 1:2] * offsets)
+    inx = (xs >= xmin) & (xs <= xmax)
+    iny = (ys >= ymin) & (ys <= ymax)
+    return iny[:, :, None] & inx[:, None, :]
+
+
 def cell_height_variance(heights: torch.Tensor) -> torch.Tensor:
     """Spread of the map height over each grid cell, ``(N, G, G)`` m².
 
@@ -416,10 +459,7 @@ def run_acquisition(
         )
     if method.startswith("point_mass") and terrain is None:
         raise NeuralMapError(f"run_acquisition: method {method!r} needs a terrain model.")
-    if method == "point_mass_tracker":
-        _check_start(inputs)
-        return _run_tracker(inputs, terrain, cfg, name or method)
-    if method != "point_mass" and linearizer is None:
+    if method not in ("point_mass", "point_mass_tracker") and linearizer is None:
         raise NeuralMapError(f"run_acquisition: method {method!r} needs a linearizer.")
     _check_start(inputs)
     if method == "bank":
@@ -427,40 +467,28 @@ def run_acquisition(
     return _run_grid(inputs, method, terrain, linearizer, cfg, name or method)
 
 
-def _run_tracker(inputs: TanInputs, terrain: Any, cfg: AcquisitionConfig,
-                 name: str) -> AcquisitionResult:
-    """The point-mass tracker (:func:`neuralmap.nav.tracking.run_tracker`) from the prior:
-    ``cfg.cells`` cells per axis (None: 32 when the first cells, ``2 · 5σ0 / 31``, are at most
-    ``max_spacing_m``, else 64), likelihood flattening while cells are coarse, a lost track
-    widened to at least the prior's σ."""
-    from types import SimpleNamespace
+def _tracker_pool(inputs: TanInputs, cfg: AcquisitionConfig) -> Any:
+    """The whole-flight tracker that runs take over at hand-off
+    (:class:`~neuralmap.nav.tracker_handoff.TrackerPool`): ``cfg.tracker_cells`` per axis,
+    the lattice no finer than one step's transition blur (as in the TAN study), no
+    widening of its own (a lost run goes back to the acquisition grid)."""
+    from neuralmap.nav.tracker_handoff import TrackerPool
+    from neuralmap.nav.tracking import TrackerOptions, transition_blur
 
-    from neuralmap.nav.tracking import TrackerOptions, run_tracker
+    pm_dtype = torch.float32 if cfg.dtype == "float32" else torch.float64
+    options = TrackerOptions(cells=cfg.tracker_cells, dtype=cfg.dtype, lost_window=0)
+    blur = transition_blur(inputs.P0, inputs.Q, inputs.dt)
+    return TrackerPool(inputs.radar.shape[0], inputs.P0, inputs.Q, inputs.dt,
+                       options.tracker_config(blur_m=blur), dtype=pm_dtype,
+                       dormant_sigma_m=cfg.handoff_sigma_m, out_dtype=inputs.ins_pos.dtype,
+                       device=inputs.ins_pos.device)
 
-    k1 = inputs.radar.shape[1]
-    truth = SimpleNamespace(ins_pos=inputs.ins_pos, radar=inputs.radar,
-                            ins_error=inputs.ins_error, on_map=inputs.on_map,
-                            extent=inputs.extent,
-                            t=torch.arange(k1, dtype=inputs.radar.dtype) * inputs.dt)
-    cells = cfg.cells
-    sigma = float(torch.linalg.eigvalsh(torch.as_tensor(inputs.P0, dtype=torch.float64)
-                                        [:2, :2]).max().clamp_min(0.0).sqrt())
-    if cells is None:  # the smaller lattice when its first cells are fine enough
-        span = TrackerOptions.span_sigma
-        cells = 32 if 2.0 * span * sigma / 31.0 <= cfg.max_spacing_m else 64
-    # a lost track re-acquires over the prior's own uncertainty
-    options = TrackerOptions(cells=int(cells), dtype=cfg.dtype,
-                             flatten_likelihood=cfg.flatten_likelihood,
-                             widen_min_sigma_m=max(TrackerOptions.widen_min_sigma_m, sigma))
-    res = run_tracker(truth, terrain, P0=inputs.P0, Q=inputs.Q, R=inputs.R, dt=inputs.dt,
-                      options=options, method=name)
-    n = inputs.radar.shape[0]
-    return AcquisitionResult(
-        run=res.run, handoff_step=torch.full((n,), -1), n_fallbacks=res.widenings.clone(),
-        recoveries=res.recoveries.clone(),
-        acquiring=torch.ones(n, k1, dtype=torch.bool), elapsed_s=res.run.elapsed_s,
-        cell_updates=res.cell_updates, extra={"lost": int(res.lost.sum())},
-    )
+
+def _tracker_heights(terrain: Any, ins_xy: torch.Tensor, *, extent: tuple[float, ...]) -> Any:
+    """``g(points) = t(p_ins − s)`` on the tracker's lattice (NaN off the map)."""
+    from neuralmap.nav.tracking import heights_on_cells
+
+    return heights_on_cells(terrain, ins_xy, extent)
 
 
 def _outputs(n: int, k_steps: int, dtype: torch.dtype, device: torch.device) -> dict[str, Any]:
@@ -603,7 +631,11 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
     F = transition_matrix(inputs.dt, dtype=dtype, device=device)
     use_pm = method.startswith("point_mass")
     use_ekf = method in ("ekf", "point_mass_ekf")
+    handing = method in ("point_mass_ekf", "point_mass_tracker")
     ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device), P0) if use_ekf else None
+    pool = _tracker_pool(inputs, cfg) if method == "point_mass_tracker" else None
+    track = ekf if ekf is not None else pool  # the tracking filter (x, P of its runs)
+    map_terrain = terrain
     pm: PointMassFilter | None = None
     vel = _VelocityPrior(n, P0, dtype, device)
     rows = torch.arange(n, device=device) if use_pm else torch.zeros(0, dtype=torch.long)
@@ -649,6 +681,9 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
             else:
                 pred = _terrain_fn(terrain, ins_xy)(pm.points())
             cell_var = cell_height_variance(pred) if cfg.flatten_likelihood else None
+            if cfg.map_support:  # the truth flies over the map: off-map cells get 0
+                on = cells_on_map(ins_xy, pm.centre, pm.spacing, pm.offsets, inputs.extent)
+                pred = pred.masked_fill(~on, math.nan)
             upd_pm = pm.update(y, pred, R=inputs.R, cell_variance=cell_var)
             recoveries.index_add_(0, rows, upd_pm.recovered.long())
             updates += rows.numel() * pm.cells**2
@@ -658,14 +693,19 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
             x_pm, P_pm = vel.state(rows, mu, sigma, alt_m, alt_v, cfg.velocity_from_grid)
             x_out[rows] = x_pm
             P_out[rows] = P_pm
-        if ekf is not None:
+        if track is not None:
             tracking = ~acquiring
-            diag = tan_filter_step(ekf, ins[:, k], radar[:, k], linearizer, F=F, Q=Q,
-                                   R=inputs.R, extent=inputs.extent,
-                                   mask=None if not use_pm else tracking)
+            if ekf is not None:
+                diag = tan_filter_step(ekf, ins[:, k], radar[:, k], linearizer, F=F, Q=Q,
+                                       R=inputs.R, extent=inputs.extent,
+                                       mask=None if not use_pm else tracking)
+            else:
+                diag = pool.step(ins[:, k, :2], ins[:, k, 2] - radar[:, k],
+                                 functools.partial(_tracker_heights, map_terrain,
+                                                   extent=inputs.extent), inputs.R)
             upd = diag.updated & tracking
-            x_out = torch.where(tracking[:, None], ekf.x, x_out)
-            P_out = torch.where(tracking[:, None, None], ekf.P, P_out)
+            x_out = torch.where(tracking[:, None], track.x, x_out)
+            P_out = torch.where(tracking[:, None, None], track.P, P_out)
             out["nis"][:, k] = torch.where(upd, diag.nis, out["nis"][:, k])
             out["residual"][:, k] = torch.where(upd, diag.residual, 0.0)
             out["updated"][:, k] = upd
@@ -678,15 +718,24 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
                     lost_rows = lost.nonzero().reshape(-1)
                     same = cfg if pm is None or rows.numel() == 0 else dataclasses.replace(
                         cfg, cells=pm.cells)  # appended grids must match the filter's G
-                    fresh = _reacquisition_grid(ekf, vel, lost, lost_rows, same, pm_dtype)
+                    fresh = _reacquisition_grid(track, vel, lost, lost_rows, same, pm_dtype)
+                    if pool is not None:
+                        pool.drop(lost)
                     pm = fresh if pm is None or rows.numel() == 0 else pm.extend(fresh)
                     rows = torch.cat([rows, lost_rows])
                     n_fallbacks += lost.long()
                     hold = torch.where(lost, 0, hold)
                     since = torch.where(lost, 0, since)
-        if pm is not None and method == "point_mass_ekf" and rows.numel() > 0:
-            ready = handoff_ready(pm.gaussian_affinity().to(dtype), pm.cov().to(dtype),
-                                  max_sigma=cfg.handoff_sigma_m,
+        if pm is not None and handing and rows.numel() > 0:
+            cov_pm = pm.cov().to(dtype)
+            # the affinity (a pass over every cell) only where the size test passes
+            small = torch.linalg.eigvalsh(cov_pm.double())[:, -1].clamp_min(0.0).sqrt() <= (
+                cfg.handoff_sigma_m)
+            affinity = torch.zeros(cov_pm.shape[0], dtype=dtype, device=device)
+            cand = small.nonzero().reshape(-1)
+            if cand.numel() > 0:
+                affinity[cand] = pm.gaussian_affinity(cand).to(dtype)
+            ready = handoff_ready(affinity, cov_pm, max_sigma=cfg.handoff_sigma_m,
                                   min_affinity=cfg.handoff_affinity)
             ready = ready[: rows.numel()]  # runs appended by a fall-back this step: not yet
             if ready.numel() < rows.numel():
@@ -698,8 +747,22 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
             if bool(go_rows.any()):
                 go = torch.zeros(n, dtype=torch.bool, device=device)
                 go[rows[go_rows]] = True
-                ekf.x = torch.where(go[:, None], x_out, ekf.x)
-                ekf.P = torch.where(go[:, None, None], P_out, ekf.P)
+                if ekf is not None:
+                    ekf.x = torch.where(go[:, None], x_out, ekf.x)
+                    ekf.P = torch.where(go[:, None, None], P_out, ekf.P)
+                else:  # the tracker starts from the grid posterior's full moments
+                    sel = go_rows.nonzero().reshape(-1)
+                    go_idx = rows[sel]
+                    xg, Pg = grid_posterior_moments(
+                        pm, sel, ppp=vel.ppp[go_idx], ppv=vel.ppv[go_idx],
+                        pvv=vel.pvv[go_idx], v0=vel.v0[go_idx], mp=vel.mp[go_idx],
+                        condition=cfg.velocity_from_grid)
+                    x_full = x_out.clone()
+                    P_full = P_out.clone()
+                    x_full[go_idx] = xg.to(dtype)
+                    P_full[go_idx] = Pg.to(dtype)
+                    pool.add(go, x_full, P_full)
+                    x_out, P_out = x_full, P_full
                 handoff_step = torch.where(go & (handoff_step < 0), k, handoff_step)
                 nis_count = torch.where(go, 0, nis_count)
                 nis_win = torch.where(go[:, None], 0.0, nis_win)
@@ -711,7 +774,9 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
         out["est_on_map"][:, k] = inside_extent(ins[:, k, :2] - x_out[:, :2], inputs.extent)
         acq_hist[rows, k] = True
     elapsed = time.perf_counter() - start
-    healthy = ekf.healthy.clone() if ekf is not None else torch.ones(n, dtype=torch.bool)
+    healthy = track.healthy.clone() if track is not None else torch.ones(n, dtype=torch.bool)
+    if pool is not None:
+        updates += pool.cell_updates
     if pm is not None and rows.numel() > 0:
         finite = torch.isfinite(pm.weights).flatten(1).all(1)
         healthy[rows] = healthy[rows] & finite

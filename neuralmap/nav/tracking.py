@@ -30,7 +30,8 @@ from neuralmap.nav.model import N_STATES
 from neuralmap.nav.monte_carlo import FilterRun
 from neuralmap.terrain.base import inside_extent
 
-__all__ = ["TRACKER_METHOD", "TrackerOptions", "TrackerResult", "run_tracker"]
+__all__ = ["TRACKER_METHOD", "TrackerOptions", "TrackerResult", "heights_on_cells", "run_tracker",
+           "transition_blur"]
 
 #: Method name of the point-mass tracker in the studies.
 TRACKER_METHOD = "point_mass_tracker"
@@ -111,8 +112,27 @@ def _tan_matrices(dt: float, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
     return E, torch.eye(3, dtype=dtype), torch.tensor([1.0, 0.0, 0.0], dtype=dtype)
 
 
-def _heights(terrain: Any, ins_xy: torch.Tensor, extent: tuple[float, ...]):
-    """``g(s) = t(p_ins − s)`` on the cells, NaN off the map."""
+def transition_blur(P0: torch.Tensor, Q: torch.Tensor, dt: float) -> float:
+    """One step's horizontal transition spread ``b = sqrt(λ_max(Q_s) + T² λ_max(P0_v))``, m
+    (the lattice floor of :attr:`TrackerOptions.min_cell_blur`); ``P0``, ``Q``: ``(5, 5)``."""
+    P0 = torch.as_tensor(P0, dtype=torch.float64)
+    Q = torch.as_tensor(Q, dtype=torch.float64)
+    q = torch.linalg.eigvalsh(0.5 * (Q[:2, :2] + Q[:2, :2].T))[-1].clamp_min(0.0)
+    v = torch.linalg.eigvalsh(0.5 * (P0[3:, 3:] + P0[3:, 3:].T))[-1].clamp_min(0.0)
+    return float((q + float(dt) ** 2 * v).sqrt())
+
+
+def heights_on_cells(terrain: Any, ins_xy: torch.Tensor, extent: tuple[float, ...]):
+    """``g(s) = t(p_ins − s)`` on the cells, NaN off the map.
+
+    Args:
+        terrain: The map (``forward(xy (M, 2)) -> (M,)``).
+        ins_xy: ``(N, 2)`` INS horizontal positions.
+        extent: Map extent ``(xmin, xmax, ymin, ymax)``.
+
+    Returns:
+        Callable on cell coordinates ``(N, G, G, 2)`` returning ``(N, G, G)`` heights.
+    """
 
     def g(points: torch.Tensor) -> torch.Tensor:
         xy = ins_xy[:, None, None, :].to(points.dtype) - points
@@ -124,6 +144,9 @@ def _heights(terrain: Any, ins_xy: torch.Tensor, extent: tuple[float, ...]):
         return torch.where(inside_extent(xy, extent), h, torch.nan)
 
     return g
+
+
+_heights = heights_on_cells
 
 
 def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, R: float,
@@ -160,10 +183,7 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
     n, k1 = truth.radar.shape
     P0 = torch.as_tensor(P0, dtype=torch.float64)
     Q = torch.as_tensor(Q, dtype=torch.float64)
-    blur = (torch.linalg.eigvalsh(0.5 * (Q[:2, :2] + Q[:2, :2].T))[-1].clamp_min(0.0)
-            + float(dt) ** 2 * torch.linalg.eigvalsh(0.5 * (P0[3:, 3:] + P0[3:, 3:].T))[-1]
-            .clamp_min(0.0)).sqrt()
-    cfg = opts.tracker_config(blur_m=float(blur))
+    cfg = opts.tracker_config(blur_m=transition_blur(P0, Q, dt))
     E, F, c = _tan_matrices(float(dt), pm_dtype)
     err = torch.empty(n, k1, N_STATES, dtype=out_dtype, device=device)
     P_hist = torch.empty(n, k1, N_STATES, N_STATES, dtype=out_dtype, device=device)

@@ -66,8 +66,8 @@ class AcquisitionStudyConfig(StudyConfig):
         map: Neural map file; None = newest ``<runs_dir>/*/version_*/neural_map.pt`` of
             the tile. Without one, the neural rows are skipped and the report says so.
         n_runs_tracker: Runs of the ``point_mass_tracker`` rows (the first on-map runs of
-            the σ0; its lattice runs the whole flight, the study's most expensive row);
-            None = all.
+            the σ0; grid acquisition, then the tracker's lattice for the rest of the flight:
+            the study's most expensive row); None = all.
         neural_likelihood_oversample: The point-mass likelihoods of the neural-map rows read
             the map baked onto a grid this many times finer than the DEM (bilinear; the
             report gives the baked grid's largest deviation from the map at random points);
@@ -102,18 +102,24 @@ class AcquisitionStudyConfig(StudyConfig):
 
     study: str = "acquisition"
     experiment: str = "acquisition"
-    progress: bool = False
+    progress: bool = True
+    # one torch thread: on the shared 2-core machine two threads made the small batched
+    # ops of the EKF rows many times slower whenever other work ran (neural EKF, 200 runs,
+    # σ0 = 100 m: 76.8 s with two threads at load 6, against ~3 s with one)
+    threads: int | None = 1
     scenario: str = "jacksboro"
     sigmas_m: list[float] = field(default_factory=lambda: [100.0, 300.0, 1000.0, 3000.0])
     n_runs: int = 1000
-    # the whole-flight point-mass row is the tracker (``n_runs_tracker`` runs); the adaptive
-    # point mass alone (240 s per 50 runs at σ0 = 3 km here) is left out by default
+    # the whole-flight point-mass row is the tracker (grid acquisition, then the tracker);
+    # the adaptive point mass alone (240 s per 50 runs at σ0 = 3 km here) is left out by
+    # default. Neural-map rows at 200 runs: each costs about as much as its grid row, and
+    # the neural EKF bank (49 EKFs per run linearising the network) 140 s per 1000 runs.
     methods: list[str] = field(
         default_factory=lambda: ["ekf", "bank", "point_mass_ekf", "point_mass_tracker"])
     maps: list[str] = field(default_factory=lambda: ["grid", "neural"])
     map: str | None = None
-    n_runs_neural: int | None = 100
-    n_runs_tracker: int | None = 200
+    n_runs_neural: int | None = 200
+    n_runs_tracker: int | None = None
     neural_likelihood_oversample: int = 4
     map_error_points: int = 2000
     grid_cells: int | None = None
@@ -324,6 +330,12 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     curves: dict[str, Any] = {}
     off_map: dict[str, Any] = {}
     results["off_map"] = off_map
+    bar = None
+    if config.progress:  # one line per finished row: rows done, rate, time left
+        from neuralmap.progress import ProgressLines
+
+        bar = ProgressLines(total=len(config.sigmas_m) * len(maps) * len(config.methods),
+                            desc="acquisition", unit="row")
     for sigma in config.sigmas_m:
         scenario = scenario_at_sigma(base, float(sigma), tile.extent)
         per_sigma: dict[str, Any] = {}
@@ -359,9 +371,13 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                         run_inputs = _runs_on_map(inputs, sub[kept])
                         run_bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
                                                        runs=sub)).to("cpu")
+                if bar is not None:
+                    bar.set_description(f"acquisition sigma0 {sigma:g} m, {kind}, {method}")
                 try:
                     res = run_acquisition(run_inputs, method=method, terrain=terrain,
                                           linearizer=lin, config=cfg, name=f"{method}/{kind}")
+                    if bar is not None:
+                        bar.update(1)
                 except NeuralMapError as exc:  # keep every finished stage; report this one
                     notes.append(f"sigma0 {sigma:g} m, {kind}, {method} failed: {exc}")
                     print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method} failed: {exc}",
@@ -382,6 +398,8 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                       f"{_fmt(m['pcrb_ratio_all'])}, wall {m['wall_s']:.1f} s", flush=True)
             curves[f"{sigma:g}/pcrb"] = bound.tolist()
         results["sigmas"][f"{sigma:g}"] = per_sigma
+    if bar is not None:
+        bar.close()
     flat = None
     if config.flat_leg:
         try:
@@ -449,7 +467,9 @@ def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: l
         f"divergence: {results['divergence_rule']} Grid: "
         f"{config.grid_cells or f'up to {config.max_cells}'}² cells over ±4σ0 (at most "
         f"{config.max_spacing_m:g} m apart when the count allows), {config.grid_dtype}; "
-        "point mass → EKF keeps the prior's grid, point mass alone re-centres and "
+        "point mass → EKF and point mass → tracker (the whole-flight point-mass tracker, "
+        "started from the grid posterior's moments at hand-off) keep the prior's grid, "
+        "point mass alone re-centres and "
         f"re-sizes it (adaptive: {config.adaptive_point_mass}). Wall time and "
         "cell-updates/s on this machine (shared CPUs: compare within the table)."
     )

@@ -242,3 +242,38 @@ def test_study_config_rejects_bad_values() -> None:
         AcquisitionStudyConfig(sigmas_m=[-1.0]).validate()
     with pytest.raises(NeuralMapError, match="maps"):
         AcquisitionStudyConfig(maps=["lidar"]).validate()
+
+
+def test_cells_on_map_equals_inside_extent(tiny) -> None:
+    from neuralmap.nav.acquisition import cells_on_map
+    from neuralmap.terrain.base import inside_extent
+
+    _, tile, _, _, _ = tiny
+    gen = torch.Generator().manual_seed(2)
+    centre = torch.randn(5, 2, generator=gen, dtype=torch.float64) * 400.0
+    spacing = torch.rand(5, 2, generator=gen, dtype=torch.float64) * 60.0 + 5.0
+    off = torch.arange(16, dtype=torch.float64) - 7.5
+    ins = torch.rand(5, 2, generator=gen, dtype=torch.float64) * 3500.0 - 300.0
+    got = cells_on_map(ins, centre, spacing, off, tile.extent)
+    px = (centre[:, 0, None, None] + spacing[:, 0, None, None] * off[None, None, :]).expand(5, 16, 16)
+    py = (centre[:, 1, None, None] + spacing[:, 1, None, None] * off[None, :, None]).expand(5, 16, 16)
+    ref = inside_extent(ins[:, None, None, :] - torch.stack([px, py], -1), tile.extent)
+    assert torch.equal(got, ref) and bool(got.any()) and not bool(got.all())
+
+
+def test_map_support_keeps_the_grid_posterior_on_the_map(tiny) -> None:
+    """With off-map cells at zero likelihood, an acquiring run's estimate never leaves the
+    map (the posterior lives on the map, a convex set); the cells beyond the border carry
+    no mass after the first update."""
+    scenario, tile, truth, grid, lin = tiny
+    inputs = tan_inputs(truth, scenario)
+    # move the INS near the west border so that part of every grid is off the map
+    shift = torch.zeros_like(inputs.ins_pos)
+    shift[..., 0] = -float(inputs.ins_pos[:, 0, 0].min()) + 150.0
+    near = dataclasses.replace(inputs, ins_pos=inputs.ins_pos + shift)
+    cfg = AcquisitionConfig(cells=48, dtype="float64", handoff_sigma_m=1.0)  # never hands off
+    res = run_acquisition(near, method="point_mass", terrain=grid, config=cfg)
+    assert bool(res.run.est_on_map.all())
+    off = run_acquisition(near, method="point_mass", terrain=grid,
+                          config=dataclasses.replace(cfg, map_support=False))
+    assert not torch.equal(res.run.err, off.run.err)

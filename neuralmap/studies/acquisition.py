@@ -34,11 +34,11 @@ from neuralmap.nav.acquisition import (
     tan_inputs,
 )
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics, nees
-from neuralmap.nav.pcrb import pcrb, pcrb_position
+from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
 from neuralmap.nav.simulator import simulate
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
-from neuralmap.studies.setup import prepare_tan
+from neuralmap.studies.setup import dem_error_model, prepare_tan
 from neuralmap.terrain.base import inside_extent
 from neuralmap.terrain.grid import GridTerrain
 from neuralmap.viz.navigation import plot_error_vs_time
@@ -323,9 +323,25 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     results: dict[str, Any] = {"sigmas": {}, "notes": notes,
                                "divergence_rule": divergence_rule(config.pcrb_factor,
                                                                   config.divergence_sigma)}
+    # the map-aware PCRB (the bound of a filter that knows the DEM: its slopes, its measured
+    # error as noise) beside the true-terrain one; one DEM error model for every sigma0
+    dem = dem_error_model(base, tile, truth_terrain, n_points=config.map_error_points,
+                          seed=seed)
+    results["pcrb_map_aware"] = {
+        "label": "map-aware PCRB (DEM slopes, DEM error as noise)",
+        "map_error_m2": dem["mse_m2"], "map_error_corr": dem["corr"],
+        "map_error_corr_lag_m": dem["lag_m"]}
+    results["pcrb_label"] = "true-terrain PCRB (truth slopes, altimeter noise only)"
+
+    def map_bound(truth: Any, scenario: Any, runs: torch.Tensor) -> torch.Tensor:
+        return pcrb_position(map_aware_pcrb(
+            truth, scenario, dem["terrain"], map_error_var=dem["mse_m2"],
+            map_error_corr=dem["corr"], runs=runs)).to("cpu")
+
     headers = ["sigma0 m", "map", "method", "runs", "off-map", "diverged", "RMSE m", "PCRB m",
-               "RMSE/PCRB", "conv. RMSE/PCRB", "acquired", "t_acq median s", "hand-off s",
-               "fall-backs", "recoveries", "wall s", "cell-upd/s"]
+               "RMSE/PCRB", "conv. RMSE/PCRB", "map PCRB m", "RMSE/map PCRB", "acquired",
+               "t_acq median s", "hand-off s", "fall-backs", "recoveries", "wall s",
+               "cell-upd/s"]
     rows: list[list[Any]] = []
     curves: dict[str, Any] = {}
     off_map: dict[str, Any] = {}
@@ -358,19 +374,21 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                 continue
             bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
                                        runs=kept)).to("cpu")
+            bound_map = map_bound(truth, scenario, kept)
             inputs = _runs_on_map(tan_inputs(truth, scenario), kept)
             inputs = dataclasses.replace(inputs, R=inputs.R + extra_r)
             for method in config.methods:
                 cfg = acq_cfg
                 if method == "point_mass" and config.adaptive_point_mass:
                     cfg = dataclasses.replace(acq_cfg, adaptive=True)
-                run_inputs, run_bound = inputs, bound
+                run_inputs, run_bound, run_bound_map = inputs, bound, bound_map
                 if method == "point_mass_tracker" and config.n_runs_tracker is not None:
                     sub = kept & (torch.cumsum(kept.long(), 0) <= config.n_runs_tracker)
                     if int(sub.sum()) < int(kept.sum()):
                         run_inputs = _runs_on_map(inputs, sub[kept])
                         run_bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
                                                        runs=sub)).to("cpu")
+                        run_bound_map = map_bound(truth, scenario, sub)
                 if bar is not None:
                     bar.set_description(f"acquisition sigma0 {sigma:g} m, {kind}, {method}")
                 try:
@@ -385,18 +403,27 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                     continue
                 m = _row_metrics(res, run_bound, config, scenario.dt)
                 m["n_off_map"] = n_off
+                tail = run_bound_map[len(run_bound_map) // 2:].double()
+                tail = tail[torch.isfinite(tail)]
+                m["pcrb_map_pos_m"] = float(tail.square().mean().sqrt()) if tail.numel() else None
+                m["pcrb_map_ratio_all"] = (
+                    m["rmse_pos_m"] / m["pcrb_map_pos_m"]
+                    if m["rmse_pos_m"] is not None and m["pcrb_map_pos_m"] else None)
                 per_sigma[f"{kind}/{method}"] = m
                 curves[f"{sigma:g}/{kind}/{method}"] = m["rmse_pos_curve"]
                 rows.append([sigma, kind, method, m["n_included"], n_off, m["n_diverged"],
                              m["rmse_pos_m"], m["pcrb_pos_m"], m["pcrb_ratio_all"],
-                             m["pcrb_ratio_converged"], m["acquired_fraction"],
+                             m["pcrb_ratio_converged"], m["pcrb_map_pos_m"],
+                             m["pcrb_map_ratio_all"], m["acquired_fraction"],
                              m["time_to_acquire_median_s"], m["handoff_median_s"],
                              m["n_fallbacks"], m["n_recoveries"], m["wall_s"],
                              m["cell_updates_per_s"]])
                 print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method}: diverged "
                       f"{m['n_diverged']}/{m['n_included']}, RMSE/PCRB "
-                      f"{_fmt(m['pcrb_ratio_all'])}, wall {m['wall_s']:.1f} s", flush=True)
+                      f"{_fmt(m['pcrb_ratio_all'])} (map-aware {_fmt(m['pcrb_map_ratio_all'])}), "
+                      f"wall {m['wall_s']:.1f} s", flush=True)
             curves[f"{sigma:g}/pcrb"] = bound.tolist()
+            curves[f"{sigma:g}/pcrb_map_aware"] = bound_map.tolist()
         results["sigmas"][f"{sigma:g}"] = per_sigma
     if bar is not None:
         bar.close()
@@ -508,6 +535,18 @@ def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: l
                                 if ratio is not None and ratio > 1.10 else None)),
                 runs=runs,
             )
+            map_ratio = m.get("pcrb_map_ratio_all")
+            if key.endswith("point_mass_tracker"):  # the tracker against the map-aware bound
+                outputs.add_claim(
+                    "toolkit target",
+                    f"sigma0 = {sigma} m, {key}: all-run RMSE over the last half <= 1.05x the "
+                    "map-aware PCRB",
+                    _fmt(map_ratio),
+                    verdict(None if map_ratio is None else map_ratio <= 1.05,
+                            detail=(f"by {100 * (map_ratio - 1.05) / 1.05:.0f} %"
+                                    if map_ratio is not None and map_ratio > 1.05 else None)),
+                    runs=runs,
+                )
 
 
 def _figure(outputs: StudyOutputs, results: dict[str, Any], dt: float) -> None:
@@ -515,9 +554,11 @@ def _figure(outputs: StudyOutputs, results: dict[str, Any], dt: float) -> None:
     curves = results["curves"]
     for sigma in results["sigmas"]:
         rows = {key.split("/", 1)[1]: curve for key, curve in curves.items()
-                if key.startswith(f"{sigma}/") and not key.endswith("/pcrb")}
+                if key.startswith(f"{sigma}/") and not key.endswith(("/pcrb", "/pcrb_map_aware"))}
         if not rows:
             continue
+        if f"{sigma}/pcrb_map_aware" in curves:
+            rows["map-aware PCRB"] = curves[f"{sigma}/pcrb_map_aware"]
         n = len(next(iter(rows.values())))
         fig = plot_error_vs_time(np.arange(n) * dt, rows, curves.get(f"{sigma}/pcrb"),
                                  title=f"Horizontal RMSE vs time, σ0 = {sigma} m")

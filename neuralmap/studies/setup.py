@@ -14,15 +14,16 @@ import torch
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS, make_linearizer
-from neuralmap.nav.map_error import measure_map_error
+from neuralmap.nav.map_error import map_error_correlation, measure_map_error
 from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
 from neuralmap.nav.truth_terrain import true_terrain
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.maps import check_map_tile, resolve_map_path
 from neuralmap.terrain.export import load_map
+from neuralmap.terrain.grid import GridTerrain
 
-__all__ = ["DEFAULT_METHODS", "TanOptions", "TanSetup", "build_methods", "prepare_tan",
-           "void_exposure"]
+__all__ = ["DEFAULT_METHODS", "TanOptions", "TanSetup", "build_methods", "dem_error_model",
+           "prepare_tan", "void_exposure"]
 
 #: Methods evaluated when ``--methods`` is not given.
 DEFAULT_METHODS: tuple[str, ...] = (
@@ -275,3 +276,27 @@ def void_exposure(tile: Any, truth: Any) -> dict[str, int]:
         return {"samples": 0, "runs": 0}
     under = tile.void_under(truth.pos[..., :2].detach().cpu().double().numpy(), halo=1)
     return {"samples": int(under.sum()), "runs": int(under.any(axis=1).sum())}
+
+
+def dem_error_model(scenario: Any, tile: Any, truth_terrain: Any, *, n_points: int,
+                    seed: int) -> dict[str, Any]:
+    """The bilinear DEM as a map, with its error against the truth terrain: the noise of the
+    map-aware PCRB (:func:`neuralmap.nav.pcrb.map_aware_pcrb`).
+
+    Args:
+        scenario: The study's scenario (its speed × period is the correlation lag).
+        tile: The DEM tile.
+        truth_terrain: The study's :class:`~neuralmap.nav.truth_terrain.TrueTerrain`.
+        n_points: Seeded random points between the nodes.
+        seed: Seed of the points.
+
+    Returns:
+        ``{"terrain": GridTerrain (bilinear), "mse_m2": mean squared error against the
+        truth, "corr": its correlation over one step's flight, "lag_m": that distance}``.
+    """
+    grid = GridTerrain(tile, method="bilinear")
+    err = measure_map_error(grid, truth_terrain.model, tile, n_points=n_points, seed=seed)
+    lag = float(scenario.speed_mps) * float(scenario.dt)
+    corr = map_error_correlation(grid, truth_terrain.model, tile, lag_m=lag, n_points=n_points,
+                                 seed=seed)
+    return {"terrain": grid, "mse_m2": float(err.get("mse_m2", 0.0)), "corr": corr, "lag_m": lag}

@@ -26,7 +26,6 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.measured_noise import MeasuredNoiseLinearizer, measure_linearization_noise
 from neuralmap.nav.acquisition import AcquisitionConfig, run_acquisition, tan_inputs
-from neuralmap.nav.map_error import map_error_correlation, measure_map_error
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics
 from neuralmap.nav.model import TanModel
 from neuralmap.nav.monte_carlo import run_monte_carlo
@@ -39,6 +38,7 @@ from neuralmap.studies.setup import (
     DEFAULT_METHODS,
     TanOptions,
     build_methods,
+    dem_error_model,
     prepare_tan,
     void_exposure,
 )
@@ -50,7 +50,6 @@ from neuralmap.studies.tan_report import (
     report_text,
 )
 from neuralmap.studies.trajectories import write_trajectories
-from neuralmap.terrain.grid import GridTerrain
 from neuralmap.viz.navigation import (
     plot_error_vs_time,
     plot_final_error_histogram,
@@ -239,7 +238,8 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     else:
         truth, runs = simulate(scenario, tile, n_runs=config.n_runs, seed=seed, dtype=dtype,
                                device=device, truth_terrain=truth_terrain), {}
-    dem_bound = _dem_map_error(scenario, tile, truth_terrain, config)
+    dem_bound = dem_error_model(scenario, tile, truth_terrain,
+                                n_points=config.map_error_points, seed=config.seed)
     tracker_info = _run_tracker(config, scenario, truth, dem_bound, runs)
     pm_ekf_info = _run_point_mass_ekf(config, scenario, truth, tile, truth_terrain, dem_bound,
                                       runs)
@@ -327,18 +327,6 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
 def _node(table: dict[str, Any], sigma: float) -> int:
     """Index of the table node nearest ``sigma``."""
     return int(np.argmin(np.abs(np.asarray(table["sigmas_m"]) - sigma)))
-
-
-def _dem_map_error(scenario: Any, tile: Any, truth_terrain: Any, config: Any) -> dict[str, Any]:
-    """The bilinear DEM as a map: its error variance against the truth between the nodes and
-    the error's correlation over one step's flight (the map-aware PCRB's noise)."""
-    grid = GridTerrain(tile, method="bilinear")
-    err = measure_map_error(grid, truth_terrain.model, tile, n_points=config.map_error_points,
-                            seed=config.seed)
-    lag = float(scenario.speed_mps) * float(scenario.dt)
-    corr = map_error_correlation(grid, truth_terrain.model, tile, lag_m=lag,
-                                 n_points=config.map_error_points, seed=config.seed)
-    return {"terrain": grid, "mse_m2": float(err.get("mse_m2", 0.0)), "corr": corr, "lag_m": lag}
 
 
 def _run_tracker(config: Any, scenario: Any, truth: Any, dem: dict[str, Any],

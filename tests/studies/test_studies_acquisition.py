@@ -45,3 +45,15 @@ def test_tracker_rows_fly_the_first_n_runs_tracker_runs(tmp_path: Path) -> None:
                           "results.json").read_text())
     rows = results["sigmas"]["60"]
     assert rows["grid/ekf"]["n_included"] == 12 and rows["grid/point_mass_tracker"]["n_included"] == 5
+    # the map-aware PCRB beside the true-terrain one: the rows' RMS over the last half of
+    # the curve, and the tracker's claim against it
+    curve = results["curves"]["60/pcrb_map_aware"]
+    tail = curve[len(curve) // 2:]
+    rms = (sum(v * v for v in tail) / len(tail)) ** 0.5
+    ekf = rows["grid/ekf"]
+    assert abs(ekf["pcrb_map_pos_m"] - rms) <= 1e-9 * rms
+    assert abs(ekf["pcrb_map_ratio_all"] - ekf["rmse_pos_m"] / rms) <= 1e-9
+    assert rows["grid/point_mass_tracker"]["pcrb_map_pos_m"] > 0
+    assert results["pcrb_map_aware"]["map_error_m2"] > 0
+    claims = [c["claim"] for c in results["claims"]]
+    assert any("point_mass_tracker" in c and "map-aware PCRB" in c for c in claims)

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import pytest
 import torch
 
-from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import make_linearizer
 from neuralmap.nav.acquisition import (
@@ -102,27 +100,12 @@ def test_point_mass_hands_off_and_falls_back(tiny) -> None:
 
 
 @pytest.fixture(scope="module")
-def tilted_plane(tiny_scenario):
+def tilted_plane(tiny_scenario, plane_flight):
     """The tiny scenario over a tilted plane with the DEM as truth: the radar measurement
     is linear in the position, so the Bayes posterior is Gaussian and the EKF with the
     bilinear linearizer (exact on a plane) is the Kalman filter, the reference."""
-    scenario = tiny_scenario
-    sig = 60.0
-    scenario = dataclasses.replace(
-        scenario, truth_model="dem", init_pos_sigma_m=sig, start_xy=[900.0, 900.0],
-        start_spread_m=0.0, P0_diag=[sig**2, sig**2] + list(scenario.P0_diag[2:]),
-        duration_s=20.0,
-    ).validate()
-    xs = 30.0 * np.arange(96)
-    x, y = np.meshgrid(xs, xs)
-    tile = DemTile(heights=200.0 + 0.15 * x + 0.08 * y, spacing=(30.0, 30.0),
-                   origin=(0.0, 0.0), name="plane")
-    truth = simulate(scenario, tile, n_runs=6, seed=1)
-    grid = GridTerrain(tile, method="bilinear")
-    lin = make_linearizer("bilinear", tile=tile)
     cfg = AcquisitionConfig(cells=96, dtype="float64", bank_per_axis=3)
-    inputs = tan_inputs(truth, scenario)
-    kalman = run_acquisition(inputs, method="ekf", terrain=grid, linearizer=lin, config=cfg)
+    inputs, grid, lin, kalman = plane_flight(tiny_scenario, duration_s=20.0, config=cfg)
     return inputs, grid, lin, cfg, kalman
 
 

@@ -4,20 +4,14 @@ against the Kalman filter on a linear-Gaussian (tilted-plane) flight."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
 import torch
 
-from neuralmap.dem.tile import DemTile
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter
-from neuralmap.linearize.factory import make_linearizer
-from neuralmap.nav.acquisition import AcquisitionConfig, run_acquisition, tan_inputs
-from neuralmap.nav.simulator import simulate
+from neuralmap.nav.acquisition import AcquisitionConfig, run_acquisition
 from neuralmap.nav.tracker_handoff import TrackerPool, grid_posterior_moments
 from neuralmap.nav.tracking import TrackerOptions
-from neuralmap.terrain.grid import GridTerrain
 
 D = torch.float64
 
@@ -122,26 +116,12 @@ def test_handoff_conserves_mean_and_covariance(dtype, tol) -> None:
 
 
 @pytest.fixture(scope="module")
-def plane(tiny_scenario):
+def plane(tiny_scenario, plane_flight):
     """Tilted plane, DEM as truth: linear-Gaussian, the bilinear EKF is the Kalman filter.
     A plane observes one direction only, so the hand-off σ is above the prior σ."""
-    sig = 60.0
-    scenario = dataclasses.replace(
-        tiny_scenario, truth_model="dem", init_pos_sigma_m=sig, start_xy=[900.0, 900.0],
-        start_spread_m=0.0, P0_diag=[sig**2, sig**2] + list(tiny_scenario.P0_diag[2:]),
-        duration_s=30.0,
-    ).validate()
-    xs = 30.0 * np.arange(96)
-    x, y = np.meshgrid(xs, xs)
-    tile = DemTile(heights=200.0 + 0.15 * x + 0.08 * y, spacing=(30.0, 30.0),
-                   origin=(0.0, 0.0), name="plane")
-    truth = simulate(scenario, tile, n_runs=6, seed=1)
-    grid = GridTerrain(tile, method="bilinear")
-    lin = make_linearizer("bilinear", tile=tile)
     cfg = AcquisitionConfig(cells=96, dtype="float64", handoff_sigma_m=65.0, handoff_hold=2,
                             min_acquire_steps=3)
-    inputs = tan_inputs(truth, scenario)
-    kalman = run_acquisition(inputs, method="ekf", terrain=grid, linearizer=lin, config=cfg)
+    inputs, grid, _, kalman = plane_flight(tiny_scenario, duration_s=30.0, config=cfg)
     return inputs, grid, cfg, kalman
 
 

@@ -73,7 +73,7 @@ def progress_line(
     count = f"{done:g}/{total:g} {unit}" if total else f"{done:g} {unit}"
     if total:
         count += f" ({100.0 * done / total:.0f}%)"
-    left = (total - done) / rate if total and rate > 0 else None
+    left = max(total - done, 0.0) / rate if total and rate > 0 else None
     rate_text = f"{rate:.3g} {unit}/s" if math.isfinite(rate) else f"? {unit}/s"
     line = (f"{desc}: {count}, {rate_text}, {format_duration(elapsed_s)} elapsed, "
             f"{format_duration(left)} left")

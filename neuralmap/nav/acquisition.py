@@ -46,6 +46,7 @@ import dataclasses
 import functools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -432,6 +433,7 @@ def run_acquisition(
     linearizer: Any = None,
     config: AcquisitionConfig | None = None,
     name: str = "",
+    progress: Callable[[float], None] | None = None,
 ) -> AcquisitionResult:
     """Runs one acquisition method over all runs (see the module docstring).
 
@@ -443,6 +445,8 @@ def run_acquisition(
             ``point_mass_ekf``).
         config: Options (:class:`AcquisitionConfig`).
         name: Method name stored in the run.
+        progress: Called with ``1/K`` as each of the K filter steps starts (the fraction of
+            the run done, e.g. a progress bar's ``update``); None = silent.
 
     Returns:
         :class:`AcquisitionResult`.
@@ -463,8 +467,8 @@ def run_acquisition(
         raise NeuralMapError(f"run_acquisition: method {method!r} needs a linearizer.")
     _check_start(inputs)
     if method == "bank":
-        return _run_bank(inputs, linearizer, cfg, name or method)
-    return _run_grid(inputs, method, terrain, linearizer, cfg, name or method)
+        return _run_bank(inputs, linearizer, cfg, name or method, progress)
+    return _run_grid(inputs, method, terrain, linearizer, cfg, name or method, progress)
 
 
 def _tracker_pool(inputs: TanInputs, cfg: AcquisitionConfig) -> Any:
@@ -513,7 +517,7 @@ def _finish(inputs: TanInputs, out: dict[str, Any], name: str, healthy: torch.Te
 
 
 def _run_bank(inputs: TanInputs, linearizer: Any, cfg: AcquisitionConfig,
-              name: str) -> AcquisitionResult:
+              name: str, progress: Callable[[float], None] | None = None) -> AcquisitionResult:
     ins, radar = inputs.ins_pos, inputs.radar
     n, k_steps = radar.shape[0], radar.shape[1] - 1
     dtype, device = ins.dtype, ins.device
@@ -531,6 +535,8 @@ def _run_bank(inputs: TanInputs, linearizer: Any, cfg: AcquisitionConfig,
     updates = 0
     start = time.perf_counter()
     for k in range(1, k_steps + 1):
+        if progress is not None:
+            progress(1.0 / k_steps)
         alive = bank.alive
         diag = tan_filter_step(
             bank.ekf, ins[:, k].repeat_interleave(kc, 0), radar[:, k].repeat_interleave(kc, 0),
@@ -616,7 +622,8 @@ class _VelocityPrior:
 
 
 def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
-              cfg: AcquisitionConfig, name: str) -> AcquisitionResult:
+              cfg: AcquisitionConfig, name: str,
+              progress: Callable[[float], None] | None = None) -> AcquisitionResult:
     """Point mass (optionally handing off to the EKF) or the EKF alone.
 
     The grid filter holds only the runs in acquisition (``rows``): runs handed off are
@@ -666,6 +673,8 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
     updates = 0
     start = time.perf_counter()
     for k in range(1, k_steps + 1):
+        if progress is not None:
+            progress(1.0 / k_steps)
         x_out = torch.zeros(n, N_STATES, dtype=dtype, device=device)
         P_out = torch.zeros(n, N_STATES, N_STATES, dtype=dtype, device=device)
         acquiring = torch.zeros(n, dtype=torch.bool, device=device)

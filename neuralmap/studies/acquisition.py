@@ -347,7 +347,7 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     off_map: dict[str, Any] = {}
     results["off_map"] = off_map
     bar = None
-    if config.progress:  # one line per finished row: rows done, rate, time left
+    if config.progress:  # a line per finished row (rows done, rate, time left), heartbeats inside
         from neuralmap.progress import ProgressLines
 
         bar = ProgressLines(total=len(config.sigmas_m) * len(maps) * len(config.methods),
@@ -392,10 +392,10 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                 if bar is not None:
                     bar.set_description(f"acquisition sigma0 {sigma:g} m, {kind}, {method}")
                 try:
+                    # the bar advances step by step inside the row (heartbeat lines)
                     res = run_acquisition(run_inputs, method=method, terrain=terrain,
-                                          linearizer=lin, config=cfg, name=f"{method}/{kind}")
-                    if bar is not None:
-                        bar.update(1)
+                                          linearizer=lin, config=cfg, name=f"{method}/{kind}",
+                                          progress=None if bar is None else bar.update)
                 except NeuralMapError as exc:  # keep every finished stage; report this one
                     notes.append(f"sigma0 {sigma:g} m, {kind}, {method} failed: {exc}")
                     print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method} failed: {exc}",

@@ -260,3 +260,16 @@ def test_map_support_keeps_the_grid_posterior_on_the_map(tiny) -> None:
     off = run_acquisition(near, method="point_mass", terrain=grid,
                           config=dataclasses.replace(cfg, map_support=False))
     assert not torch.equal(res.run.err, off.run.err)
+
+
+@pytest.mark.parametrize("method", ["bank", "point_mass_ekf"])
+def test_progress_is_reported_once_per_step_and_adds_up_to_one_run(tilted_plane, method) -> None:
+    """``progress`` gets ``1/K`` at each of the K steps: the study's bar advances inside a
+    row (heartbeat lines on long rows) and by exactly one row per method."""
+    inputs, grid, lin, cfg, _ = tilted_plane
+    calls: list[float] = []
+    run_acquisition(inputs, method=method, terrain=grid, linearizer=lin, config=cfg,
+                    progress=calls.append)
+    k_steps = inputs.radar.shape[1] - 1
+    assert len(calls) == k_steps
+    assert sum(calls) == pytest.approx(1.0, abs=1e-12)

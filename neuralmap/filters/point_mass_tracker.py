@@ -306,6 +306,9 @@ class PointMassTracker:
         self._off = torch.arange(self.cells, **kw) - self.half
         self._moments_cache: tuple[torch.Tensor, torch.Tensor, int, int, _Moments] | None = None
         self._f_identity = bool(torch.equal(self.F, torch.eye(nz, **kw)))
+        self._open_transition = torch.eye(2 + nz, **kw)  # A = [[I, E], [0, F]]
+        self._open_transition[:2, 2:] = self.E
+        self._open_transition[2:, 2:] = self.F
         self.recoveries = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.regrids = torch.zeros_like(self.recoveries)
         self.widenings = torch.zeros_like(self.recoveries)
@@ -387,17 +390,14 @@ class PointMassTracker:
     def _predict_open_loop(self, qs: torch.Tensor, qz: torch.Tensor, u: torch.Tensor) -> None:
         """``m_ol ← A m_ol + u``, ``P_ol ← A P_ol Aᵀ + blkdiag(Q_s, Q_z)``, ``A = [[I, E],
         [0, F]]``: the prior through one prediction without a measurement."""
-        n, nz, kw = self.n_runs, self.nz, {"dtype": self.dtype, "device": self.device}
-        A = torch.eye(2 + nz, **kw)
-        A[:2, 2:] = self.E
-        A[2:, 2:] = self.F
+        A = self._open_transition
         m = self._open_mean @ A.T
         m[:, :2] += u
-        Q = torch.zeros(n, 2 + nz, 2 + nz, **kw)
-        Q[:, :2, :2] = qs
-        Q[:, 2:, 2:] = qz
+        P = A @ self._open_cov @ A.T
+        P[:, :2, :2] += qs
+        P[:, 2:, 2:] += qz
         self._open_mean = m
-        self._open_cov = _sym(A @ self._open_cov @ A.T + Q)
+        self._open_cov = _sym(P)
 
     def _gaussian_state(self, mean: torch.Tensor, cov: torch.Tensor,
                         q: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:

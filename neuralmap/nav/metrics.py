@@ -126,6 +126,14 @@ def _rms(sq: torch.Tensor) -> float | None:
     return _none_if_bad(math.sqrt(float(sq.mean()))) if sq.numel() else None
 
 
+def bound_rms_last_half(bound: Any) -> float | None:
+    """RMS of a bound curve ``(K+1,)`` over its last half (indices ``(K+1)//2 … K``), finite
+    values only: the time-averaged bound the RMSE ratios divide by (None when empty)."""
+    tail = torch.as_tensor(bound, dtype=torch.float64)
+    tail = tail[tail.shape[0] // 2:]
+    return _rms(tail[torch.isfinite(tail)] ** 2)
+
+
 def _curve(sq: torch.Tensor, n_steps: int) -> list[float | None]:
     """Per-step RMS over runs of ``sq (M, K+1)`` (None entries when M = 0)."""
     if sq.shape[0] == 0:

@@ -33,7 +33,7 @@ from neuralmap.nav.acquisition import (
     run_acquisition,
     tan_inputs,
 )
-from neuralmap.nav.metrics import divergence_rule, navigation_metrics, nees
+from neuralmap.nav.metrics import bound_rms_last_half, divergence_rule, navigation_metrics, nees
 from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
 from neuralmap.nav.simulator import simulate
 from neuralmap.studies.base import StudyConfig
@@ -403,9 +403,7 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                     continue
                 m = _row_metrics(res, run_bound, config, scenario.dt)
                 m["n_off_map"] = n_off
-                tail = run_bound_map[len(run_bound_map) // 2:].double()
-                tail = tail[torch.isfinite(tail)]
-                m["pcrb_map_pos_m"] = float(tail.square().mean().sqrt()) if tail.numel() else None
+                m["pcrb_map_pos_m"] = bound_rms_last_half(run_bound_map)
                 m["pcrb_map_ratio_all"] = (
                     m["rmse_pos_m"] / m["pcrb_map_pos_m"]
                     if m["rmse_pos_m"] is not None and m["pcrb_map_pos_m"] else None)

@@ -26,7 +26,7 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.measured_noise import MeasuredNoiseLinearizer, measure_linearization_noise
 from neuralmap.nav.acquisition import AcquisitionConfig, run_acquisition, tan_inputs
-from neuralmap.nav.metrics import divergence_rule, navigation_metrics
+from neuralmap.nav.metrics import bound_rms_last_half, divergence_rule, navigation_metrics
 from neuralmap.nav.model import TanModel
 from neuralmap.nav.monte_carlo import run_monte_carlo
 from neuralmap.nav.noise_calibration import derive_method_noise
@@ -408,8 +408,7 @@ def _order_runs(config: Any, runs: dict[str, Any]) -> None:
 
 def _add_map_aware_bound(results: dict[str, Any], bound: np.ndarray, dem: dict[str, Any]) -> None:
     """The map-aware PCRB beside the true-terrain one, and each method's ratio to it."""
-    tail = bound[len(bound) // 2:]
-    rms = float(np.sqrt(np.mean(tail[np.isfinite(tail)] ** 2)))
+    rms = bound_rms_last_half(bound)
     results["pcrb_map_aware"] = {
         "label": "map-aware PCRB (DEM slopes, DEM error as noise)",
         "pos_m": rms, "pos_final_m": float(bound[-1]), "curve": bound.tolist(),

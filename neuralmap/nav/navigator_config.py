@@ -1,0 +1,382 @@
+"""The navigator's configuration: method, sensor, noise, map error and integrity, from YAML.
+
+Scenario style (:mod:`neuralmap.nav.scenario`): one YAML file, sections of named options,
+every option checked on load with the file and key in the message. The shipped default is
+``configs/navigator.yaml`` (:data:`DEFAULT_CONFIG`); a user file overrides any subset of it::
+
+    method: point_mass_tracker        # or point_mass_ekf, or an EKF linearizer name
+    sensor:   {dt_s: 1.0, max_gap_s: 5.0, altimeter_sigma_m: 10.0,
+               clearance_min_m: 0.0, clearance_max_m: 8000.0}
+    initial:  {position_sigma_m: 100.0, altitude_sigma_m: 30.0, velocity_sigma_mps: 0.5}
+    process_noise: {position_sigma_m: 1.0, altitude_sigma_m: 1.0, velocity_sigma_mps: 0.05}
+    map_error: {dem_accuracy_m: null, fit_rmse_m: null, linearisation_table: null}
+    integrity: {lost_window: 20, lost_prob: 0.99999, acquired_sigma_m: 40.0}
+
+The filter's numbers follow (SEEDS 004, 5-state error ``[δx, δy, δh, δv_x, δv_y]``):
+``P0 = diag(σ_p², σ_p², σ_h², σ_v², σ_v²)`` from ``initial``; ``Q`` per nominal period
+``T = dt_s`` is ``diag(q_p², q_p², q_h², q_v², q_v²)`` from ``process_noise``
+(``velocity_sigma_mps`` is the velocity random walk per period), and an interval ``Δt`` gets
+``Q · Δt / T`` (random-walk scaling); ``R`` is built by :mod:`neuralmap.nav.map_noise`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+
+__all__ = ["DEFAULT_CONFIG", "NavigatorConfig", "load_navigator_config", "navigator_methods"]
+
+#: The shipped default config (``configs/navigator.yaml`` in the package).
+DEFAULT_CONFIG = "navigator.yaml"
+
+#: Methods that start on the point-mass acquisition grid when the prior is wide.
+GRID_METHODS = ("point_mass_tracker", "point_mass_ekf")
+
+
+def navigator_methods() -> tuple[str, ...]:
+    """Every method name a navigator accepts: the grid methods and the EKF linearizers."""
+    from neuralmap.linearize.factory import LINEARIZER_NAMES
+
+    return GRID_METHODS + tuple(LINEARIZER_NAMES)
+
+
+@dataclass
+class SensorConfig:
+    """Radar altimeter and epoch timing.
+
+    Attributes:
+        dt_s: Nominal epoch period T, s (the process noise is given per T).
+        max_gap_s: Longest interval predicted across; a longer one is counted
+            (``long_gaps``) and its epoch is predicted only (status ``no_measurement``).
+        altimeter_sigma_m: Altimeter noise σ, m.
+        clearance_min_m: Smallest clearance the altimeter states it measures, m.
+        clearance_max_m: Largest, m. Clearances outside ``[min, max]`` are not used
+            (counted ``out_of_range``, status ``no_measurement``).
+    """
+
+    dt_s: float = 1.0
+    max_gap_s: float = 5.0
+    altimeter_sigma_m: float = 10.0
+    clearance_min_m: float = 0.0
+    clearance_max_m: float = 8000.0
+
+
+@dataclass
+class InitialConfig:
+    """Initial INS error σ (the prior ``P0``)."""
+
+    position_sigma_m: float = 100.0
+    altitude_sigma_m: float = 30.0
+    velocity_sigma_mps: float = 0.5
+
+
+@dataclass
+class ProcessNoiseConfig:
+    """INS error growth per nominal period (``Q``)."""
+
+    position_sigma_m: float = 1.0
+    altitude_sigma_m: float = 1.0
+    velocity_sigma_mps: float = 0.05
+
+
+@dataclass
+class MapErrorConfig:
+    """The map's own error model (:mod:`neuralmap.nav.map_noise`).
+
+    Attributes:
+        dem_accuracy_m: The DEM's stated vertical accuracy (1σ), m; None = unknown (0).
+        fit_rmse_m: A neural map's fit error, m; None = read it from the map's stored
+            fit metrics (``offnode_rmse_m``, ``between_rmse_m`` or ``rmse_m``), 0 for a grid.
+        linearisation_table: Path of a measured noise table (JSON of
+            :class:`~neuralmap.linearize.measured_noise.NoiseTable`), EKF methods only.
+    """
+
+    dem_accuracy_m: float | None = None
+    fit_rmse_m: float | None = None
+    linearisation_table: str | None = None
+
+
+@dataclass
+class IntegrityConfig:
+    """Lost-lock detection and status thresholds.
+
+    Attributes:
+        lost_window: Updates in the windowed-NIS lost-lock test (0 disables it).
+        lost_prob: χ² probability of its threshold: the mean NIS of ``lost_window``
+            consistent updates exceeds ``χ²_p(W)/W`` with probability ``1 − p``.
+        acquired_sigma_m: Largest horizontal σ (m, principal axis) reported ``tracking``;
+            above it the status is ``acquiring``.
+    """
+
+    lost_window: int = 20
+    lost_prob: float = 0.99999
+    acquired_sigma_m: float = 40.0
+
+
+@dataclass
+class TrackerSection:
+    """Lattice of the point-mass tracker (:class:`~neuralmap.nav.tracking.TrackerOptions`).
+
+    Attributes:
+        cells, span_sigma, principal_axes, dtype, widen_min_sigma_m, flatten_likelihood,
+        min_cell_blur: As :class:`~neuralmap.nav.tracking.TrackerOptions`.
+        local_widenings: Widenings around the run's mean before a re-acquisition from the
+            open-loop prior (:class:`~neuralmap.filters.point_mass_tracker.TrackerConfig`).
+        max_widenings: Widenings after which the tracker flags a vehicle lost for good.
+    """
+
+    cells: int = 32
+    span_sigma: float = 5.0
+    principal_axes: bool = True
+    dtype: str = "float32"
+    widen_min_sigma_m: float = 50.0
+    flatten_likelihood: bool = False
+    min_cell_blur: float = 1.5
+    local_widenings: int = 2
+    max_widenings: int = 1000000
+
+
+@dataclass
+class AcquisitionSection:
+    """The point-mass acquisition grid (:class:`~neuralmap.nav.acquisition.AcquisitionConfig`).
+
+    Attributes:
+        above_sigma_m: ``point_mass_tracker`` starts on the grid when the initial
+            horizontal σ exceeds this (else on the tracker directly).
+        max_spacing_m, max_cells, span_sigma, dtype, handoff_sigma_m, handoff_affinity,
+        handoff_hold, min_acquire_steps, flatten_likelihood, reacquire_sigma_m: As
+            :class:`~neuralmap.nav.acquisition.AcquisitionConfig`.
+    """
+
+    above_sigma_m: float = 150.0
+    max_spacing_m: float = 50.0
+    max_cells: int = 256
+    span_sigma: float = 4.0
+    dtype: str = "float32"
+    handoff_sigma_m: float = 40.0
+    handoff_affinity: float = 0.9
+    handoff_hold: int = 3
+    min_acquire_steps: int = 5
+    flatten_likelihood: bool = True
+    reacquire_sigma_m: float = 200.0
+
+
+_SECTIONS: dict[str, type] = {
+    "sensor": SensorConfig, "initial": InitialConfig, "process_noise": ProcessNoiseConfig,
+    "map_error": MapErrorConfig, "integrity": IntegrityConfig, "tracker": TrackerSection,
+    "acquisition": AcquisitionSection,
+}
+
+
+@dataclass
+class NavigatorConfig:
+    """Everything a :class:`~neuralmap.nav.navigator.Navigator` needs besides the map.
+
+    Attributes:
+        method: ``point_mass_tracker`` (default), ``point_mass_ekf`` or an EKF linearizer
+            name (:data:`neuralmap.linearize.factory.LINEARIZER_NAMES`).
+        policy: Robust/adaptive update policy of the EKF methods, a
+            :data:`neuralmap.filters.policies.registry.POLICY_NAMES` name (``ekf`` = none).
+        policy_args: Options of the policy.
+        sensor, initial, process_noise, map_error, integrity, tracker, acquisition: The
+            sections (their classes document the options).
+        source: Where the config came from (for messages).
+    """
+
+    method: str = "point_mass_tracker"
+    policy: str = "ekf"
+    policy_args: dict[str, Any] = field(default_factory=dict)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    initial: InitialConfig = field(default_factory=InitialConfig)
+    process_noise: ProcessNoiseConfig = field(default_factory=ProcessNoiseConfig)
+    map_error: MapErrorConfig = field(default_factory=MapErrorConfig)
+    integrity: IntegrityConfig = field(default_factory=IntegrityConfig)
+    tracker: TrackerSection = field(default_factory=TrackerSection)
+    acquisition: AcquisitionSection = field(default_factory=AcquisitionSection)
+    source: str = "<defaults>"
+
+    # ------------------------------------------------------------------ building
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], *, where: str = "<dict>",
+                  base: NavigatorConfig | None = None) -> NavigatorConfig:
+        """A config from a mapping, over ``base`` (default: the built-in defaults).
+
+        Raises:
+            NeuralMapError: Unknown section or key (lists the valid ones), a value of the
+                wrong type or range (names the key and ``where``).
+        """
+        if not isinstance(data, dict):
+            raise NeuralMapError(f"{where}: a navigator config must be a mapping of section: "
+                                 f"options, got {type(data).__name__}.")
+        cfg = dataclasses.replace(base) if base is not None else cls()
+        for sec in _SECTIONS:
+            setattr(cfg, sec, dataclasses.replace(getattr(cfg, sec)))
+        cfg.policy_args = dict(cfg.policy_args)
+        top = {"method", "policy", "policy_args"} | set(_SECTIONS)
+        for key, value in data.items():
+            if key not in top:
+                raise NeuralMapError(f"{where}: unknown navigator option {key!r}; valid: "
+                                     f"{', '.join(sorted(top))}.")
+            if key in _SECTIONS:
+                if value is None:
+                    continue
+                if not isinstance(value, dict):
+                    raise NeuralMapError(f"{where}: section {key!r} must be a mapping of "
+                                         f"option: value, got {value!r}.")
+                section = getattr(cfg, key)
+                names = {f.name for f in dataclasses.fields(section)}
+                for opt, v in value.items():
+                    if opt not in names:
+                        raise NeuralMapError(f"{where}: unknown option {key}.{opt}; valid: "
+                                             f"{', '.join(sorted(names))}.")
+                    setattr(section, opt, v)
+            elif key == "policy_args":
+                cfg.policy_args = dict(value or {})
+            else:
+                setattr(cfg, key, value)
+        cfg.source = where
+        return cfg.validate()
+
+    def validate(self) -> NavigatorConfig:
+        """Checks every option; raises :class:`NeuralMapError` naming it and the source."""
+        where = self.source
+
+        def bad(key: str, value: Any, need: str) -> NeuralMapError:
+            return NeuralMapError(f"{where}: navigator option {key} must be {need}, got "
+                                  f"{value!r}.")
+
+        methods = navigator_methods()
+        if self.method not in methods:
+            raise bad("method", self.method, f"one of {', '.join(methods)}")
+        from neuralmap.filters.policies.registry import POLICY_NAMES
+
+        if self.policy not in POLICY_NAMES:
+            raise bad("policy", self.policy, f"one of {', '.join(POLICY_NAMES)}")
+        if not isinstance(self.policy_args, dict):
+            raise bad("policy_args", self.policy_args, "a mapping")
+        for sec in _SECTIONS:
+            section = getattr(self, sec)
+            for f in dataclasses.fields(section):
+                value = getattr(section, f.name)
+                key = f"{sec}.{f.name}"
+                kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
+                if "None" in kind and value is None:
+                    continue
+                if kind.startswith("bool"):
+                    if not isinstance(value, bool):
+                        raise bad(key, value, "true or false")
+                elif kind.startswith("int"):
+                    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                        raise bad(key, value, "an integer >= 0")
+                elif kind.startswith("float"):
+                    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                            math.isfinite(value) and value >= 0):
+                        raise bad(key, value, "a finite number >= 0")
+                    setattr(section, f.name, float(value))
+                elif kind.startswith("str") and not isinstance(value, str):
+                    raise bad(key, value, "a string")
+        s = self.sensor
+        if not s.dt_s > 0:
+            raise bad("sensor.dt_s", s.dt_s, "> 0 seconds")
+        if not s.max_gap_s >= s.dt_s:
+            raise bad("sensor.max_gap_s", s.max_gap_s, f">= sensor.dt_s ({s.dt_s:g} s)")
+        if not s.altimeter_sigma_m > 0:
+            raise bad("sensor.altimeter_sigma_m", s.altimeter_sigma_m, "> 0 m")
+        if not s.clearance_max_m > s.clearance_min_m:
+            raise bad("sensor.clearance_max_m", s.clearance_max_m,
+                      f"> sensor.clearance_min_m ({s.clearance_min_m:g} m)")
+        for key in ("position_sigma_m", "altitude_sigma_m", "velocity_sigma_mps"):
+            if not getattr(self.initial, key) > 0:
+                raise bad(f"initial.{key}", getattr(self.initial, key), "> 0")
+        i = self.integrity
+        if not 0.0 < i.lost_prob < 1.0:
+            raise bad("integrity.lost_prob", i.lost_prob, "in (0, 1)")
+        if not i.acquired_sigma_m > 0:
+            raise bad("integrity.acquired_sigma_m", i.acquired_sigma_m, "> 0 m")
+        for sec in ("tracker", "acquisition"):
+            dtype = getattr(self, sec).dtype
+            if dtype not in ("float32", "float64"):
+                raise bad(f"{sec}.dtype", dtype, "'float32' or 'float64'")
+        if self.tracker.cells < 8:
+            raise bad("tracker.cells", self.tracker.cells, "an integer >= 8")
+        if not 0.0 < self.acquisition.handoff_affinity <= 1.0:
+            raise bad("acquisition.handoff_affinity", self.acquisition.handoff_affinity,
+                      "in (0, 1]")
+        return self
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain form (YAML/JSON), every section included."""
+        out: dict[str, Any] = {"method": self.method, "policy": self.policy,
+                               "policy_args": dict(self.policy_args)}
+        for sec in _SECTIONS:
+            out[sec] = dataclasses.asdict(getattr(self, sec))
+        return out
+
+    # ------------------------------------------------------------------ filter numbers
+    def prior(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """``(5, 5)`` ``P0 = diag(σ_p², σ_p², σ_h², σ_v², σ_v²)``."""
+        i = self.initial
+        return torch.diag(torch.tensor([i.position_sigma_m**2, i.position_sigma_m**2,
+                                        i.altitude_sigma_m**2, i.velocity_sigma_mps**2,
+                                        i.velocity_sigma_mps**2], dtype=dtype))
+
+    def process_noise_per_period(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """``(5, 5)`` ``Q`` per nominal period ``T = sensor.dt_s``."""
+        q = self.process_noise
+        return torch.diag(torch.tensor([q.position_sigma_m**2, q.position_sigma_m**2,
+                                        q.altitude_sigma_m**2, q.velocity_sigma_mps**2,
+                                        q.velocity_sigma_mps**2], dtype=dtype))
+
+
+def _default_path() -> Path:
+    from neuralmap.resources import config_file
+
+    return config_file(DEFAULT_CONFIG)
+
+
+def load_navigator_config(source: NavigatorConfig | dict[str, Any] | str | os.PathLike[str]
+                          | None = None) -> NavigatorConfig:
+    """A validated config: the shipped defaults, overridden by ``source``.
+
+    Args:
+        source: None (the shipped ``navigator.yaml``), a :class:`NavigatorConfig`
+            (validated, returned), a mapping or a YAML file path (overrides over the
+            shipped defaults).
+
+    Raises:
+        NeuralMapError: Missing or unreadable file, unknown keys, bad values.
+    """
+    if isinstance(source, NavigatorConfig):
+        return source.validate()
+    from neuralmap.io import load_yaml
+
+    def read(path: Path) -> dict[str, Any]:
+        try:
+            data = load_yaml(path.read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise NeuralMapError(f"{path}: cannot read the navigator config ({exc}).") from exc
+        except Exception as exc:  # yaml errors carry the line and column
+            raise NeuralMapError(f"{path}: not valid YAML ({exc}).") from exc
+        return {} if data is None else data
+
+    default = _default_path()
+    base = NavigatorConfig()
+    if default.is_file():
+        base = NavigatorConfig.from_dict(read(default), where=str(default))
+    if source is None:
+        return base
+    if isinstance(source, dict):
+        return NavigatorConfig.from_dict(source, where="<dict>", base=base)
+    path = Path(source)
+    if not path.is_file():
+        raise NeuralMapError(f"{path}: no such navigator config file (copy the shipped "
+                             f"{default} and edit it).")
+    return NavigatorConfig.from_dict(read(path), where=str(path), base=base)

@@ -1,4 +1,12 @@
-"""How far each raster codec is from the Gaussian rate-distortion bound of the tile.
+"""Every raster codec placed between the two rate-distortion bounds of the tile.
+
+Upper: the Gaussian R(D) of the tile's spectrum. Among sources of a given covariance the
+Gaussian is the hardest to code, so this is an upper bound on the rate-distortion function of
+terrain, not a floor: a codec can sit below it. Lower: an estimate of the Shannon lower bound
+``h̄ − ½ log2(2πeD)`` per node, with the entropy rate ``h̄`` estimated from the innovations of
+a causal linear predictor (:func:`neuralmap.studies.rate_distortion.shannon_lower_bound_bytes`;
+an estimate from above of the true bound). Where the two differ, the difference is the room a
+codec that models more than the spectrum could take.
 
 For each tile (jacksboro; matplotlib's ``topobathy.npz``; the synthetic region generator's
 terrain) and each codec point, the bytes the codec stores are set beside
@@ -33,11 +41,19 @@ for path in (REPO_ROOT, REPO_ROOT / "benchmarks"):
 
 from bench_latent_rd import get_tile, jpeg2k_psnr_sweep, node_rmse  # noqa: E402
 
-from neuralmap.studies.rate_distortion import gaussian_rd_bytes  # noqa: E402
+from neuralmap.studies.rate_distortion import (  # noqa: E402
+    gaussian_rd_bytes,
+    innovation_entropy_bits,
+    shannon_lower_bound_bytes,
+)
 from neuralmap.terrain.codecs import compress_grid  # noqa: E402
 from neuralmap.terrain.grid import fill_voids_nearest  # noqa: E402
 
 CODECS = ("jpeg2k", "sz3", "lerc", "jpegls")
+
+
+def _ratio(nbytes: float, bound: float) -> str:
+    return f"{nbytes / bound:.2f}" if bound > 0 else "—"
 
 
 def run_tile(name: str, args: argparse.Namespace) -> list[str]:
@@ -50,17 +66,21 @@ def run_tile(name: str, args: argparse.Namespace) -> list[str]:
             grid = compress_grid(tile, codec=codec, max_error=bound)
             points.append((f"{codec} (max error)", f"{bound:g} m", grid.nbytes,
                            node_rmse(grid.tile.heights, tile)))
+    entropy = innovation_entropy_bits(heights)
     lines = [f"### {tile.name} ({tile.shape[0]} x {tile.shape[1]} nodes, height std "
-             f"{np.nanstd(tile.heights):.1f} m)", "",
-             "| codec | setting | bytes | node RMSE (m) | Gaussian bound (B) | × bound | "
-             "oracle bound (B) | × oracle |", "|---|---|---:|---:|---:|---:|---:|---:|"]
+             f"{np.nanstd(tile.heights):.1f} m, innovation entropy {entropy:.3f} bit/node)", "",
+             "| codec | setting | bytes | node RMSE (m) | Shannon lower bound est. (B) | "
+             "× SLB | Gaussian R(D), upper (B) | × Gaussian | oracle (B) | × oracle |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for kind, setting, nbytes, rmse in points:
         if not (args.rmse_range[0] <= rmse <= args.rmse_range[1]):
             continue
         smooth = gaussian_rd_bytes(heights, rmse)
         oracle = gaussian_rd_bytes(heights, rmse, oracle=True)
-        lines.append(f"| {kind} | {setting} | {nbytes:,} | {rmse:.3f} | {smooth:,.0f} | "
-                     f"{nbytes / smooth:.2f} | {oracle:,.0f} | {nbytes / oracle:.2f} |")
+        slb = shannon_lower_bound_bytes(heights, rmse, entropy_bits=entropy)
+        lines.append(f"| {kind} | {setting} | {nbytes:,} | {rmse:.3f} | {slb:,.0f} | "
+                     f"{_ratio(nbytes, slb)} | {smooth:,.0f} | {_ratio(nbytes, smooth)} | "
+                     f"{oracle:,.0f} | {_ratio(nbytes, oracle)} |")
     return lines
 
 

@@ -21,7 +21,19 @@ error):
   (non-stationarity, non-Gaussian shapes); one above it has room left that a linear
   transform coder could take. With ``oracle=True`` each coefficient is its own variance:
   the rate a coder would need if it knew every coefficient's variance exactly, far below
-  anything a real coder reaches (it is told most of the answer).
+  anything a real coder reaches (it is told most of the answer). For a given covariance
+  the Gaussian source is the hardest (Cover & Thomas, Thm. 10.3.3 with the maximum-entropy
+  property, Thm. 8.6.5): its R(D) is an **upper** bound on the R(D) of a non-Gaussian,
+  non-stationary source with the same spectrum, such as terrain; a codec may sit below it;
+* :func:`shannon_lower_bound_bytes`: the Shannon lower bound
+  ``R(D) ≥ h̄ − ½ log2(2πe D)`` bits per node (Cover & Thomas, Problem 10.8; Berger 1971,
+  §4.3), with the differential entropy rate ``h̄`` of the field estimated by
+  :func:`innovation_entropy_bits`: the entropy of the innovations of a causal linear
+  predictor given a causal context of local roughness. Since
+  ``h(X | past) = h(X − f(past) | past) ≤ h(X − f(past) | c(past))`` for any causal ``f``
+  and context ``c``, that entropy is an upper estimate of ``h̄``: the bound computed from it
+  is an estimate of the Shannon lower bound from above (a better predictor would lower it).
+  No coder of the tile at node RMSE ``√D`` can need fewer bits than the true bound.
 """
 
 from __future__ import annotations
@@ -31,8 +43,18 @@ import math
 import numpy as np
 from scipy.fft import dctn
 from scipy.optimize import brentq
+from scipy.stats import differential_entropy
 
-__all__ = ["bd_rate", "bytes_at_error", "gaussian_rd_bytes", "pareto_front"]
+__all__ = ["bd_rate", "bytes_at_error", "causal_innovations", "gaussian_rd_bytes",
+           "innovation_entropy_bits", "pareto_front", "shannon_lower_bound_bytes"]
+
+#: Causal neighbourhood (row, column offsets) of the innovation predictor: the raster-order
+#: past within two rows and two columns (12 neighbours).
+CAUSAL_OFFSETS: tuple[tuple[int, int], ...] = (
+    (0, -1), (0, -2),
+    (-1, -2), (-1, -1), (-1, 0), (-1, 1), (-1, 2),
+    (-2, -2), (-2, -1), (-2, 0), (-2, 1), (-2, 2),
+)
 
 
 def pareto_front(sizes: list[float], errors: list[float | None]) -> list[int]:
@@ -181,3 +203,111 @@ def gaussian_rd_bytes(
     theta = brentq(lambda t: float(np.mean(np.minimum(t, variances))) - distortion,
                    1e-300, float(variances.max()))
     return float(np.sum(np.maximum(0.0, 0.5 * np.log2(variances / theta))) / 8.0)
+
+
+def _finite_field(heights: np.ndarray, where: str) -> np.ndarray:
+    field = np.asarray(heights, dtype=np.float64)
+    if field.ndim != 2 or not np.all(np.isfinite(field)):
+        raise ValueError(f"{where}: heights must be a finite 2-D array (fill voids first, e.g. "
+                         "neuralmap.terrain.grid.fill_voids_nearest).")
+    return field
+
+
+def causal_innovations(heights: np.ndarray) -> np.ndarray:
+    """Innovations of the least-squares causal linear predictor of each node.
+
+    Every node ``x[i, j]`` at least two rows/columns inside the tile is predicted from its
+    raster-order past :data:`CAUSAL_OFFSETS` by one linear predictor with an intercept,
+    fitted by least squares over the tile: ``e = x − (a₀ + Σ_m a_m x[i + di_m, j + dj_m])``.
+
+    Args:
+        heights: ``(ny, nx)`` node heights, m (finite; ``ny, nx ≥ 5``).
+
+    Returns:
+        ``((ny − 2)·(nx − 4),)`` innovations, m.
+
+    Raises:
+        ValueError: Non-finite heights, a non-2-D array, or a tile smaller than 5 × 5.
+    """
+    field = _finite_field(heights, "causal_innovations")
+    ny, nx = field.shape
+    if ny < 5 or nx < 5:
+        raise ValueError(f"causal_innovations: the tile must be at least 5 x 5 nodes, got "
+                         f"{ny} x {nx}.")
+    target = field[2:, 2:nx - 2].ravel()
+    columns = [np.ones_like(target)]
+    columns += [field[2 + di:ny + di, 2 + dj:nx - 2 + dj].ravel() for di, dj in CAUSAL_OFFSETS]
+    design = np.stack(columns, axis=1)
+    coef, *_ = np.linalg.lstsq(design, target, rcond=None)
+    return target - design @ coef  # e = x − x̂(past)
+
+
+def innovation_entropy_bits(heights: np.ndarray, *, context_bins: int = 8) -> float:
+    """Conditional differential entropy of the causal innovations, bits per node: an upper
+    estimate of the field's entropy rate ``h̄`` (see the module docstring).
+
+    The innovations ``e`` of :func:`causal_innovations` are grouped by a causal context, the
+    local activity ``c = ¼ (|e_W| + |e_NW| + |e_N| + |e_NE|)`` of the four already-coded
+    neighbours (a function of the past, so ``h(X | past) ≤ h(e | c) ≤ h(e)``), cut into
+    ``context_bins`` equally populated bins; ``h(e | c) = Σ_b p_b h(e | b)``, each term
+    estimated from its sample with ``scipy.stats.differential_entropy`` (m-spacing
+    estimators; Vasicek 1976, Ebrahimi et al. 1994), in nats, then divided by ``ln 2``. The
+    context captures non-stationary roughness (flat and rough parts of a tile); with
+    ``context_bins=1`` the estimate is the marginal entropy of the innovations.
+
+    Args:
+        heights: ``(ny, nx)`` node heights, m (finite; at least 5 × 5).
+        context_bins: Activity bins (≥ 1).
+
+    Returns:
+        The entropy estimate, bits per node.
+
+    Raises:
+        ValueError: Bad heights (see :func:`causal_innovations`) or ``context_bins < 1``.
+    """
+    if int(context_bins) < 1:
+        raise ValueError(f"innovation_entropy_bits: context_bins must be >= 1, got "
+                         f"{context_bins!r}.")
+    field = _finite_field(heights, "innovation_entropy_bits")
+    ny, nx = field.shape
+    e = causal_innovations(field).reshape(ny - 2, nx - 4)
+    if int(context_bins) == 1:
+        return float(differential_entropy(e.ravel())) / math.log(2.0)
+    a = np.abs(e)
+    current = e[1:, 1:-1].ravel()
+    activity = (0.25 * (a[1:, :-2] + a[:-1, :-2] + a[:-1, 1:-1] + a[:-1, 2:])).ravel()
+    edges = np.quantile(activity, np.linspace(0.0, 1.0, int(context_bins) + 1)[1:-1])
+    context = np.digitize(activity, edges)
+    entropy = 0.0
+    for b in np.unique(context):
+        sample = current[context == b]
+        entropy += sample.size / current.size * float(differential_entropy(sample))
+    return entropy / math.log(2.0)
+
+
+def shannon_lower_bound_bytes(heights: np.ndarray, rmse_m: float, *,
+                              entropy_bits: float | None = None) -> float:
+    """Shannon lower bound of the bytes any coder needs at a node RMSE (estimated).
+
+    ``R_SLB(D) = n · max(0, h̄ − ½ log2(2πe D)) / 8`` bytes for ``n`` nodes and
+    ``D = rmse²`` (Cover & Thomas, Problem 10.8), with ``h̄`` from
+    :func:`innovation_entropy_bits` unless given.
+
+    Args:
+        heights: ``(ny, nx)`` node heights, m (voids filled).
+        rmse_m: Node RMSE, m (> 0).
+        entropy_bits: Entropy rate in bits per node, to skip the estimate (e.g. computed
+            once for many RMSEs).
+
+    Returns:
+        The bound in bytes (0 where ``½ log2(2πe D) ≥ h̄``).
+
+    Raises:
+        ValueError: Non-finite heights or ``rmse_m <= 0``.
+    """
+    field = _finite_field(heights, "shannon_lower_bound_bytes")
+    if not rmse_m > 0:
+        raise ValueError(f"shannon_lower_bound_bytes: rmse_m must be > 0, got {rmse_m!r}.")
+    h_bar = innovation_entropy_bits(field) if entropy_bits is None else float(entropy_bits)
+    per_node = h_bar - 0.5 * math.log2(2.0 * math.pi * math.e * float(rmse_m) ** 2)
+    return float(field.size * max(0.0, per_node) / 8.0)

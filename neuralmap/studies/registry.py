@@ -83,6 +83,12 @@ STUDIES: dict[str, StudySpec] = {
         "variational filters; EM anchor",
         "learned.yaml",
     ),
+    "flight": StudySpec(
+        "neuralmap.studies.flight", "FlightStudyConfig",
+        "Navigate a recorded flight: terrain-aided fixes with covariance and status over a "
+        "DEM or a trained map, errors against the log's reference",
+        "flight.yaml",
+    ),
 }
 
 

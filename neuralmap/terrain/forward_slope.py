@@ -19,7 +19,8 @@ about what the backward pass does. Its use is a graph-free, exact slope (e.g. un
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from collections.abc import Callable, Sequence
+from typing import Protocol
 
 import torch
 
@@ -27,8 +28,29 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.block_layout import BlockLayout
 from neuralmap.terrain.grouped import TileGroups
 
-if TYPE_CHECKING:
-    from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+
+class BlockwiseParameters(Protocol):
+    """What the forward-mode pass reads of a blockwise map
+    (:class:`neuralmap.terrain.blockwise.BlockwiseTerrainNet` provides it; declared here so
+    this module needs no import of the network's module)."""
+
+    layout: BlockLayout
+    encoding: str
+    frequencies: torch.Tensor
+    weights: Sequence[torch.Tensor]
+    biases: Sequence[torch.Tensor]
+    out_weight: torch.Tensor
+    out_bias: torch.Tensor
+    block_center: torch.Tensor
+    block_half_width: torch.Tensor
+    height_mean: torch.Tensor
+    height_std: torch.Tensor
+    _act: Callable[[torch.Tensor], torch.Tensor]
+    _act_derivative: Callable[[torch.Tensor], torch.Tensor]
+
+    def _finite_points(self, flat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        ...
+
 
 
 def _axis_weights(
@@ -84,9 +106,11 @@ def _assign_with_derivatives(
 
 
 def blockwise_height_and_slope(
-    net: BlockwiseTerrainNet, xy: torch.Tensor
+    net: BlockwiseParameters, xy: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Heights and slopes of a :class:`BlockwiseTerrainNet` by forward-mode differentiation.
+    """Heights and slopes of a blockwise map
+    (:class:`~neuralmap.terrain.blockwise.BlockwiseTerrainNet`) by forward-mode
+    differentiation.
 
     Equal (to float rounding) to ``net(xy)`` and to the autograd gradient of its sum; no
     graph is recorded, so it is the fast path for filters and benchmarks.
@@ -137,7 +161,9 @@ def blockwise_height_and_slope(
             out = torch.empty_like(a)
             out[:, :t] = net._act(value)
             deriv = net._act_derivative(value).unsqueeze(1)
-            torch.mul(a[:, t:].view(k, 2, t, -1), deriv, out=out[:, t:].view(k, 2, t, -1))
+            width = a.shape[-1]  # named, not -1: zero tiles (no points) must still reshape
+            torch.mul(a[:, t:].view(k, 2, t, width), deriv,
+                      out=out[:, t:].view(k, 2, t, width))
             hidden = out
         w_out = net.out_weight.index_select(0, groups.tile_block).unsqueeze(-1)
         res = torch.bmm(hidden, w_out)  # (K, 3T, 1)

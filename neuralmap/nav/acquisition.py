@@ -56,6 +56,7 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.ekf import BatchedEKF
 from neuralmap.filters.ekf_bank import GaussianSumEKF, lattice_prior
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter
+from neuralmap.nav.cell_variance import cell_height_variance
 from neuralmap.nav.monte_carlo import FilterRun
 from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
 from neuralmap.nav.tracker_handoff import grid_posterior_moments
@@ -378,18 +379,6 @@ def cells_on_map(ins_xy: torch.Tensor, centre: torch.Tensor, spacing: torch.Tens
     inx = (xs >= xmin) & (xs <= xmax)
     iny = (ys >= ymin) & (ys <= ymax)
     return iny[:, :, None] & inx[:, None, :]
-
-
-def cell_height_variance(heights: torch.Tensor) -> torch.Tensor:
-    """Spread of the map height over each grid cell, ``(N, G, G)`` m².
-
-    ``(Δ_x² + Δ_y²) / 12`` with ``Δ`` the central height differences between neighbouring
-    cells (one-sided at the border): the variance of a height that changes linearly by
-    ``Δ`` across the cell. It measures the terrain's variation at the grid's own scale,
-    large while the grid is coarse and negligible once it is fine.
-    """
-    gy, gx = torch.gradient(heights, dim=(1, 2))
-    return (gx.square() + gy.square()) * (1.0 / 12.0)
 
 
 def _is_bilinear_grid(terrain: Any) -> bool:

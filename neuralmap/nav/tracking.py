@@ -51,7 +51,7 @@ class TrackerOptions:
         widen_min_sigma_m: Smallest σ of a widened grid, m.
         chunk_runs: Runs per tracker batch (bounds memory; 0 = all at once).
         flatten_likelihood: Add the map's height spread over each cell to the likelihood
-            variance (:func:`neuralmap.nav.acquisition.cell_height_variance`): needed while
+            variance (:func:`neuralmap.nav.cell_variance.cell_height_variance`): needed while
             the cells are coarser than the terrain's detail (large initial errors).
         min_cell_blur: Smallest cell step in units of one step's horizontal transition
             spread ``b = sqrt(λ_max(Q_s) + T² λ_max(P0_v))`` (the lattice's minimum
@@ -213,7 +213,7 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
             g = _heights(terrain, ins_xy, truth.extent)(tracker.points())
             cell_var = None
             if opts.flatten_likelihood:
-                from neuralmap.nav.acquisition import cell_height_variance
+                from neuralmap.nav.cell_variance import cell_height_variance
 
                 cell_var = torch.nan_to_num(cell_height_variance(g), nan=0.0)
             upd = tracker.update(y, g, R=R, cell_variance=cell_var)

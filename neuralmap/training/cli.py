@@ -40,10 +40,10 @@ from pathlib import Path
 from typing import Any
 
 from jsonargparse import ArgumentParser
-from lightning.pytorch.callbacks import ModelCheckpoint
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.training.callbacks import DashboardLayout, EpochLines, FitReport, ResumeHint
+from neuralmap.training.callbacks.heldout_checkpoint import HeldOutCheckpoint
 from neuralmap.training.cli_base import (
     EXIT_BAD_INPUT,
     EXIT_NO_MAP,
@@ -54,6 +54,7 @@ from neuralmap.training.datamodule import DemDataModule
 from neuralmap.training.latent_cli import main_latent
 from neuralmap.training.module import TerrainFitModule
 from neuralmap.training.noise_cli import main_noise
+from neuralmap.training.quiet import quiet_lightning
 from neuralmap.training.region_cli import main_region
 
 __all__ = ["MODES", "config_learn", "config_mode", "default_config_path", "main", "main_map",
@@ -76,7 +77,7 @@ def default_config_path() -> Path | None:
 def _trainer_callbacks() -> tuple[list[Any], FitReport]:
     report = FitReport()
     callbacks = [
-        ModelCheckpoint(
+        HeldOutCheckpoint(  # best-*.ckpt ranks held-out epochs only (not the refit)
             monitor="val/rmse_m", mode="min", save_last=True, save_top_k=1,
             filename="best-epoch{epoch:04d}", auto_insert_metric_name=False,
         ),
@@ -211,7 +212,8 @@ def main_map(args: list[str] | None = None) -> Path | None:
         experiment_dir = Path(cli.config_init.get("runs_dir") or "runs") / cli.experiment_name()
         before = set(experiment_dir.glob("version_*"))
         try:
-            cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path)
+            with quiet_lightning():  # Lightning's tips and its torch deprecation warning
+                cli.trainer.fit(cli.model, datamodule=cli.datamodule, ckpt_path=ckpt_path)
         finally:
             new_dirs = set(experiment_dir.glob("version_*")) - before
     except NeuralMapError as error:

@@ -23,6 +23,7 @@ from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import check_experiment_name, check_writable_dir, next_version_dir
+from neuralmap.training.quiet import silence_lightning_notices
 from neuralmap.training.resume import inspect_checkpoint
 
 __all__ = ["EXIT_BAD_INPUT", "EXIT_NO_MAP", "RUN_DIR_ENV", "NeuralMapCLI",
@@ -44,6 +45,10 @@ class NeuralMapCLI(LightningCLI):
     Unless the config sets ``trainer.logger``, a :class:`TensorBoardLogger` writes to
     ``<runs_dir>/<experiment>/version_N``.
     """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        silence_lightning_notices()  # no product tips (the fit itself: quiet_lightning)
+        super().__init__(*args, **kwargs)
 
     def add_arguments_to_parser(self, parser: LightningArgumentParser) -> None:
         parser.add_argument(

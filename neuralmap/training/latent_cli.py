@@ -20,6 +20,7 @@ from lightning.pytorch.callbacks import ModelCheckpoint
 from lightning.pytorch.cli import LightningArgumentParser
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.training.quiet import quiet_lightning
 
 __all__ = ["main_latent"]
 
@@ -63,8 +64,9 @@ def main_latent(args: list[str] | None = None) -> Path | None:
                                               "latents + tiny decoder) to a DEM tile."},
                 trainer_defaults={"callbacks": [checkpoint, report, EpochLines()]},
             )
-        cli.trainer.fit(cli.model, datamodule=cli.datamodule,
-                        ckpt_path=cli.config.get("ckpt_path"))
+        with quiet_lightning():  # Lightning's tips and its torch deprecation warning
+            cli.trainer.fit(cli.model, datamodule=cli.datamodule,
+                            ckpt_path=cli.config.get("ckpt_path"))
     except NeuralMapError as error:
         sys.stdout.flush()
         print(f"error: {error}", file=sys.stderr, flush=True)

@@ -46,7 +46,9 @@ class TerrainFitModule(pl.LightningModule):
 
     Logged per epoch: ``train/loss``, ``train/lr``, ``val/rmse_m``, ``val/max_abs_m``,
     ``val/mean_m`` (metres) and ``val/slope_rmse`` (m/m, RMS norm of the slope error against
-    the bicubic DEM slopes at the validation nodes); ``train/offnode_loss`` and
+    the bicubic DEM slopes at the validation nodes), under ``refit/`` instead of ``val/``
+    in the refit epochs (``data.refit_epochs``: those nodes are then trained on, so the
+    error is in-sample); ``train/offnode_loss`` and
     ``val/offnode_rmse_m``, ``val/offnode_max_abs_m`` (the map against the bicubic DEM at
     fixed points between the nodes).
 
@@ -279,12 +281,16 @@ class TerrainFitModule(pl.LightningModule):
         m = self._reduced_metrics()
         datamodule = getattr(self.trainer, "datamodule", None)
         in_refit = getattr(datamodule, "in_refit", None)
-        if in_refit is None or not in_refit(int(self.current_epoch)):
+        refit = in_refit is not None and in_refit(int(self.current_epoch))
+        if not refit:
             # Last validation on truly held-out nodes (before any refit on all nodes).
             self.heldout_metrics = {"epoch": int(self.current_epoch), **m}
-        self.log_dict({"val/rmse_m": m["rmse_m"], "val/max_abs_m": m["max_abs_m"]},
+        # In the refit the validation nodes are trained on: the same error is in-sample
+        # and goes under refit/ (never val/, which best-*.ckpt is ranked by).
+        prefix = "refit" if refit else "val"
+        self.log_dict({f"{prefix}/rmse_m": m["rmse_m"], f"{prefix}/max_abs_m": m["max_abs_m"]},
                       prog_bar=True, sync_dist=True)
-        self.log_dict({"val/mean_m": m["mean_m"], "val/slope_rmse": m["slope_rmse"]},
+        self.log_dict({f"{prefix}/mean_m": m["mean_m"], f"{prefix}/slope_rmse": m["slope_rmse"]},
                       sync_dist=True)
         off = getattr(datamodule, "offnode_val", None)
         if off is not None:

@@ -27,6 +27,7 @@ from neuralmap.training.cli_base import (
 )
 from neuralmap.training.flight_datamodule import FlightDataModule
 from neuralmap.training.noise_module import NoiseLearningModule
+from neuralmap.training.quiet import quiet_lightning
 
 __all__ = ["main_noise"]
 
@@ -56,8 +57,9 @@ def main_noise(args: list[str] | None = None) -> Path | None:
                                "description": "Learn the TAN filter's Q and R from flights."},
                 trainer_defaults={"callbacks": [checkpoint, EpochLines()]},
             )
-        cli.trainer.fit(cli.model, datamodule=cli.datamodule,
-                        ckpt_path=cli.config.get("ckpt_path"))
+        with quiet_lightning():  # Lightning's tips and its torch deprecation warning
+            cli.trainer.fit(cli.model, datamodule=cli.datamodule,
+                            ckpt_path=cli.config.get("ckpt_path"))
     except NeuralMapError as error:
         if cli is not None:  # no run folder holding only an event file
             remove_orphan_run_dir(cli.reserved_dir)

@@ -9,6 +9,7 @@ from typing import IO, Any
 import lightning.pytorch as pl
 
 from neuralmap.progress import is_terminal, progress_line
+from neuralmap.training.callbacks.heldout_checkpoint import in_refit
 
 
 class EpochLines(pl.Callback):
@@ -19,7 +20,8 @@ class EpochLines(pl.Callback):
     a terminal, this callback disables the bar at the start of the fit and prints, after
     each training epoch (validation included), one line: epoch count, rate, elapsed time,
     time left (epochs left × mean epoch time), training steps per second and the
-    progress-bar metrics. On a terminal, or with ``enable_progress_bar: false``, it does
+    progress-bar metrics (in a refit epoch ``refit/*``, the in-sample error, and not the
+    last held-out epoch's ``val/*``). On a terminal, or with ``enable_progress_bar: false``, it does
     nothing. Only rank 0 prints.
 
     Args:
@@ -54,8 +56,10 @@ class EpochLines(pl.Callback):
         parts = []
         if elapsed > 0:
             parts.append(f"{(trainer.global_step - self._start_step) / elapsed:.3g} step/s")
+        refit = in_refit(trainer)  # val/* are then the last held-out epoch's: not shown
         parts += [f"{key} {_number(value)}"
-                  for key, value in sorted(trainer.progress_bar_metrics.items())]
+                  for key, value in sorted(trainer.progress_bar_metrics.items())
+                  if not (refit and key.startswith("val/"))]
         line = progress_line("train", done, total, elapsed, "epoch", ", ".join(parts),
                              done_in_elapsed=done - self._start_epoch)
         print(line, file=sys.stdout if self.stream is None else self.stream, flush=True)

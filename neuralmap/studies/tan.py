@@ -215,6 +215,10 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         flush=True,
     )
     timing["setup"] = time.perf_counter() - started
+    # The truth first: a scenario none of whose flights stay on the tile is refused before
+    # anything is derived from them (the measured-R pilot flies the same scenario).
+    _check_scored(simulate(scenario, tile, n_runs=config.n_runs, seed=seed, dtype=dtype,
+                           device=device, truth_terrain=truth_terrain), config, tile)
     noise_info: dict[str, Any] = {"rule": "scenario R_m2 + fit_variance_m2 + the method's own "
                                           "variance"}
     filter_scenario = scenario
@@ -252,13 +256,7 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
               "voids: the truth there is a nearest-node fill of the DEM, not terrain. They stay "
               "in the metrics and are counted in the report.", flush=True)
     kept = truth.on_map.all(dim=1)  # the metrics drop runs whose truth left the map
-    if not bool(kept.any()):
-        raise NeuralMapError(
-            f"no run could be scored: all {config.n_runs} truth trajectories left the tile "
-            f"{tile.name!r} (extent {tuple(round(e) for e in tile.extent)} m) or started off "
-            "it. Move the scenario's start_xy/waypoints inside the tile, shorten duration_s, "
-            "or lower start_spread_m."
-        )
+    _check_scored(truth, config, tile)
 
     tick = time.perf_counter()
     bound = pcrb(truth, scenario, truth_terrain.model, runs=kept)
@@ -322,6 +320,21 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     write_trajectories(outputs.dir, tile, truth.t.cpu().numpy(),
                        {name: v.detach().cpu().numpy() for name, v in tracks.items()})
     outputs.results.update(results)
+
+
+def _check_scored(truth: Any, config: Any, tile: Any) -> None:
+    """Refuses a scenario none of whose truth trajectories stays on the tile.
+
+    Raises:
+        NeuralMapError: Every run's truth left the tile or started off it.
+    """
+    if not bool(truth.on_map.all(dim=1).any()):
+        raise NeuralMapError(
+            f"no run could be scored: all {config.n_runs} truth trajectories left the tile "
+            f"{tile.name!r} (extent {tuple(round(e) for e in tile.extent)} m) or started off "
+            f"it (--scenario {config.scenario}). Move the scenario's start_xy/waypoints "
+            "inside the tile, shorten duration_s, or lower start_spread_m."
+        )
 
 
 def _node(table: dict[str, Any], sigma: float) -> int:

@@ -53,8 +53,10 @@ class TileGroups:
         return slab.view(self.num_tiles, self.tile_size, d)
 
     def unpack(self, tiles: torch.Tensor) -> torch.Tensor:
-        """``(num_tiles, tile_size, d)`` tiles -> ``(Q, d)`` pair values in original order."""
-        return tiles.reshape(self.num_tiles * self.tile_size, -1).index_select(0, self.flat_index)
+        """``(num_tiles, tile_size, d)`` tiles -> ``(Q, d)`` pair values in original order
+        (``(0, d)`` when there are no pairs: the width is named, not inferred)."""
+        slab = tiles.reshape(self.num_tiles * self.tile_size, tiles.shape[-1])
+        return slab.index_select(0, self.flat_index)
 
     def linear(
         self, tiles: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor

@@ -128,6 +128,23 @@ def test_all_points_in_one_block_same_result(tile: DemTile) -> None:
     np.testing.assert_allclose(net(xy)[:5].detach(), one, atol=1e-10)
 
 
+def test_no_points_give_empty_heights_and_slopes(tile: DemTile) -> None:
+    """Zero points (a filter batch with every run off the map) are an empty answer, not a
+    reshape error: height, analytic slope and the autograd linearisation."""
+    from neuralmap.linearize.autograd import AutogradLinearizer
+
+    net = BlockwiseTerrainNet.from_tile(tile, block_nodes=12, overlap_nodes=4, hidden=8).double()
+    xy = torch.zeros(0, 2, dtype=torch.float64)
+    assert net(xy).shape == (0,)
+    height, slope = net.height_and_slope(xy)
+    assert height.shape == (0,) and slope.shape == (0, 2)
+    lin = AutogradLinearizer(net)(xy, torch.zeros(0, 2, 2, dtype=torch.float64))
+    assert lin.height.shape == (0,) and lin.slope.shape == (0, 2)
+    # the same net still answers a real batch afterwards, as before
+    np.testing.assert_allclose(net(_points(tile, 8)).detach(), _reference_height(
+        net, _points(tile, 8)), rtol=0, atol=1e-9)
+
+
 def test_partition_of_unity(tile: DemTile) -> None:
     net = BlockwiseTerrainNet.from_tile(tile, block_nodes=10, overlap_nodes=4)
     xy = _points(tile, 2000).float()

@@ -1,4 +1,5 @@
-"""One outputs writer for every study: report.md, results.json, PNGs, TensorBoard, config.yaml.
+"""One outputs writer for every study: report.md, summary.md, results.json, PNGs, TensorBoard,
+config.yaml.
 
 A study writes through :class:`StudyOutputs` while it runs; everything lands in a hidden
 staging folder under ``<runs_dir>/<experiment>/`` and is published as the next free
@@ -8,8 +9,11 @@ leaves nothing that looks complete (and no staging folder either).
 
 from __future__ import annotations
 
+import json
 import shutil
+import subprocess
 from dataclasses import asdict, dataclass
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +40,9 @@ __all__ = [
     "Claim",
     "RunCounts",
     "StudyOutputs",
+    "SUMMARY_MARK",
     "markdown_table",
+    "run_provenance",
     "verdict",
 ]
 
@@ -173,6 +179,54 @@ def markdown_table(headers: list[str], rows: list[list[Any]]) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     lines += ["| " + " | ".join(_cell(v) for v in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+#: First line of every ``summary.md``: this mark, then the run's provenance as JSON (read by
+#: ``python -m neuralmap.docs update``).
+SUMMARY_MARK = "<!-- neuralmap-run:"
+
+
+def run_provenance(config: Any) -> dict[str, Any]:
+    """Where a run's numbers come from: study, experiment, seed, source commit, date.
+
+    The commit is that of the git checkout the package runs from (``None`` outside one);
+    ``dirty`` says whether tracked files differed from it.
+    """
+    here = Path(__file__).resolve().parent
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", str(here), *args], capture_output=True,
+                                  text=True, timeout=10, check=False)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    status = git("status", "--porcelain", "--untracked-files=no") if commit else None
+    return {
+        "study": getattr(config, "study", ""),
+        "experiment": getattr(config, "experiment", ""),
+        "seed": getattr(config, "seed", None),
+        "commit": commit,
+        "dirty": bool(status) if status is not None else None,
+        "date": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    }
+
+
+def _first_table(markdown: str) -> str | None:
+    """The first markdown table of ``markdown`` with the heading above it (if any)."""
+    lines = markdown.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("|") and i + 1 < len(lines) and lines[i + 1].startswith("|---"):
+            end = i
+            while end < len(lines) and lines[end].startswith("|"):
+                end += 1
+            head = next((lines[k] for k in range(i - 1, -1, -1) if lines[k].startswith("#")),
+                        None)
+            table = "\n".join(lines[i:end])
+            return (f"## {head.lstrip('#').strip()}\n\n" if head else "") + table
+    return None
 
 
 class StudyOutputs:
@@ -322,8 +376,24 @@ class StudyOutputs:
                          + markdown_table(headers, rows) + "\n")
         return "\n".join(parts)
 
+    def summary(self) -> str:
+        """The run's ``summary.md``: its provenance line, the headline table (the report's
+        first table) and the claims table; ``python -m neuralmap.docs update`` copies it
+        into the documentation."""
+        provenance = json.dumps(run_provenance(self.config), sort_keys=True)
+        body = self._report if self._report is not None else "\n".join(self._sections)
+        parts = [f"{SUMMARY_MARK} {provenance} -->", f"# {self.title}\n"]
+        table = _first_table(body)
+        if table:
+            parts.append(table + "\n")
+        claims = self.render().split("## Papers' claims beside the measurements", 1)
+        if len(claims) == 2:
+            parts.append("## Papers' claims beside the measurements" + claims[1].rstrip() + "\n")
+        return "\n".join(parts)
+
     def finalize(self) -> Path:
-        """Writes report.md, results.json and config.yaml and publishes the run folder.
+        """Writes report.md, summary.md, results.json and config.yaml and publishes the run
+        folder.
 
         Returns:
             The published ``<runs_dir>/<experiment>/version_<N>`` folder.
@@ -334,6 +404,7 @@ class StudyOutputs:
                    "claims": [asdict(c) for c in self.claims], "config": config_dump}
         atomic_write_json(self.dir / "results.json", results)
         atomic_write_text(self.dir / "report.md", self.render())
+        atomic_write_text(self.dir / "summary.md", self.summary())
         atomic_write_text(
             self.dir / "config.yaml",
             "# configuration used for this run (python evaluate.py --config <this file>)\n"

@@ -1,0 +1,13 @@
+"""Documentation helpers: results pages generated from study runs and stamped.
+
+A study run writes ``summary.md`` (its headline table and claims) beside its report;
+``python -m neuralmap.docs update RUN_DIR...`` copies it into ``docs/results/<study>.md``
+with a run stamp (the config file and its hash, seed, commit, date), and
+:func:`~neuralmap.docs.stamp.check_page` tells whether a page's stamp still matches the
+repository's config file.
+"""
+
+from neuralmap.docs.stamp import RunStamp, check_page, config_sha256, read_stamp
+from neuralmap.docs.update import update_page
+
+__all__ = ["RunStamp", "check_page", "config_sha256", "read_stamp", "update_page"]

@@ -1,0 +1,221 @@
+"""The Navigator API: the study tracker reproduced, streaming = replay, Kalman equality,
+config and noise from what a user has."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.fix import STATUS_CODE
+from neuralmap.nav.map_noise import measurement_noise
+from neuralmap.nav.navigator import Navigator
+from neuralmap.nav.navigator_config import NavigatorConfig, load_navigator_config
+from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.nav.simulator import simulate
+from neuralmap.nav.tracking import TrackerOptions, run_tracker
+from neuralmap.terrain.base import TerrainModel
+from neuralmap.terrain.grid import GridTerrain
+
+TINY = {"sensor": {"dt_s": 1.0, "altimeter_sigma_m": 3.0},
+        "initial": {"position_sigma_m": 20.0, "altitude_sigma_m": 10.0, "velocity_sigma_mps": 0.2},
+        "process_noise": {"position_sigma_m": 1.0, "altitude_sigma_m": 1.0,
+                          "velocity_sigma_mps": 0.05}}
+
+
+@pytest.fixture(scope="module")
+def tiny_flight():
+    scenario = load_scenario("tiny")
+    tile = scenario_tile(scenario)
+    truth = simulate(scenario, tile, n_runs=4, seed=0)
+    return scenario, tile, truth, GridTerrain(tile, method="bilinear")
+
+
+def _replay(nav: Navigator, truth, radar=None, t=None):
+    return nav.replay(truth.t if t is None else t, truth.ins_pos[..., :2], truth.ins_pos[..., 2],
+                      truth.radar if radar is None else radar)
+
+
+def test_replay_gives_the_study_tracker_estimates(tiny_flight) -> None:
+    # a study flight through the Navigator with the study's noise configuration (R = the
+    # scenario's altimeter variance + the map error given as an override) = run_tracker
+    scenario, _, truth, grid = tiny_flight
+    P0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=torch.float64))
+    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=torch.float64))
+    map_var = 0.5
+    study = run_tracker(truth, grid, P0=P0, Q=Q, R=scenario.R_m2 + map_var, dt=scenario.dt,
+                        options=TrackerOptions(dtype="float64"))
+    cfg = dict(TINY, integrity={"lost_window": 10, "lost_prob": 0.9999},
+               tracker={"dtype": "float64", "max_widenings": 4})
+    nav = Navigator(grid, cfg, n_vehicles=4, map_error_variance=map_var)
+    assert nav.R == scenario.R_m2 + map_var
+    track = _replay(nav, truth)
+    est_study = truth.pos + study.run.err[..., :3]  # INS − δX̂
+    torch.testing.assert_close(track.xy, est_study[..., :2], rtol=1e-10, atol=1e-9)
+    torch.testing.assert_close(track.altitude, est_study[..., 2], rtol=1e-10, atol=1e-9)
+    torch.testing.assert_close(track.cov, study.run.P, rtol=1e-10, atol=1e-9)
+    assert track.counts["updates"] == int(study.run.updated.sum())
+
+
+@pytest.mark.parametrize("method", ["point_mass_tracker", "bilinear"])
+def test_streaming_equals_replay_bit_for_bit(tiny_flight, method) -> None:
+    _, _, truth, grid = tiny_flight
+    radar = truth.radar.clone()
+    radar[1, 7] = math.nan
+    radar[2, 9] = 1e6  # out of the altimeter's range
+    t = truth.t.clone()
+    t[20:] += 2.0  # a 3 s gap
+    cfg = dict(TINY, method=method, policy="raf" if method == "bilinear" else "ekf")
+    nav = Navigator(grid, cfg, n_vehicles=4)
+    track = _replay(nav, truth, radar=radar, t=t)
+    nav.reset()
+    for k in range(t.shape[0]):
+        fix = nav.step(t[k], truth.ins_pos[:, k, :2], truth.ins_pos[:, k, 2], radar[:, k])
+        ref = track.fix(k)
+        for name in ("t", "xy", "altitude", "velocity", "cov", "status", "nis"):
+            a, b = getattr(fix, name), getattr(ref, name)
+            assert torch.equal(a.nan_to_num(-1.0) if a.is_floating_point() else a,
+                               b.nan_to_num(-1.0) if b.is_floating_point() else b), (k, name)
+    assert track.counts["gaps"] == 4 and track.counts["missing_radar"] == 1
+    assert track.counts["out_of_range"] == 1
+    assert nav.counts == track.counts
+
+
+def _kalman_reference(truth, P0, Q, R, slope):
+    """FilterPy's linear Kalman filter per vehicle on the tilted plane (float64):
+    ``z = y − t(p_ins) = H δX + v``, ``H = [−a, −b, 1, 0, 0]``."""
+    from filterpy.kalman import KalmanFilter
+
+    a, b, c0 = slope
+    F = np.eye(5)
+    F[0, 3] = F[1, 4] = 1.0
+    out = np.zeros((truth.n_runs, truth.n_steps + 1, 5))
+    for i in range(truth.n_runs):
+        kf = KalmanFilter(dim_x=5, dim_z=1)
+        kf.x = np.zeros((5, 1))
+        kf.P, kf.F, kf.Q = P0.copy(), F, Q.copy()
+        kf.H, kf.R = np.array([[-a, -b, 1.0, 0.0, 0.0]]), np.array([[R]])
+        ins = truth.ins_pos[i].numpy()
+        for k in range(1, truth.n_steps + 1):
+            kf.predict()
+            terrain = c0 + a * ins[k, 0] + b * ins[k, 1]
+            kf.update(np.array([[ins[k, 2] - truth.radar[i, k].item() - terrain]]))
+            out[i, k] = kf.x[:, 0]
+    return out
+
+
+def test_kalman_equality_on_a_tilted_plane(tiny_scenario_plane) -> None:
+    # linear-Gaussian case, lost-lock detector off: the EKF method equals FilterPy's Kalman
+    # filter to float64 rounding; the point-mass tracker (float64) to 1e-3 σ
+    truth, grid, slope = tiny_scenario_plane
+    P0 = np.diag([400.0, 400.0, 100.0, 0.04, 0.04])
+    Q = np.diag([1.0, 1.0, 1.0, 0.0025, 0.0025])
+    ref = _kalman_reference(truth, P0, Q, 9.0, slope)
+    ins_err = truth.ins_pos.numpy()
+    for method, tol in (("bilinear", 1e-9), ("point_mass_tracker", 1e-3)):
+        cfg = dict(TINY, method=method, integrity={"lost_window": 0},
+                   tracker={"dtype": "float64"})
+        track = _replay(Navigator(grid, cfg, n_vehicles=truth.n_runs), truth)
+        est = ins_err[..., :2] - track.xy.numpy()  # δp̂
+        sigma = np.sqrt(track.cov[..., 0, 0].numpy())[..., None]
+        assert np.abs((est - ref[..., :2]) / sigma).max() < tol, method
+
+
+@pytest.fixture(scope="module")
+def tiny_scenario_plane():
+    scenario = dataclasses.replace(load_scenario("tiny"), truth_model="dem", start_xy=[900.0, 900.0],
+                                   start_spread_m=0.0).validate()
+    a, b, c0 = 0.15, 0.08, 200.0
+    xs = 30.0 * np.arange(96)
+    x, y = np.meshgrid(xs, xs)
+    tile = DemTile(heights=c0 + a * x + b * y, spacing=(30.0, 30.0), origin=(0.0, 0.0),
+                   name="plane")
+    truth = simulate(scenario, tile, n_runs=3, seed=1)
+    return truth, GridTerrain(tile, method="bilinear"), (a, b, c0)
+
+
+class _PlaneMap(TerrainModel):
+    """An analytic map (not a grid) that carries stored fit metrics like a neural map."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.extent = (0.0, 2850.0, 0.0, 2850.0)
+        self.metrics = {"rmse_m": 0.4, "offnode_rmse_m": 0.7}
+
+    def forward(self, xy: torch.Tensor) -> torch.Tensor:
+        return 200.0 + 0.15 * xy[..., 0] + 0.08 * xy[..., 1]
+
+
+def test_any_terrain_model_lat_lon_and_noise_from_the_map(tiny_scenario_plane) -> None:
+    truth, grid, _ = tiny_scenario_plane
+
+    class Frame:  # duck-typed map frame
+        def to_geo(self, x, y):
+            return 32.0 + y / 111000.0, -97.0 + x / 94000.0
+
+    neural = _PlaneMap()
+    nav = Navigator(neural, TINY, n_vehicles=truth.n_runs, map_frame=Frame())
+    assert nav.noise.fit_source == "map metrics: offnode_rmse_m"
+    assert nav.R == pytest.approx(9.0 + 0.49)
+    track = _replay(nav, truth)
+    ref = _replay(Navigator(grid, TINY, n_vehicles=truth.n_runs, map_error_variance=0.49), truth)
+    torch.testing.assert_close(track.xy, ref.xy, rtol=0, atol=1e-2)  # same plane (float32 lattice)
+    torch.testing.assert_close(track.lat, 32.0 + track.xy[..., 1] / 111000.0)
+    torch.testing.assert_close(track.lon, -97.0 + track.xy[..., 0] / 94000.0)
+    assert bool((track.status[:, -1] == STATUS_CODE["tracking"]).all())
+    assert bool(torch.isnan(track.velocity[:, 0]).all())
+    # INS Δp/Δt − δv̂: the INS's white position noise (1 m per step) makes it noisy, unbiased
+    dv = track.velocity[:, 1:] - truth.vel[:, 1:]
+    assert float(dv.mean((0, 1)).abs().max()) < 0.3 and float(dv.std()) < 2.0
+
+
+def test_noise_model_parts() -> None:
+    cfg = load_navigator_config({"sensor": {"altimeter_sigma_m": 2.0},
+                                 "map_error": {"dem_accuracy_m": 1.5}})
+    grid_like = type("G", (), {"heights": 0, "method": "bilinear"})()
+    noise = measurement_noise(cfg, grid_like)
+    assert (noise.altimeter_m2, noise.dem_m2, noise.fit_m2) == (4.0, 2.25, 0.0)
+    assert noise.fit_source == "grid map"
+    latent_like = type("L", (), {"metrics": {"rmse_m": 0.3, "between_rmse_m": 0.5}})()
+    assert measurement_noise(cfg, latent_like).fit_m2 == pytest.approx(0.25)
+    cfg.map_error.fit_rmse_m = 2.0
+    assert measurement_noise(cfg, latent_like).R == pytest.approx(4.0 + 2.25 + 4.0)
+    assert measurement_noise(cfg, latent_like, map_error_variance=1.0).R == 5.0
+    with pytest.raises(NeuralMapError, match="map_error_variance"):
+        measurement_noise(cfg, None, map_error_variance=-1.0)
+
+
+def test_config_defaults_and_refusals(tmp_path) -> None:
+    cfg = load_navigator_config()
+    assert isinstance(cfg, NavigatorConfig) and cfg.method == "point_mass_tracker"
+    assert cfg.source.endswith("navigator.yaml")
+    assert (cfg.integrity.lost_window, cfg.integrity.lost_prob) == (20, 0.99999)
+    bad = tmp_path / "nav.yaml"
+    bad.write_text("sensor:\n  altimeter_sigma: 3\n")
+    with pytest.raises(NeuralMapError, match=r"nav.yaml.*sensor.altimeter_sigma"):
+        load_navigator_config(bad)
+    bad.write_text("method: kalman\n")
+    with pytest.raises(NeuralMapError, match="method must be one of"):
+        load_navigator_config(bad)
+    with pytest.raises(NeuralMapError, match="max_gap_s"):
+        load_navigator_config({"sensor": {"dt_s": 2.0, "max_gap_s": 1.0}})
+    with pytest.raises(NeuralMapError, match="quality record"):
+        Navigator(_PlaneMap(), {"method": "neural", "policy": "quality"})
+
+
+def test_step_refusals(tiny_flight) -> None:
+    _, _, truth, grid = tiny_flight
+    nav = Navigator(grid, TINY, n_vehicles=4)
+    p, h, r = truth.ins_pos[:, 0, :2], truth.ins_pos[:, 0, 2], truth.radar[:, 0]
+    with pytest.raises(NeuralMapError, match=r"\(4, 2\)"):
+        nav.step(0.0, p[:2], h, r)
+    nav.step(0.0, p, h, r)
+    with pytest.raises(NeuralMapError, match="time must increase"):
+        nav.step(0.0, p, h, r)
+    with pytest.raises(NeuralMapError, match="finite"):
+        nav.step(1.0, p * math.nan, h, r)

@@ -1,4 +1,4 @@
-"""Monte Carlo at scale: runs in seed blocks, chunks that bound memory, several processes.
+"""Monte Carlo at scale: runs in seed blocks, chunks that bound memory, dealt to Dask.
 
 :func:`neuralmap.nav.simulator.simulate` draws every random number of all N runs from one
 generator, so runs ``0 … N−1`` depend on N. Here the runs are grouped into **seed blocks**
@@ -19,6 +19,10 @@ batch runs; what is kept is per run a handful of numbers (final errors and
 bounds, flags) and per step running sums, added per seed block in block order; glibc is
 told to return large freed blocks to the system (:func:`bound_allocator`), so resident
 memory stays flat over a long run.
+
+The chunks run in this process or on a Dask cluster (``cluster``: ``local:N``, a scheduler
+address or a :class:`distributed.Client`; :mod:`neuralmap.cluster`); the world, tile and
+methods are scattered to the workers once, and the progress comes from the finished chunks.
 """
 
 from __future__ import annotations
@@ -249,17 +253,7 @@ def concat_truths(truths: list[Truth]) -> Truth:
     return replace(first, **batched)
 
 
-#: The inputs every chunk of the current run shares (set once per process).
-_SHARED: dict[str, Any] = {}
-
-
-def _set_shared(base: dict[str, Any]) -> None:
-    """Stores the run's shared inputs in this process (a worker's initializer)."""
-    _SHARED.clear()
-    _SHARED.update(base)
-
-
-def _run_chunk(job: dict[str, Any]) -> dict[str, Any]:
+def _run_chunk(shared: dict[str, Any], job: dict[str, Any]) -> dict[str, Any]:
     """Runs a chunk's filter batches one after the other; returns their per-block reductions.
 
     Each seed block draws from its own generator; the seed blocks of one filter batch
@@ -267,10 +261,14 @@ def _run_chunk(job: dict[str, Any]) -> dict[str, Any]:
     one batch, so the per-step overhead is paid once per batch, not once per block. A
     batched kernel may round differently for another batch size (seen at the ulp level
     for a batch of one), so the batches never depend on the chunking.
+
+    Args:
+        shared: The inputs every chunk reads (scenario, tile, world, methods, sizes...).
+        job: ``{"batches": [[block, ...], ...]}``, this chunk's filter batches.
     """
     from neuralmap.nav.monte_carlo import run_filter
 
-    job = {**_SHARED, **job}
+    job = {**shared, **job}
     torch.set_num_threads(int(job.get("threads", 1)))
     bound_allocator()
     reduced: dict[str, list[dict[str, torch.Tensor]]] = {name: [] for name in job["methods"]}
@@ -305,7 +303,7 @@ def run_monte_carlo_chunked(
     n_runs: int,
     chunk_runs: int = 8 * SEED_BLOCK_RUNS,
     seed: int | None = None,
-    devices: int = 1,
+    cluster: Any = None,
     threads: int = 1,
     dtype: torch.dtype = torch.float64,
     device: str | torch.device = "cpu",
@@ -316,17 +314,20 @@ def run_monte_carlo_chunked(
     batch_runs: int = BATCH_RUNS,
     progress: bool = False,
 ) -> ChunkedResult:
-    """Monte Carlo TAN in chunks of seed blocks, on one or several processes.
+    """Monte Carlo TAN in chunks of seed blocks, in this process or on a Dask cluster.
 
     Args:
         scenario: A :class:`Scenario` or a shipped name / YAML path.
-        methods: Method name to linearizer (picklable when ``devices > 1``).
+        methods: Method name to linearizer (picklable when ``cluster`` is given).
         n_runs: Runs N.
         chunk_runs: Runs per chunk (rounded up to whole filter batches), the unit dealt
             to a worker.
         seed: Simulation seed (None = ``scenario.seed``).
-        devices: Worker processes (spawned; chunks dealt round-robin). 1 = this process.
-        threads: Torch threads per worker.
+        cluster: Where the chunks run (:func:`neuralmap.cluster.open_cluster`): None or
+            ``"none"`` = this process; ``"local:N"`` = a Dask LocalCluster of N
+            single-threaded workers started for this call; ``"tcp://HOST:8786"`` = a running
+            Dask scheduler; or an open :class:`distributed.Client`.
+        threads: Torch threads per chunk (in this process or on each worker).
         dtype: Filter dtype.
         device: Torch device of the truth and filters.
         tile: The scenario's tile, when loaded.
@@ -335,21 +336,23 @@ def run_monte_carlo_chunked(
         block_runs: Runs per seed block (changing it changes the draws).
         batch_runs: Runs filtered as one batch (rounded up to whole seed blocks); bounds
             memory (one batch's truth and filter histories). Changing it may change the
-            results in the last bits; ``chunk_runs`` and ``devices`` never do.
-        progress: Print one line per finished chunk (runs done, rate, time left).
+            results in the last bits; ``chunk_runs`` and ``cluster`` never do.
+        progress: A progress bar over the runs, advanced as chunks finish (plain lines with
+            a heartbeat when stdout is not a terminal, :mod:`neuralmap.progress`).
 
     Returns:
-        :class:`ChunkedResult`; the same, bit for bit, for any ``chunk_runs``/``devices``.
+        :class:`ChunkedResult`; the same, bit for bit, for any ``chunk_runs``/``cluster``.
 
     Raises:
-        NeuralMapError: Bad counts, empty methods.
+        NeuralMapError: Bad counts, empty methods, a bad ``cluster`` or Dask not installed.
     """
+    from neuralmap.cluster import open_cluster
     from neuralmap.nav.truth_terrain import true_terrain
 
     scenario = load_scenario(scenario)
     if not isinstance(methods, dict) or not methods:
         raise NeuralMapError("run_monte_carlo_chunked: methods must be a non-empty dict.")
-    for what, value in (("n_runs", n_runs), ("chunk_runs", chunk_runs), ("devices", devices),
+    for what, value in (("n_runs", n_runs), ("chunk_runs", chunk_runs),
                         ("block_runs", block_runs), ("batch_runs", batch_runs)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise NeuralMapError(
@@ -369,33 +372,25 @@ def run_monte_carlo_chunked(
             "sizes": sizes, "methods": methods, "dtype": dtype, "device": str(device),
             "keep_errors": keep_errors, "threads": threads}
     jobs = [{"batches": batch_list} for batch_list in chunks]
-    started = time.perf_counter()
-    outputs: list[dict[str, Any]] = []
+    bar = None
 
-    def collect(out: dict[str, Any]) -> None:
-        outputs.append(out)
+    def done(_: int, out: dict[str, Any]) -> None:
+        if bar is not None:
+            bar.update(sum(sizes[b] for b in out["blocks"]))
+
+    with open_cluster(cluster) as dispatcher:
         if progress:
-            done = sum(sizes[b] for o in outputs for b in o["blocks"])
-            spent = time.perf_counter() - started
-            rate = done / max(spent, 1e-9)
-            print(f"chunked: {done}/{n_runs} runs, {rate:.0f} runs/s, "
-                  f"{(n_runs - done) / rate:.0f} s left", flush=True)
+            from neuralmap.progress import progress_bar
 
-    if devices == 1:
-        _set_shared(base)
-        for job in jobs:
-            collect(_run_chunk(job))
-    else:
-        import concurrent.futures
-        import multiprocessing
-
-        context = multiprocessing.get_context("spawn")
-        # the shared inputs (world, tile, methods) travel once per worker, not per chunk
-        with concurrent.futures.ProcessPoolExecutor(devices, mp_context=context,
-                                                    initializer=_set_shared,
-                                                    initargs=(base,)) as pool:
-            for out in pool.map(_run_chunk, jobs):
-                collect(out)
+            bar = progress_bar(total=n_runs, unit="run", desc=(
+                f"chunked Monte Carlo ({len(jobs)} chunks, {dispatcher.description})"))
+        try:
+            outputs = dispatcher.map(_run_chunk, jobs, shared=base, on_done=done,
+                                     on_idle=None if bar is None else lambda: bar.update(0),
+                                     name="tan-chunk")
+        finally:
+            if bar is not None:
+                bar.close()
     by_block: dict[int, dict[str, dict[str, torch.Tensor]]] = {}
     for out in outputs:
         for i, b in enumerate(out["blocks"]):

@@ -39,8 +39,28 @@ def test_tan_scale_tiny_chunking_does_not_change_results(tmp_path: Path) -> None
     assert three["methods"]["bilinear"]["n_included"] == 1100
 
 
+def test_tan_scale_on_a_local_dask_cluster_equals_one_process(tmp_path: Path) -> None:
+    """``--cluster local:2`` (two worker processes) against ``--cluster none``: the results
+    of the study, bit for bit (3 chunks of one seed block each)."""
+    pytest.importorskip("distributed")
+    args = ("--n_runs", "2100", "--chunk_runs", "1024", "--batch_runs", "1024")
+    here = _run(tmp_path / "here", *args)
+    dask = _run(tmp_path / "dask", *args, "--cluster", "local:2")
+    assert here["n_chunks"] == dask["n_chunks"] == 3
+    assert dask["cluster"]["worker_threads"] == 2 and here["cluster"]["worker_threads"] == 1
+    assert dask["methods"]["bilinear"]["n_runs"] == 2100
+    for key in ("n_included", "n_diverged", "rmse_pos_m", "final_pos_m", "rmse_pos_curve"):
+        assert dask["methods"]["bilinear"][key] == here["methods"]["bilinear"][key], key
+
+
+def test_tan_scale_defaults_to_a_local_cluster() -> None:
+    assert TanScaleConfig().cluster_spec.kind == "local"
+
+
 def test_tan_scale_bad_options() -> None:
-    with pytest.raises(NeuralMapError, match="workers"):
-        TanScaleConfig(workers=0).validate()
+    with pytest.raises(NeuralMapError, match="cluster"):
+        TanScaleConfig(cluster="locl:2").validate()
+    with pytest.raises(NeuralMapError, match="local:"):
+        TanScaleConfig(cluster="local:0").validate()
     with pytest.raises(NeuralMapError, match="batch_runs"):
         TanScaleConfig(batch_runs=0).validate()

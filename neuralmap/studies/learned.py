@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters.policies.variational import VariationalAdaptive
+from neuralmap.filters.policies import make_policy
 from neuralmap.learning.covariance import COVARIANCE_KINDS
 from neuralmap.learning.em import em_noise
 from neuralmap.learning.flights import FlightBatch
@@ -354,7 +354,8 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
         "learned": (_with_tuning(scenario, Q=learned_q, R=learned_r), linearizer, None,
                     "DEM map"),
         "variational (from start)": (misspecified, linearizer,
-                                     VariationalAdaptive(config.vb_iterations), "DEM map"),
+                                     make_policy("variational", {"iterations": config.vb_iterations},
+                                                 where="learned.vb_iterations"), "DEM map"),
     }
     refine_info: dict[str, Any] = {}
     if config.bias_m != 0.0:

@@ -149,7 +149,7 @@ def _check_finite(path: Path, names: list[str], columns: dict[str, np.ndarray],
         if bad.any():
             row = int(np.argmax(bad))
             raise NeuralMapError(
-                f"{_where(path, names, row, name)}: {what} {values[row]!r} is not finite "
+                f"{_where(path, names, row, name)}: {what} {float(values[row])!r} is not finite "
                 f"({int(bad.sum())} such value(s) in the column); every epoch needs a finite "
                 "time, position and altitude (only 'radar' may be empty). Remove or repair "
                 "the record.")
@@ -161,8 +161,8 @@ def _check_time(path: Path, names: list[str], time: np.ndarray, rows: np.ndarray
     if bad.size:
         k = int(bad[0]) + 1
         raise NeuralMapError(
-            f"{_where(path, names, int(rows[k]), 'time')}: time {time[k]!r} s is out of order "
-            f"(the epoch before, {_line(path, int(rows[k - 1]))}, is at {time[k - 1]!r} s). "
+            f"{_where(path, names, int(rows[k]), 'time')}: time {float(time[k])!r} s is out of order "
+            f"(the epoch before, {_line(path, int(rows[k - 1]))}, is at {float(time[k - 1])!r} s). "
             "Sort the log by time and remove repeated epochs.")
 
 
@@ -245,7 +245,7 @@ def _table_log(path: Path, kind: str, map_frame: MapFrame | None, alt_datum: str
             if bad.any():
                 row = int(np.argmax(bad))
                 raise NeuralMapError(
-                    f"{_where(path, names, row, name)}: {values[row]!r} is not a {name} in "
+                    f"{_where(path, names, row, name)}: {float(values[row])!r} is not a {name} in "
                     f"degrees (|{name}| <= {bound:g}); a geographic log holds WGS-84 degrees.")
     flights = _flights(path, columns)
     time = np.asarray(columns["time"], dtype=np.float64)

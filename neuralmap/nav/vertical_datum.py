@@ -114,6 +114,6 @@ def check_datum(altitude: np.ndarray, map_height: np.ndarray, clearance: np.ndar
         raise NeuralMapError(
             f"{where}: altitude - map height - radar clearance has median {median:+.1f} m "
             f"over {int(ok.sum())} epochs, more than {n_sigma:g} σ ({n_sigma * sigma_m:.1f} m) "
-            f"of what the navigator allows, assuming the altitude is {assumed}. This is a "
-            f"vertical datum mismatch. {fix}")
+            f"of what the navigator allows, assuming the altitude is {assumed}. This looks like a "
+            f"vertical datum mismatch (or a bias in the INS altitude). {fix}")
     return summary

@@ -1,0 +1,190 @@
+"""The documentation: strict site build, stamped results pages, summary.md of every study
+run, and ``python -m neuralmap.docs update``."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+import yaml
+
+from neuralmap.docs import check_page, config_sha256, read_stamp, update_page
+from neuralmap.docs.__main__ import main as docs_main
+from neuralmap.docs.stamp import TINY_NOTE, RunStamp
+from neuralmap.studies.outputs import SUMMARY_MARK, StudyOutputs
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "docs" / "results"
+README = REPO / "README.md"
+
+
+@pytest.mark.skipif(importlib.util.find_spec("mkdocs") is None
+                    or importlib.util.find_spec("mkdocstrings") is None,
+                    reason="mkdocs / mkdocstrings not installed (pip install -e '.[docs]')")
+def test_site_builds_strictly(tmp_path: Path) -> None:
+    """A broken link, a page missing from the nav or an unresolved API reference fails."""
+    done = subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(tmp_path / "site")],
+        cwd=REPO, capture_output=True, text=True, timeout=600, check=False)
+    assert done.returncode == 0, done.stderr[-4000:]
+    assert (tmp_path / "site" / "index.html").is_file()
+    assert (tmp_path / "site" / "api" / "filters.html").read_text().count("BatchedEKF") > 3
+
+
+def _result_pages() -> list[Path]:
+    return sorted(p for p in RESULTS.glob("*.md") if p.name != "index.md")
+
+
+def test_every_results_page_carries_a_stamp_matching_the_repository_config() -> None:
+    pages = _result_pages()
+    assert pages, "docs/results/ holds no results page"
+    problems = [problem for page in pages for problem in check_page(page, REPO)]
+    assert not problems, "\n".join(problems)
+
+
+def test_docs_pages_name_no_issue_numbers() -> None:
+    for page in [README, *sorted((REPO / "docs").rglob("*.md"))]:
+        text = page.read_text(encoding="utf-8")
+        assert "issue" not in text.lower(), page
+
+
+def test_readme_fits_on_a_screen_and_keeps_the_ci_test_command() -> None:
+    lines = README.read_text(encoding="utf-8").splitlines()
+    assert len(lines) <= 250
+    ci = (REPO / ".ci" / "run").read_text(encoding="utf-8")
+    test_command = next(line for line in ci.splitlines() if "pytest" in line).strip()
+    test_command = test_command.replace("python -m pip install --quiet", "pip install")
+    assert test_command.split("&&")[-1].strip() in README.read_text(encoding="utf-8")
+
+
+# ----------------------------------------------------------------------------- stamps
+def _stamped(tmp_path: Path, config_text: str, body: str = "", **kw: object) -> Path:
+    configs = tmp_path / "configs"
+    configs.mkdir(exist_ok=True)
+    (configs / "wind_tiny.yaml").write_text(config_text)
+    stamp = RunStamp(study="wind", config="configs/wind_tiny.yaml",
+                     config_sha256=config_sha256(configs / "wind_tiny.yaml"), seed=0,
+                     commit="0" * 40, dirty=False, date="2026-01-01T00:00:00Z", **kw)
+    page = tmp_path / "wind.md"
+    page.write_text(stamp.line() + "\n# Results\n" + body)
+    return page
+
+
+def test_a_page_without_a_stamp_fails(tmp_path: Path) -> None:
+    page = tmp_path / "tan.md"
+    page.write_text("# Results\n\n| method | RMSE |\n|---|---|\n| neural | 20.9 |\n")
+    assert read_stamp(page) is None
+    (problem,) = check_page(page, tmp_path)
+    assert "no run stamp" in problem
+
+
+def test_a_stamp_whose_config_changed_fails(tmp_path: Path) -> None:
+    page = _stamped(tmp_path, "study: wind\nn_runs: 6\n", TINY_NOTE)
+    assert check_page(page, tmp_path) == []
+    (tmp_path / "configs" / "wind_tiny.yaml").write_text("study: wind\nn_runs: 7\n")
+    (problem,) = check_page(page, tmp_path)
+    assert "hashes to" in problem and "rerun" in problem
+
+
+def test_a_tiny_stamp_must_say_so_and_name_its_study(tmp_path: Path) -> None:
+    page = _stamped(tmp_path, "study: wind\nn_runs: 6\n", "no warning here")
+    assert any("does not say so" in p for p in check_page(page, tmp_path))
+    page = _stamped(tmp_path, "study: tan\n", TINY_NOTE)
+    assert any("names another" in p for p in check_page(page, tmp_path))
+    (tmp_path / "configs" / "wind_tiny.yaml").unlink()
+    assert "not in the repository" in check_page(page, tmp_path)[0]
+
+
+def test_a_damaged_stamp_is_named(tmp_path: Path) -> None:
+    page = tmp_path / "wind.md"
+    page.write_text('<!-- neuralmap-stamp: {"study": "wind" -->\n')
+    (problem,) = check_page(page, tmp_path)
+    assert "line 1: damaged run stamp" in problem
+
+
+# ----------------------------------------------------------------------------- summary.md
+@dataclass
+class _Config:
+    study: str = "wind"
+    experiment: str = "docs_test"
+    seed: int = 3
+
+
+def _publish(root: Path) -> Path:
+    with StudyOutputs(root, config=_Config(), title="A study", echo=False,
+                      tensorboard=False) as outputs:
+        outputs.add_text("Intro.")
+        outputs.add_table("Headline", ["method", "RMSE [m]"], [["a", 1.5], ["b", 2.25]])
+        outputs.add_table("Second", ["x"], [[1]])
+        outputs.add_claim("SEEDS 002", "a claim", "1.5 m", "holds")
+        return outputs.finalize()
+
+
+def test_every_run_writes_a_summary_with_its_headline_table_claims_and_provenance(
+        tmp_path: Path) -> None:
+    run = _publish(tmp_path / "runs")
+    text = (run / "summary.md").read_text()
+    first, _, body = text.partition("\n")
+    assert first.startswith(SUMMARY_MARK)
+    provenance = json.loads(first[len(SUMMARY_MARK):].removesuffix("-->"))
+    assert provenance["seed"] == 3 and provenance["study"] == "wind"
+    assert provenance["date"].endswith("Z")
+    assert set(provenance) == {"study", "experiment", "seed", "commit", "dirty", "date"}
+    assert "## Headline" in body and "| b | 2.25 |" in body
+    assert "Second" not in body  # only the headline table
+    assert "| SEEDS 002 | a claim | 1.5 m | **holds** |" in body
+
+
+def _wind_tiny_run(tmp_path: Path, **override: object) -> Path:
+    """A run folder as evaluate.py writes it for configs/wind_tiny.yaml (its resolved
+    config), without running the study."""
+    from dataclasses import asdict
+
+    from neuralmap.io import to_jsonable
+    from neuralmap.studies.cli import parse_config
+
+    run = _publish(tmp_path / "runs")
+    config = to_jsonable(asdict(parse_config(
+        ["--config", str(REPO / "configs" / "wind_tiny.yaml")])))
+    config.update(runs_dir="/somewhere/else", **override)  # where a run reports: ignored
+    (run / "config.yaml").write_text(yaml.safe_dump(config))
+    return run
+
+
+def test_update_stamps_the_run_with_its_config_and_lists_overrides(tmp_path: Path) -> None:
+    run = _wind_tiny_run(tmp_path)
+    (run / "fig.png").write_bytes(b"\x89PNG fake")
+    page = update_page(run, docs_dir=tmp_path / "docs", configs_dir=REPO / "configs")
+    assert page == tmp_path / "docs" / "results" / "wind.md"
+    stamp = read_stamp(page)
+    assert stamp is not None and stamp.config == "configs/wind_tiny.yaml"
+    assert stamp.config_sha256 == config_sha256(REPO / "configs" / "wind_tiny.yaml")
+    assert stamp.seed == 3 and stamp.overrides == {} and stamp.tiny
+    text = page.read_text()
+    assert TINY_NOTE in text and "| b | 2.25 |" in text and "### Headline" in text
+    assert (tmp_path / "docs" / "results" / "wind" / "fig.png").is_file()
+    assert check_page(page, REPO) == []
+
+    shutil.rmtree(tmp_path / "runs")
+    run = _wind_tiny_run(tmp_path, n_runs=7)
+    stamp = read_stamp(update_page(run, docs_dir=tmp_path / "docs",
+                                   configs_dir=REPO / "configs", figures=False))
+    assert stamp is not None and stamp.overrides == {"n_runs": 7}
+    assert "--n_runs 7" in (tmp_path / "docs" / "results" / "wind.md").read_text()
+
+
+def test_update_refuses_a_folder_that_is_not_a_run(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    (tmp_path / "empty").mkdir()
+    for target in (tmp_path / "missing", tmp_path / "empty"):
+        assert docs_main(["update", str(target), "--docs_dir", str(tmp_path / "docs")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("error: ")
+    assert "summary.md" in err[0]
+    assert not (tmp_path / "docs").exists()  # nothing written

@@ -33,14 +33,16 @@ t(p_ins − δp) + δh − v``.
 Integrity, per vehicle and epoch (status codes of :data:`~neuralmap.nav.fix.STATUS`):
 
 * **Lost lock**: the mean NIS over the last ``integrity.lost_window`` updates above
-  ``χ²_p(W)/W`` (``p = integrity.lost_prob``). The tracker alone runs the test inside
-  :class:`PointMassTracker` (the first ``tracker.local_widenings`` detections widen the
-  lattice around the track, later ones **re-acquire from the open-loop prior**: the prior
-  propagated through every prediction without a measurement); the grid methods send the
-  vehicle back to the acquisition grid with the open-loop prior (σ at least
-  ``acquisition.reacquire_sigma_m``); EKF methods restart the EKF from it. Status ``lost``
-  at the detection, ``acquiring`` while the horizontal σ exceeds
-  ``integrity.acquired_sigma_m`` (or the grid holds the vehicle), then ``tracking``.
+  ``χ²_p(W)/W`` (``p = integrity.lost_prob``) **re-acquires from the open-loop prior**
+  ``N(m_ol, P_ol)``: the prior propagated through every prediction without a measurement
+  (``m_ol ← Φ m_ol``, ``P_ol ← Φ P_ol Φᵀ + Q``), the dead-reckoning bound of the INS error,
+  which holds the truth wherever the filter lost it (a wrong terrain match). A prior wider
+  than ``acquisition.above_sigma_m`` goes to the acquisition grid (always for
+  ``point_mass_ekf``), a narrower one straight back into the tracker; EKF methods restart
+  the EKF from it. Status ``lost`` at the detection, ``acquiring`` while the grid holds the
+  vehicle or its horizontal σ exceeds ``integrity.acquired_sigma_m``, then ``tracking``.
+  (The INS error must stay inside its model for the open-loop prior to hold the truth: a
+  jump of the INS itself is not re-acquired.)
 * **Off the map**: an estimate off the map's extent is predicted only (status ``off_map``).
 * **No measurement**: a NaN clearance, or one outside ``[sensor.clearance_min_m,
   sensor.clearance_max_m]``, is not used: predicted only, status ``no_measurement``,
@@ -151,24 +153,21 @@ class _Window:
 
 # ---------------------------------------------------------------------- track filters
 class _TrackerFilter:
-    """The point-mass tracker over all N vehicles (dormant rows: a benign Gaussian)."""
+    """The point-mass tracker over all N vehicles (rows on the acquisition grid: dormant,
+    a benign Gaussian predicted and never updated)."""
 
-    def __init__(self, nav: Navigator, own_detector: bool) -> None:
+    def __init__(self, nav: Navigator) -> None:
         from neuralmap.nav.tracking import TrackerOptions, transition_blur
 
         cfg = nav.config
         tc = cfg.tracker
         self.dtype = torch.float32 if tc.dtype == "float32" else torch.float64
-        extra = {"lost_prob": cfg.integrity.lost_prob, "local_widenings": tc.local_widenings,
-                 "max_widenings": tc.max_widenings}
+        # the navigator runs the lost-lock test itself (no widening inside the tracker)
         opts = TrackerOptions(cells=tc.cells, span_sigma=tc.span_sigma,
-                              principal_axes=tc.principal_axes, dtype=tc.dtype,
-                              lost_window=cfg.integrity.lost_window if own_detector else 0,
-                              widen_min_sigma_m=tc.widen_min_sigma_m,
+                              principal_axes=tc.principal_axes, dtype=tc.dtype, lost_window=0,
                               flatten_likelihood=tc.flatten_likelihood,
-                              min_cell_blur=tc.min_cell_blur, extra=extra)
+                              min_cell_blur=tc.min_cell_blur)
         self.options = opts
-        self.own_detector = own_detector
         P0, Q, T = nav._P0, nav._Q, nav._T
         self.tcfg = opts.tracker_config(blur_m=transition_blur(P0, Q, T))
         self.E_nominal = torch.tensor([[0.0, T, 0.0], [0.0, 0.0, T]], dtype=self.dtype)
@@ -212,7 +211,8 @@ class _TrackerFilter:
             self.tracker.predict(Q_s=self.qs * scale, Q_z=self.qz * scale)
 
     def update(self, ins_pos: torch.Tensor, y: torch.Tensor, mask: torch.Tensor | None
-               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Altimeter update of the rows in ``mask`` (None = all); returns ``nis, applied``."""
         from neuralmap.nav.tracking import heights_on_cells
 
         trk = self.tracker
@@ -222,10 +222,8 @@ class _TrackerFilter:
             from neuralmap.nav.acquisition import cell_height_variance
 
             cell_var = torch.nan_to_num(cell_height_variance(g), nan=0.0)
-        before = trk.widenings.clone()
         upd = trk.update(y.to(self.dtype), g, R=self.R, mask=mask, cell_variance=cell_var)
-        reacq = upd.widened & (before >= self.tcfg.local_widenings)
-        return upd.nis, upd.applied, upd.widened, reacq
+        return upd.nis, upd.applied
 
     def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.tracker.moments()
@@ -297,7 +295,7 @@ class _EkfFilter:
 class _Grid:
     """The point-mass acquisition grid over all N vehicles (rows not acquiring: frozen)."""
 
-    def __init__(self, nav: Navigator) -> None:
+    def __init__(self, nav: Navigator, prior: torch.Tensor) -> None:
         from neuralmap.filters.point_mass import PointMassFilter
         from neuralmap.nav.acquisition import (
             AcquisitionConfig,
@@ -316,7 +314,7 @@ class _Grid:
                                       flatten_likelihood=a.flatten_likelihood,
                                       reacquire_sigma_m=a.reacquire_sigma_m).validate()
         self.dtype = torch.float32 if a.dtype == "float32" else torch.float64
-        n, P0 = nav.n_vehicles, nav._P0
+        n, P0 = nav.n_vehicles, prior
         sigma0 = float(P0[:2, :2].diagonal().max()) ** 0.5
         self.pm = PointMassFilter(torch.zeros(n, 2, dtype=self.dtype), P0[:2, :2].to(self.dtype),
                                   scalar_mean=0.0, scalar_var=float(P0[2, 2]),
@@ -518,23 +516,21 @@ class Navigator:
         n, cfg = self.n_vehicles, self.config
         sigma0 = float(self._P0[:2, :2].diagonal().max()) ** 0.5
         self._grid: _Grid | None = None
+        on_grid = False
         if self.method == "point_mass_tracker":
-            use_grid = sigma0 > cfg.acquisition.above_sigma_m
-            self._track: Any = _TrackerFilter(self, own_detector=not use_grid)
-            if use_grid:
-                self._grid = _Grid(self)
+            self._track: Any = _TrackerFilter(self)
+            if sigma0 > cfg.acquisition.above_sigma_m:
+                self._grid, on_grid = _Grid(self, self._P0), True
         else:
             base_R = (self.noise.altimeter_m2 if cfg.map_error.linearisation_table
                       else self.noise.R)
             self._track = _EkfFilter(self, self._linearizer, self._make_policy(), base_R)
             if self.method == "point_mass_ekf":
-                self._grid = _Grid(self)
-        # acquiring: the grid holds the vehicle (grid methods); else the track filter does
-        self._on_grid = torch.full((n,), self._grid is not None, dtype=torch.bool)
+                self._grid, on_grid = _Grid(self, self._P0), True
+        # the grid holds the vehicle (acquisition); else the track filter does
+        self._on_grid = torch.full((n,), on_grid, dtype=torch.bool)
         self._window = _Window(n, cfg.integrity.lost_window, cfg.integrity.lost_prob,
                                torch.float64)
-        self._own_detector = not (isinstance(self._track, _TrackerFilter)
-                                  and self._track.own_detector)
         self._open_mean = torch.zeros(n, N_STATES, dtype=torch.float64)
         self._open_cov = self._P0.expand(n, N_STATES, N_STATES).clone()
         self._t_prev: float | None = None
@@ -640,7 +636,7 @@ class Navigator:
         lost = zeros.clone()
         grid, track = self._grid, self._track
         on_grid = self._on_grid
-        if grid is not None:
+        if grid is not None and bool(on_grid.any()):
             grid.predict(dt, scale)
         tracking = ~on_grid
         use = valid & on_map
@@ -648,13 +644,10 @@ class Navigator:
             track.predict(dt, scale)
             mask = tracking & use
             all_in = bool(mask.all())
-            t_nis, t_app, t_wid, t_reacq = track.update(
-                torch.cat([pos, alt[:, None]], 1), y, None if all_in else mask)
+            t_nis, t_app = track.update(torch.cat([pos, alt[:, None]], 1), y,
+                                        None if all_in else mask)
             applied = applied | (t_app & mask)
             nis = torch.where(t_app & mask, t_nis.double(), nis)
-            if track.own_detector:
-                lost = lost | t_wid
-                reacq = reacq | t_reacq
             off_est = tracking & ~on_map
         else:
             track.predict(dt, scale)
@@ -671,13 +664,14 @@ class Navigator:
             g_app = grid.update(pos, y, g_mask)
             applied = applied | (g_app & g_mask)
         self._window.add(nis, applied & tracking)
-        if self._own_detector and self._window.enabled:
+        if self._window.enabled:
             fired = tracking & self._window.fired()
             if bool(fired.any()):
                 lost = lost | fired
                 reacq = reacq | fired
                 self._reacquire(fired)
-        if grid is not None:
+        grid = self._grid
+        if grid is not None and bool(self._on_grid.any()):
             go = grid.ready(self._on_grid & ~lost)
             if bool(go.any()):
                 rows = go.nonzero().reshape(-1)
@@ -705,13 +699,26 @@ class Navigator:
         self._open_cov = 0.5 * (P + P.transpose(1, 2))
 
     def _reacquire(self, mask: torch.Tensor) -> None:
-        """Vehicles ``mask`` restart from the open-loop prior (grid, else the EKF)."""
-        if self._grid is not None:
-            self._grid.restart(mask, self._open_mean, self._open_cov)
-            self._track.drop(mask)
-            self._on_grid = self._on_grid | mask
+        """Vehicles ``mask`` restart from the open-loop prior ``N(m_ol, P_ol)``: on the
+        acquisition grid when its horizontal σ exceeds ``acquisition.above_sigma_m`` (always
+        for ``point_mass_ekf``), else in the tracking filter itself (EKF methods: always)."""
+        sigma = torch.linalg.eigvalsh(self._open_cov[:, :2, :2])[:, -1].clamp_min(0.0).sqrt()
+        if self.method == "point_mass_ekf":
+            to_grid = mask
+        elif self.method == "point_mass_tracker":
+            to_grid = mask & (sigma > self.config.acquisition.above_sigma_m)
         else:
-            self._track.load(mask, self._open_mean, self._open_cov)
+            to_grid = torch.zeros_like(mask)
+        direct = mask & ~to_grid
+        if bool(direct.any()):
+            self._track.load(direct, self._open_mean, self._open_cov)
+        if bool(to_grid.any()):
+            if self._grid is None:  # sized for the widest prior it must hold now
+                widest = self._open_cov[int(torch.argmax(torch.where(to_grid, sigma, 0.0)))]
+                self._grid = _Grid(self, widest)
+            self._grid.restart(to_grid, self._open_mean, self._open_cov)
+            self._track.drop(to_grid)
+            self._on_grid = self._on_grid | to_grid
 
     def _update_moments(self) -> None:
         mean, cov = self._track.moments()

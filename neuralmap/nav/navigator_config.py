@@ -126,22 +126,17 @@ class TrackerSection:
     """Lattice of the point-mass tracker (:class:`~neuralmap.nav.tracking.TrackerOptions`).
 
     Attributes:
-        cells, span_sigma, principal_axes, dtype, widen_min_sigma_m, flatten_likelihood,
-        min_cell_blur: As :class:`~neuralmap.nav.tracking.TrackerOptions`.
-        local_widenings: Widenings around the run's mean before a re-acquisition from the
-            open-loop prior (:class:`~neuralmap.filters.point_mass_tracker.TrackerConfig`).
-        max_widenings: Widenings after which the tracker flags a vehicle lost for good.
+        cells, span_sigma, principal_axes, dtype, flatten_likelihood, min_cell_blur: As
+            :class:`~neuralmap.nav.tracking.TrackerOptions` (the lost-lock test is the
+            navigator's, ``integrity``; the tracker's own widening is off).
     """
 
     cells: int = 32
     span_sigma: float = 5.0
     principal_axes: bool = True
     dtype: str = "float32"
-    widen_min_sigma_m: float = 50.0
     flatten_likelihood: bool = False
     min_cell_blur: float = 1.5
-    local_widenings: int = 2
-    max_widenings: int = 1000000
 
 
 @dataclass

@@ -51,7 +51,7 @@ def test_replay_gives_the_study_tracker_estimates(tiny_flight) -> None:
     study = run_tracker(truth, grid, P0=P0, Q=Q, R=scenario.R_m2 + map_var, dt=scenario.dt,
                         options=TrackerOptions(dtype="float64"))
     cfg = dict(TINY, integrity={"lost_window": 10, "lost_prob": 0.9999},
-               tracker={"dtype": "float64", "max_widenings": 4})
+               tracker={"dtype": "float64"})
     nav = Navigator(grid, cfg, n_vehicles=4, map_error_variance=map_var)
     assert nav.R == scenario.R_m2 + map_var
     track = _replay(nav, truth)

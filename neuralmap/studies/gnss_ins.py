@@ -35,6 +35,7 @@ from typing import Any, Literal
 
 import torch
 
+from neuralmap.cluster import open_cluster
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies.registry import make_policy
 from neuralmap.filters.policy import FilterPolicy
@@ -50,7 +51,7 @@ from neuralmap.ins.measurement import check_lever_arm
 from neuralmap.ins.metrics import navigation_summary
 from neuralmap.ins.trajectory import short_drive, urban_drive
 from neuralmap.progress import progress_bar
-from neuralmap.studies.base import StudyConfig
+from neuralmap.studies.cluster_options import ClusterOptions
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
 __all__ = ["VARIANTS", "VARIANT_COST", "GnssInsStudyConfig", "deal_variants", "run"]
@@ -65,12 +66,12 @@ TUNED = "quality_windowed"
 _DEG = 180.0 / math.pi
 #: Relative CPU cost of a variant's filter where it is not 1 (cProfile, 200 runs: the
 #: variational filter's three fixed-point iterations per update make it about 1.2× the
-#: others, which are within ±5 % of each other); used to balance the worker processes.
+#: others, which are within ±5 % of each other); used to balance the cluster's workers.
 VARIANT_COST = {"variational": 1.2}
 
 
 @dataclass
-class GnssInsStudyConfig(StudyConfig):
+class GnssInsStudyConfig(ClusterOptions):
     """Options of the GNSS/INS study (``study: gnss_ins``).
 
     Attributes:
@@ -95,9 +96,11 @@ class GnssInsStudyConfig(StudyConfig):
         quality_weight: Quantisation parameter of every quality indicator (0.1–0.5).
         divergence_m: A run diverged when its horizontal error ever exceeds this.
         warmup_s: Initial transient left out of NEES/NIS/attitude statistics.
-        workers: Processes the variants are dealt to (by cost, :func:`deal_variants`; each
-            process simulates the IMU once and filters its variants in lockstep). The
-            results do not depend on it (bit-identical).
+        cluster: Where the variants run (:class:`~neuralmap.studies.cluster_options.ClusterOptions`;
+            default this process): on a Dask cluster the variants are dealt by cost to as
+            many groups as the cluster has worker threads (:func:`deal_variants`); each group
+            simulates the IMU once and filters its variants in lockstep. The results do not
+            depend on it (bit-identical).
     """
 
     study: str = "gnss_ins"
@@ -122,7 +125,6 @@ class GnssInsStudyConfig(StudyConfig):
     quality_weight: float = 0.3
     divergence_m: float = 20.0
     warmup_s: float = 10.0
-    workers: int = 2
 
     def validate(self) -> None:
         """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
@@ -175,9 +177,6 @@ class GnssInsStudyConfig(StudyConfig):
             )
         if not self.alpha_cap >= 1:
             raise NeuralMapError(f"--alpha_cap must be >= 1, got {self.alpha_cap}.")
-        if isinstance(self.workers, bool) or not isinstance(self.workers, int) or (
-                self.workers < 1):
-            raise NeuralMapError(f"--workers must be an integer >= 1, got {self.workers!r}.")
         if self.propagate_every < 1:
             raise NeuralMapError(f"--propagate_every must be >= 1, got {self.propagate_every}.")
         if self.dtype != "float64":
@@ -341,8 +340,8 @@ def _run_group(config: GnssInsStudyConfig, names: list[str], *, traj: Any = None
 
 
 def deal_variants(variants: list[str], workers: int) -> list[list[str]]:
-    """Deals the variants to worker processes: costliest first, each to the worker with
-    the least work so far (longest-processing-time rule, :data:`VARIANT_COST`).
+    """Deals the variants to workers: costliest first, each to the worker with the least
+    work so far (longest-processing-time rule, :data:`VARIANT_COST`).
 
     Splitting the runs instead (every worker all variants on half the runs) was measured
     slower: each worker then pays every variant's per-epoch torch overhead, which hardly
@@ -351,7 +350,7 @@ def deal_variants(variants: list[str], workers: int) -> list[list[str]]:
 
     Args:
         variants: Variant names, in the config's order.
-        workers: Worker processes (≥ 1).
+        workers: Workers (≥ 1; a cluster's worker threads).
 
     Returns:
         The non-empty groups, each in the config's order.
@@ -366,18 +365,11 @@ def deal_variants(variants: list[str], workers: int) -> list[list[str]]:
     return [sorted(g, key=variants.index) for g in groups if g]
 
 
-def _run_group_worker(job: tuple[GnssInsStudyConfig, list[str], int, int]) -> dict[str, Any]:
-    """A worker process's group (:func:`_run_group`), with its own progress lines."""
-    config, names, index, count = job
+def _run_group_task(config: GnssInsStudyConfig, names: list[str]) -> dict[str, Any]:
+    """One group of variants on a cluster's worker (:func:`_run_group`, its own threads)."""
     if config.threads is not None:
         torch.set_num_threads(int(config.threads))
-    traj = _drive(config)
-    bar = progress_bar(total=len(names) * (traj.n_samples - 1),
-                       desc=f"gnss_ins worker {index + 1}/{count} ({', '.join(names)})",
-                       unit="IMU sample")
-    out = _run_group(config, names, traj=traj, progress=bar.update)
-    bar.close()
-    return out
+    return _run_group(config, names)
 
 
 def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
@@ -391,28 +383,33 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
     config.seed = seed
     started = time.perf_counter()
     traj = _drive(config)
-    print(f"gnss_ins: {config.drive} drive {traj.duration:.0f} s, {traj.distance / 1000:.2f} km, "
-          f"{config.imu_rate_hz:g} Hz IMU ({config.imu_grade}), {config.n_runs} runs, variants "
-          f"{', '.join(config.variants)}; {config.workers} worker(s)", flush=True)
-    groups = deal_variants(config.variants, config.workers)
     timing: dict[str, float] = {}
-    tick = time.perf_counter()
-    if len(groups) == 1:
-        # IMU samples over all variants (each sample advances every run): progress lines
-        # with the rate and the time left in logs, a bar on a terminal
-        bar = progress_bar(total=len(config.variants) * (traj.n_samples - 1),
-                           desc=f"gnss_ins ({config.n_runs} runs)", unit="IMU sample")
-        outs = [_run_group(config, groups[0], traj=traj, progress=bar.update)]
-        bar.close()
-    else:
-        import concurrent.futures
-        import multiprocessing
-
-        context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(len(groups), mp_context=context) as pool:
-            outs = list(pool.map(_run_group_worker, [(config, g, i, len(groups))
-                                                     for i, g in enumerate(groups)]))
-    timing["filters_wall"] = time.perf_counter() - tick
+    with open_cluster(config.cluster) as dispatcher:
+        groups = deal_variants(config.variants, dispatcher.workers)
+        print(f"gnss_ins: {config.drive} drive {traj.duration:.0f} s, "
+              f"{traj.distance / 1000:.2f} km, {config.imu_rate_hz:g} Hz IMU "
+              f"({config.imu_grade}), {config.n_runs} runs, variants "
+              f"{', '.join(config.variants)}; {len(groups)} group(s) on "
+              f"{dispatcher.description}", flush=True)
+        tick = time.perf_counter()
+        if dispatcher.client is None:
+            # IMU samples over all variants (each sample advances every run): progress lines
+            # with the rate and the time left in logs, a bar on a terminal
+            bar = progress_bar(total=len(config.variants) * (traj.n_samples - 1),
+                               desc=f"gnss_ins ({config.n_runs} runs)", unit="IMU sample")
+            outs = [_run_group(config, groups[0], traj=traj, progress=bar.update)]
+            bar.close()
+        else:  # the cluster reports each finished group; heartbeat lines while waiting
+            bar = progress_bar(total=len(config.variants),
+                               desc=f"gnss_ins ({config.n_runs} runs, {len(groups)} groups)",
+                               unit="variant")
+            try:
+                outs = dispatcher.map(_run_group_task, groups, shared=config,
+                                      on_done=lambda _, out: bar.update(len(out["runs"])),
+                                      on_idle=lambda: bar.update(0), name="gnss-ins-variants")
+            finally:
+                bar.close()
+        timing["filters_wall"] = time.perf_counter() - tick
     found: dict[str, Any] = {}
     for i, out in enumerate(outs):
         found.update(out["runs"])

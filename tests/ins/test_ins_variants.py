@@ -1,5 +1,5 @@
-"""Variants in lockstep (one IMU simulation for all filters) and the study over worker
-processes: the same numbers as each filter run on its own (bit-identical in float64), and
+"""Variants in lockstep (one IMU simulation for all filters) and the study on a Dask
+cluster: the same numbers as each filter run on its own (bit-identical in float64), and
 the tiny config's results as before the speed work."""
 
 from __future__ import annotations
@@ -107,23 +107,24 @@ def _study(tmp_path: Path, name: str, *extra: str) -> dict:  # type: ignore[type
 
 
 @pytest.mark.slow
-def test_tiny_config_as_before_and_workers_change_nothing(tmp_path: Path) -> None:
+def test_tiny_config_as_before_and_a_dask_cluster_changes_nothing(tmp_path: Path) -> None:
     one = _study(tmp_path, "one")
     for name, values in BEFORE.items():
         s = one["variants"][name]
         got = (s["rmse_horizontal_m"], s["spike_degraded_mean_m"], s["nees_position_mean"],
                s["rmse_heading_deg"])
         assert got == pytest.approx(values, rel=1e-9, abs=0), name
-    two = _study(tmp_path, "two", "--workers", "2")
+    pytest.importorskip("distributed")
+    two = _study(tmp_path, "two", "--cluster", "local:2")
     assert two["variants"] == one["variants"]
     assert two["curves"] == one["curves"]
 
 
-def test_bad_workers_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_cluster_exits_2(capsys: pytest.CaptureFixture[str]) -> None:
     import neuralmap.studies.cli as cli
 
-    assert cli.main(["--config", str(TINY), "--workers", "0"]) == 2
-    assert "workers" in capsys.readouterr().err
+    assert cli.main(["--config", str(TINY), "--cluster", "local:0"]) == 2
+    assert "--cluster" in capsys.readouterr().err
 
 
 def test_variants_are_dealt_by_cost() -> None:

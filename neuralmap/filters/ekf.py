@@ -60,6 +60,7 @@ from neuralmap.filters.validation import (
     check_matrix_shape,
     shape_error,
 )
+from neuralmap.threads import one_thread
 
 __all__ = ["BatchedEKF", "positive_definite_batchlast"]
 
@@ -108,7 +109,7 @@ def positive_definite_batchlast(pt: torch.Tensor) -> torch.Tensor:
     """
     n = pt.shape[0]
     if n > SMALL_STATE_MAX:
-        with torch.no_grad():
+        with torch.no_grad(), one_thread(n):  # no parallel-region waits on a busy machine
             flat = pt.reshape(n * n, -1)
             return (torch.linalg.cholesky_ex(pt.permute(2, 0, 1)).info == 0) & torch.isfinite(
                 flat.sum(0)

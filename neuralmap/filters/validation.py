@@ -13,6 +13,7 @@ from __future__ import annotations
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.threads import one_thread
 
 #: Relative tolerance of the symmetry check, in units of the dtype's machine epsilon
 #: (``|M - M^T| <= SYMMETRY_EPS_FACTOR * eps * max|M|`` per matrix).
@@ -148,7 +149,9 @@ def check_covariance(
     ``definite=True`` requires ``M`` positive definite; ``definite=False`` accepts positive
     semi-definite matrices (zero process noise on some states) by factorising
     ``M + δI`` with ``δ = sqrt(eps) · max(diag M)``, which still rejects any eigenvalue
-    clearly below zero.
+    clearly below zero. A diagonal matrix needs no factorisation (its variances are its
+    eigenvalues); small matrices are factorised on one torch thread
+    (:func:`neuralmap.threads.one_thread`).
 
     Args:
         m: ``(n, n)`` or ``(B, n, n)`` floating tensor.
@@ -203,7 +206,11 @@ def check_covariance(
         delta = (eps**0.5) * diag.amax(-1).clamp_min(torch.finfo(m.dtype).tiny)
         eye = torch.eye(m.shape[-1], dtype=m.dtype, device=m.device)
         test = mb + delta[:, None, None] * eye
-    info = torch.linalg.cholesky_ex(test).info
+    if not bool((mb - torch.diag_embed(diag)).any()):
+        # diagonal: the variance checks above already prove (semi-)definiteness
+        return 0.5 * (m + m.transpose(-2, -1)) if symmetrize else m
+    with one_thread(m.shape[-1]):  # small factorisations: no parallel-region waits
+        info = torch.linalg.cholesky_ex(test).info
     bad = info != 0
     if bool(bad.any()):
         i = _first_bad(bad)

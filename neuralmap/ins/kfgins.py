@@ -218,21 +218,32 @@ def _check_increasing(time: np.ndarray, lines: list[int], path: Path, what: str,
         )
 
 
-def read_imu(path: str | Path, *, rate_hz: float | None = None, columns: int = 7) -> ImuLog:
+def read_imu(path: str | Path, *, rate_hz: float | None = None, columns: int = 7,
+             max_gap: float | None = None) -> ImuLog:
     """Reads a KF-GINS IMU increment file.
+
+    A logging gap (an interval longer than :data:`GAP_FACTOR` nominal intervals) is refused
+    unless ``max_gap`` accepts it: the filter then propagates across it as one interval of
+    its true length (the increment of the record after the gap kept as it is, spread over
+    the gap; gravity and transport rate over the true length: what KF-GINS does silently),
+    and counts it
+    (:func:`neuralmap.ins.log_run.run_on_log`). The INS error grows over a gap with no
+    IMU data; ``max_gap`` is the longest the user accepts.
 
     Args:
         path: The file.
         rate_hz: Nominal IMU rate (``imudatarate`` of the KF-GINS config); None = from the
             median interval.
         columns: Columns per line (``imudatalen``, ≥ 7; only the first 7 are used).
+        max_gap: Longest accepted interval (s); None = no gap accepted.
 
     Returns:
         The :class:`ImuLog`.
 
     Raises:
-        NeuralMapError: Wrong column count, a non-number, time that does not increase, or a
-            gap (an interval longer than 1.5 nominal intervals), naming file and line.
+        NeuralMapError: Wrong column count, a non-number, time that does not increase, a
+            gap longer than ``max_gap`` (or any gap without it), naming file and line, or a
+            ``max_gap`` that is not a number > 0.
     """
     path = Path(path)
     what = "KF-GINS IMU file"
@@ -251,15 +262,27 @@ def read_imu(path: str | Path, *, rate_hz: float | None = None, columns: int = 7
         dt = 1.0 / float(rate_hz)
     else:
         dt = float(np.median(steps))
-    gaps = np.nonzero(steps > GAP_FACTOR * dt)[0]
+    if max_gap is not None and not (isinstance(max_gap, (int, float)) and math.isfinite(max_gap)
+                                    and max_gap > 0):
+        raise NeuralMapError(f"{what} '{path}': --max_gap {max_gap!r} must be a number of "
+                             "seconds > 0 (the longest logging gap to propagate across).")
+    limit = GAP_FACTOR * dt if max_gap is None else max(GAP_FACTOR * dt, float(max_gap))
+    gaps = np.nonzero(steps > limit)[0]
     if gaps.size:
         k = int(gaps[0]) + 1
+        longest = float(steps[gaps].max())
+        how = ("Split the log at the gap (starttime/endtime) or fill it (the increments of "
+               "a missing interval cannot be recovered), or pass --max_gap S (read_imu's "
+               "max_gap) with S >= the gap to propagate across gaps as one interval of their "
+               "true length (counted in the output)." if max_gap is None else
+               f"It is longer than --max_gap {float(max_gap):g} s: raise --max_gap to at "
+               f"least {longest:.6g} s to propagate across it, or split the log at the gap "
+               "(starttime/endtime).")
         raise NeuralMapError(
             f"{what} '{path}', line {lines[k]}: a gap of {steps[k - 1]:.6g} s after time "
-            f"{float(time[k - 1])!r} s (line {lines[k - 1]}); the nominal interval is {dt:.6g} s. "
-            "Split the log at the gap (starttime/endtime) or fill it; the increments of a "
-            "missing interval cannot be recovered. If every interval is flagged, imudatarate "
-            "does not match the file."
+            f"{float(time[k - 1])!r} s (line {lines[k - 1]}); the nominal interval is {dt:.6g} s "
+            f"({gaps.size} such gap(s), the longest {longest:.6g} s). {how} If every interval "
+            "is flagged, imudatarate does not match the file."
         )
     return ImuLog(time=time.copy(), dtheta=table[:, 1:4].copy(), dvel=table[:, 4:7].copy(),
                   dt=dt)

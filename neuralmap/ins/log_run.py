@@ -11,8 +11,12 @@ on an :class:`~neuralmap.ins.kfgins.ImuLog` and a :class:`~neuralmap.ins.kfgins.
 (SEEDS 003), and records the solution itself.
 
 An increment ``Δθ_k`` over ``(t_{k−1}, t_k]`` enters the mechanisation as the constant rate
-``Δθ_k / Δt_k`` over that interval (the increment is kept exactly). A GNSS epoch updates
-at the IMU record nearest in time. Run 0 processes the log as recorded from the configured
+``Δθ_k / Δt_k`` over that interval (the increment is kept exactly), over its true interval
+also across a logging gap (:func:`~neuralmap.ins.kfgins.read_imu`'s ``max_gap``; gaps are
+counted in :attr:`LogSolution.counts`). A GNSS epoch updates at its own time: the IMU
+interval that holds it is split there, each part with its share of the increment, as
+KF-GINS does (:mod:`neuralmap.ins.epoch_alignment`); the solution is recorded at the IMU
+records only. Run 0 processes the log as recorded from the configured
 initial state; with ``n_runs > 1`` the other runs draw an initial error from ``P0``, white
 IMU noise at the configured ARW/VRW and GNSS noise at the reported σ (a Monte Carlo of the
 spread the noise model implies), all batched.
@@ -35,6 +39,7 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters import BatchedEKF
 from neuralmap.ins.earth import position_offset_ned, radii
+from neuralmap.ins.epoch_alignment import split_at_epochs
 from neuralmap.ins.error_model import (
     process_noise_density,
 )
@@ -42,7 +47,7 @@ from neuralmap.ins.error_state import correct, inject, total_attitude_error
 from neuralmap.ins.imu_model import ImuGrade
 from neuralmap.ins.increment_kernels import mechanize_increments, propagate_with_sigma
 from neuralmap.ins.kernels import propagate_block
-from neuralmap.ins.kfgins import GnssLog, ImuLog, NavLog
+from neuralmap.ins.kfgins import GAP_FACTOR, GnssLog, ImuLog, NavLog
 from neuralmap.ins.loosely_coupled import LooselyCoupledConfig, initial_covariance
 from neuralmap.ins.measurement import antenna_velocity, check_lever_arm, gnss_measurement_model
 from neuralmap.ins.rotation import dcm_from_quat, euler_from_dcm, quat_from_euler
@@ -62,7 +67,10 @@ class LogSolution:
         std: ``(N, K, 15)`` filter σ.
         gyro_bias: ``(N, K, 3)`` estimated gyro biases (rad/s).
         accel_bias: ``(N, K, 3)`` estimated accelerometer biases (m/s²).
-        counts: Updates applied, GNSS epochs outside the processed interval, ….
+        counts: Updates applied (``updates``), of them between two IMU records
+            (``gnss_between_records``), GNSS epochs outside the processed interval
+            (``gnss_outside``), IMU records, logging gaps propagated over (``imu_gaps``, an
+            interval > 1.5 nominal ones) and the longest (``imu_longest_gap_s``), ….
     """
 
     time: torch.Tensor
@@ -147,23 +155,18 @@ def run_on_log(
             f"endtime {end} (the log covers {t_all[0]:.3f}–{t_all[-1]:.3f} s)."
         )
     kw = {"dtype": torch.float64}
-    time = torch.as_tensor(t_all[lo:hi], **kw)
+    t_imu = t_all[lo:hi]
+    real_steps = np.diff(t_imu)
+    gaps = real_steps > GAP_FACTOR * imu.dt
+    # GNSS epochs at their own time: the IMU interval holding one is split there (KF-GINS)
+    line = split_at_epochs(t_imu, imu.dtheta[lo:hi], imu.dvel[lo:hi], gnss.time)
+    time = torch.as_tensor(line.time, **kw)
     steps = torch.diff(time)
-    dtheta = torch.as_tensor(imu.dtheta[lo:hi], **kw)
-    dvel = torch.as_tensor(imu.dvel[lo:hi], **kw)
-    n_imu = time.shape[0]
-    # GNSS epochs on the nearest IMU record inside the processed interval
-    half = 0.5 * float(steps.max())
-    inside = (gnss.time >= float(time[0]) - half) & (gnss.time <= float(time[-1]) + half)
-    g_index = np.nonzero(inside)[0]
-    nearest = _nearest(t_all[lo:hi], gnss.time[g_index])
-    if np.unique(nearest).size != nearest.size:
-        k = int(nearest[np.nonzero(np.diff(nearest) == 0)[0][0]])
-        raise NeuralMapError(
-            f"run_on_log: two GNSS epochs fall on the IMU record at {float(time[k]):.4f} s; the "
-            "GNSS rate must be below the IMU rate (thin the GNSS file)."
-        )
-    epoch_of = {int(k): int(j) for k, j in zip(nearest, g_index, strict=True)}
+    dtheta = torch.as_tensor(line.dtheta, **kw)
+    dvel = torch.as_tensor(line.dvel, **kw)
+    n_imu = time.shape[0]  # records of the time line (IMU records + inserted epochs)
+    g_index = line.epoch_index
+    epoch_of = {int(k): int(j) for k, j in zip(line.epoch_record, g_index, strict=True)}
     arm = check_lever_arm(lever_arm, where="run_on_log").to(**kw)
     gnss_position = np.column_stack([np.radians(gnss.position[:, :2]), gnss.position[:, 2]])
     qc = process_noise_density(grade)
@@ -187,16 +190,20 @@ def run_on_log(
     ba_hat = torch.tensor(initial_accel_bias, **kw).expand(n, 3).clone()
     white_g, white_a = grade.gyro_arw_si, grade.accel_vrw_si  # per √s
     m = 6 if use_velocity else 3
-    rec = list(range(0, n_imu, output_every))
-    if rec[-1] != n_imu - 1:
-        rec.append(n_imu - 1)
+    real_index = np.nonzero(line.real)[0]  # time-line records of the IMU records
+    rec_real = list(range(0, real_index.size, output_every))
+    if rec_real[-1] != real_index.size - 1:
+        rec_real.append(real_index.size - 1)
+    rec = real_index[rec_real].tolist()
     slot = {k: i for i, k in enumerate(rec)}
     out_states = torch.empty(n, len(rec), 10, **kw)
     out_std = torch.empty(n, len(rec), 15, **kw)
     out_bg = torch.empty(n, len(rec), 3, **kw)
     out_ba = torch.empty(n, len(rec), 3, **kw)
     counts = {"gnss_epochs": int(g_index.size), "gnss_outside": int(gnss.n_epochs - g_index.size),
-              "updates": 0, "imu_records": n_imu}
+              "updates": 0, "imu_records": int(real_index.size),
+              "gnss_between_records": line.n_split, "imu_gaps": int(gaps.sum()),
+              "imu_longest_gap_s": float(real_steps[gaps].max()) if gaps.any() else 0.0}
 
     def record(k: int) -> None:
         i = slot[k]
@@ -282,7 +289,7 @@ def run_on_log(
                                              f_points[:, -1:], intervals[-1:], qc, tau_g,
                                              tau_a)
                 ekf.P = P
-                ekf.predict(phi, qd)
+                ekf.predict(phi, qd, trusted_noise=True)  # Q_d: the error model's, symmetric
                 var = torch.cat([var, var_mid, ekf.P.diagonal(dim1=-2, dim2=-1)[:, None]], 1)
             if rec_steps:
                 slots = torch.as_tensor([slot[begin + s] for s in rec_steps])
@@ -305,13 +312,6 @@ def run_on_log(
     counts["unhealthy_runs"] = int((~ekf.healthy).sum())
     return LogSolution(time=time[rec], states=out_states, std=out_std, gyro_bias=out_bg,
                        accel_bias=out_ba, counts=counts)
-
-
-def _nearest(grid: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """Index of the nearest ``grid`` entry (sorted) for each value."""
-    right = np.clip(np.searchsorted(grid, values), 1, grid.size - 1)
-    left = right - 1
-    return np.where(np.abs(grid[right] - values) < np.abs(values - grid[left]), right, left)
 
 
 def compare_with_reference(solution: LogSolution, reference: NavLog) -> dict[str, object]:

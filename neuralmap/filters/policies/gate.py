@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 
 import torch
-from scipy.stats import chi2
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies._common import kept, standardised_residual
@@ -22,6 +21,8 @@ __all__ = ["ChiSquareGate", "chi_square_threshold"]
 
 def chi_square_threshold(p: float, dof: int) -> float:
     """The ``p`` quantile of the χ² distribution with ``dof`` degrees of freedom."""
+    from scipy.stats import chi2  # imported here: scipy.stats takes ~1 s to import
+
     return float(chi2.ppf(p, dof))
 
 

@@ -1,0 +1,188 @@
+"""Navigator real-time figures: step latency of one vehicle, throughput of 1000 vehicles.
+
+Measures in one run, on the jacksboro tile, one CPU thread (``torch.set_num_threads(1)``;
+run it with ``OMP_NUM_THREADS=1``), the default method (the point-mass tracker, 32² cells,
+the shipped ``configs/navigator.yaml``):
+
+(a) one vehicle, :meth:`Navigator.step` latency (median and 99th percentile over the
+    epochs after a warm-up), on the bilinear DEM grid, on a latent map
+    (:class:`~neuralmap.terrain.latent.map.LatentTerrainMap`, fitted here with few steps:
+    its quality does not change the cost) and on that latent map baked onto a grid
+    (:func:`neuralmap.terrain.bake.bake_to_grid`, the cheap win for a neural map);
+(b) 1000 vehicles batched through :meth:`Navigator.replay` on the grid: vehicle-epochs/s;
+(c) beside them, a single-vehicle NumPy/scipy loop of the same filter (a 32² point-mass
+    lattice that follows the posterior, axis-aligned: re-centred and re-sized on the
+    posterior's mean and σ every epoch, Gaussian prediction by separable convolution,
+    bilinear map lookup, the per-cell altitude Kalman part), per-epoch latency and rate.
+
+Targets (toolkit): median ≤ 1 ms, p99 ≤ 5 ms for (a); ≥ 50 000 vehicle-epochs/s for (b).
+
+Usage:
+    OMP_NUM_THREADS=1 python benchmarks/bench_navigator.py
+    OMP_NUM_THREADS=1 python benchmarks/bench_navigator.py --quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import platform
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from neuralmap.nav.navigator import Navigator
+from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.nav.simulator import simulate
+from neuralmap.terrain.grid import GridTerrain
+
+CONFIG = {"sensor": {"altimeter_sigma_m": 10.0}, "map_error": {"dem_accuracy_m": 1.0}}
+
+
+def percentile(values: list[float], q: float) -> float:
+    return float(np.percentile(np.asarray(values), q))
+
+
+def step_latency(terrain, truth, steps: int, warmup: int = 10) -> dict[str, float]:
+    """Per-epoch latency of one vehicle's :meth:`Navigator.step`, ms."""
+    nav = Navigator(terrain, CONFIG, n_vehicles=1)
+    ins, radar, t = truth.ins_pos[:1], truth.radar[:1], truth.t
+    times = []
+    for k in range(min(steps, t.shape[0])):
+        start = time.perf_counter()
+        nav.step(t[k], ins[:, k, :2], ins[:, k, 2], radar[:, k])
+        times.append(1e3 * (time.perf_counter() - start))
+    body = times[warmup:]
+    return {"median_ms": statistics.median(body), "p99_ms": percentile(body, 99.0),
+            "epochs": len(body)}
+
+
+def batched_rate(terrain, truth, n: int, steps: int) -> float:
+    """Vehicle-epochs/s of :meth:`Navigator.replay` over ``n`` vehicles."""
+    nav = Navigator(terrain, CONFIG, n_vehicles=n)
+    k = min(steps, truth.t.shape[0])
+    start = time.perf_counter()
+    nav.replay(truth.t[:k], truth.ins_pos[:n, :k, :2], truth.ins_pos[:n, :k, 2],
+               truth.radar[:n, :k])
+    return n * (k - 1) / (time.perf_counter() - start)
+
+
+def numpy_loop(tile, truth, steps: int, cells: int = 32, warmup: int = 10) -> dict[str, float]:
+    """The same filter for one vehicle in NumPy/scipy (module docstring, (c))."""
+    from scipy.ndimage import convolve1d
+
+    heights = np.asarray(tile.heights, dtype=np.float64)
+    (x0, y0), (dx, dy) = tile.origin, tile.spacing
+    ny, nx = heights.shape
+    half = 0.5 * (cells - 1)
+    off = np.arange(cells) - half
+    ins = truth.ins_pos[0].numpy()
+    radar = truth.radar[0].numpy()
+    T, q_p, q_h, q_v, r = 1.0, 1.0, 1.0, 0.0025, 100.0 + 1.0
+    mean = np.zeros(2)
+    var = np.array([1e4, 1e4])
+    vel = np.zeros(2)
+    vel_var = 0.25
+    m_alt, v_alt = 0.0, 900.0
+    times = []
+    for k in range(1, min(steps, ins.shape[0])):
+        start = time.perf_counter()
+        # predict: shift by T δv̂, grow by T² σ_v² + q_p (the lattice is rebuilt below)
+        mean = mean + T * vel
+        var = var + T * T * vel_var + q_p
+        vel_var += q_v
+        v_alt += q_h
+        step = 5.0 * np.sqrt(var) / half
+        sx = mean[0] + step[0] * off
+        sy = mean[1] + step[1] * off
+        logw = -0.5 * (((sx - mean[0]) ** 2 / var[0])[None, :] + ((sy - mean[1]) ** 2
+                                                                 / var[1])[:, None])
+        w = np.exp(logw - logw.max())
+        kern = np.exp(-0.5 * np.arange(-2, 3) ** 2 / 0.25)
+        kern /= kern.sum()
+        w = convolve1d(convolve1d(w, kern, axis=1, mode="constant"), kern, axis=0,
+                       mode="constant")
+        w /= w.sum()
+        # update: bilinear map at p_ins − s, Gaussian likelihood with the altitude part
+        u = np.clip((ins[k, 0] - sx - x0) / dx, 0.0, nx - 1.0)
+        v = np.clip((ins[k, 1] - sy - y0) / dy, 0.0, ny - 1.0)
+        j = np.minimum(np.floor(u), nx - 2).astype(np.int64)
+        i = np.minimum(np.floor(v), ny - 2).astype(np.int64)
+        fu, fv = (u - j)[None, :], (v - i)[:, None]
+        ii, jj = i[:, None], j[None, :]
+        g = ((heights[ii, jj] * (1 - fu) + heights[ii, jj + 1] * fu) * (1 - fv)
+             + (heights[ii + 1, jj] * (1 - fu) + heights[ii + 1, jj + 1] * fu) * fv)
+        y = ins[k, 2] - radar[k]
+        s = v_alt + r
+        nu = y - g - m_alt
+        lw = np.log(np.maximum(w, 1e-300)) - 0.5 * nu * nu / s
+        w = np.exp(lw - lw.max())
+        w /= w.sum()
+        m_cell = m_alt + v_alt / s * nu
+        m_alt = float((w * m_cell).sum())
+        v_alt = v_alt * r / s + float((w * (m_cell - m_alt) ** 2).sum())
+        wx, wy = w.sum(0), w.sum(1)
+        mean = np.array([(wx * sx).sum(), (wy * sy).sum()])
+        var = np.array([(wx * (sx - mean[0]) ** 2).sum() + step[0] ** 2 / 12.0,
+                        (wy * (sy - mean[1]) ** 2).sum() + step[1] ** 2 / 12.0])
+        times.append(1e3 * (time.perf_counter() - start))
+    body = times[warmup:]
+    return {"median_ms": statistics.median(body), "p99_ms": percentile(body, 99.0),
+            "rate": 1e3 / statistics.mean(body)}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="small sizes (smoke test)")
+    parser.add_argument("--vehicles", type=int, default=1000)
+    parser.add_argument("--steps", type=int, default=200, help="epochs of the 1-vehicle runs")
+    parser.add_argument("--batch_steps", type=int, default=30, help="epochs of the batch run")
+    parser.add_argument("--latent_steps", type=int, default=60,
+                        help="Adam steps of the latent map's fit")
+    args = parser.parse_args()
+    if args.quick:
+        args.vehicles, args.steps, args.batch_steps, args.latent_steps = 50, 40, 10, 5
+    torch.set_num_threads(1)
+    scenario = dataclasses.replace(load_scenario("jacksboro"), truth_model="dem").validate()
+    tile = scenario_tile(scenario)
+    truth = simulate(scenario, tile, n_runs=max(args.vehicles, 1), seed=0)
+    grid = GridTerrain(tile, method="bilinear")
+    print(f"neuralmap Navigator benchmark | {platform.processor() or platform.machine()} | "
+          f"torch {torch.__version__} | threads {torch.get_num_threads()} | jacksboro "
+          f"{tile.shape[1]}x{tile.shape[0]} nodes | default method point_mass_tracker 32^2",
+          flush=True)
+    rows = []
+    rows.append(("grid (bilinear DEM)", step_latency(grid, truth, args.steps)))
+    from neuralmap.terrain.bake import bake_to_grid
+    from neuralmap.terrain.latent.encode import fit_latent_map
+
+    clock = time.perf_counter()
+    latent, _ = fit_latent_map(tile, rate_weight=1e-3, steps=args.latent_steps)
+    print(f"latent map fitted in {time.perf_counter() - clock:.0f} s "
+          f"({args.latent_steps} steps)", flush=True)
+    rows.append(("latent map", step_latency(latent, truth, args.steps)))
+    rows.append(("latent map baked (bicubic grid)",
+                 step_latency(bake_to_grid(latent, tile), truth, args.steps)))
+    numpy_row = numpy_loop(tile, truth, args.steps)
+    print("\none vehicle, step latency (target median <= 1 ms, p99 <= 5 ms)")
+    print(f"{'map':34s} {'median ms':>10s} {'p99 ms':>8s} {'epochs/s':>9s}")
+    for name, r in rows:
+        print(f"{name:34s} {r['median_ms']:10.2f} {r['p99_ms']:8.2f} "
+              f"{1e3 / r['median_ms']:9.0f}")
+    print(f"{'NumPy loop, same filter (grid)':34s} {numpy_row['median_ms']:10.2f} "
+          f"{numpy_row['p99_ms']:8.2f} {numpy_row['rate']:9.0f}")
+    rate = batched_rate(grid, truth, args.vehicles, args.batch_steps)
+    print(f"\n{args.vehicles} vehicles batched (grid): {rate:,.0f} vehicle-epochs/s "
+          f"(target >= 50,000); NumPy loop {numpy_row['rate']:,.0f} vehicle-epochs/s "
+          f"-> {rate / numpy_row['rate']:.1f}x")
+    met = (rows[0][1]["median_ms"] <= 1.0, rows[0][1]["p99_ms"] <= 5.0, rate >= 50_000)
+    print(f"targets met: median {met[0]}, p99 {met[1]}, throughput {met[2]}")
+    if not math.isfinite(rate):
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -155,7 +155,7 @@ def test_evaluate_end_to_end(
         results["scenario"]["R_m2"] + table["variance_m2"][0], rel=1e-12)
     assert table["sigmas_m"][0] == 0.0
     claims = [c["claim"] for c in results["claims"] if "recommended EKF method" in c["claim"]]
-    assert len(claims) == 1 and claims[0].startswith("toolkit target: point_mass_ekf")
+    assert len(claims) == 1 and claims[0].startswith("point_mass_ekf (recommended EKF method)")
 
     report = (folder / "report.md").read_text()
     assert "![" in report and "error_vs_time.png" in report

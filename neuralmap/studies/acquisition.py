@@ -163,6 +163,13 @@ class AcquisitionStudyConfig(StudyConfig):
                                  f"{', '.join(_MAP_LINEARIZERS)}.")
         if self.n_runs_flat < 1:
             raise NeuralMapError(f"--n_runs_flat must be >= 1, got {self.n_runs_flat}.")
+        if isinstance(self.bank_per_axis, bool) or not isinstance(self.bank_per_axis, int) or (
+                self.bank_per_axis < 1):
+            raise NeuralMapError(
+                f"--bank_per_axis must be an integer >= 1 (EKF-bank components per axis: 1 = "
+                f"one EKF at the prior mean, the default 7 = a 7 x 7 lattice), got "
+                f"{self.bank_per_axis!r}. Pass e.g. --bank_per_axis 7, or drop `bank` from "
+                "--methods.")
         self.acquisition_config().validate()
 
     def acquisition_config(self) -> AcquisitionConfig:

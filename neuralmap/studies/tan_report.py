@@ -66,12 +66,17 @@ _SKIPPED_KEYS: tuple[str, ...] = ("diverged", "divergence_rule")
 #: The method that carries the neural map (the subject of paper 004's claims).
 NEURAL_METHOD = "neural"
 
+#: Sources of the claims (the report's "paper" column).
+SEEDS_004 = "SEEDS 004"
+TOOLKIT_TARGET = "toolkit target"
+
 # Columns of the console and markdown tables: (key, header, format).
 _TABLE_COLUMNS: tuple[tuple[str, str, str], ...] = (
     ("rmse_pos_m", "RMSE pos all [m]", "{:.1f}"),
     ("rmse_pos_converged_m", "RMSE pos conv [m]", "{:.1f}"),
     ("sigma_pos_m", "1σ pos conv [m]", "{:.1f}"),
     ("rmse_vel_mps", "RMSE vel [m/s]", "{:.2f}"),
+    ("sigma_vel_mps", "1σ vel conv [m/s]", "{:.2f}"),
     ("final_pos_m", "final pos [m]", "{:.1f}"),
     ("pcrb_ratio_all", "RMSE/PCRB all", "{:.2f}"),
     ("pcrb_ratio_converged", "RMSE/PCRB conv", "{:.2f}"),
@@ -93,12 +98,15 @@ class ClaimCheck:
         measured: The measured value(s), as text with units.
         verdict: A verdict of :data:`neuralmap.studies.outputs.VERDICTS`.
         detail: How the verdict was reached (the rule), and caveats.
+        paper: The claim's source, the report's "paper" column (``"SEEDS 004"`` or
+            ``"toolkit target"``); the claim text does not repeat it.
     """
 
     claim: str
     measured: str
     verdict: str
     detail: str
+    paper: str = TOOLKIT_TARGET
 
 
 def _last_half_rms(curve: Sequence[float]) -> float:
@@ -271,16 +279,16 @@ def check_claims(
     """
     methods: Mapping[str, Mapping[str, Any]] = results["methods"]
     neural = methods.get(neural_method)
+    pos_claim = f"{neural_method}: position error < {pos_limit_m:g} m (1σ)"
+    vel_claim = f"{neural_method}: velocity error < {vel_limit_mps:g} m/s (1σ)"
+    better_claim = (f"{neural_method} ≈ {improvement_m:g} m (1σ) better than the classical "
+                    "linearisations")
     if neural is None:
         reason = f"method '{neural_method}' was not evaluated (add it to --methods)"
-        claims = [
-            f"position error < {pos_limit_m:g} m (1σ) [SEEDS 004]",
-            f"velocity error < {vel_limit_mps:g} m/s (1σ) [SEEDS 004]",
-            f"neural map ≈ {improvement_m:g} m (1σ) better than classical [SEEDS 004]",
-            f"RMSE (all runs) ≤ {pcrb_ratio_target:g}× PCRB [toolkit target]",
-            f"divergence ≤ {divergence_target:.0%} [toolkit target]",
-        ]
-        return [ClaimCheck(c, "n/a", NOT_MEASURED, reason) for c in claims]
+        claims = [(pos_claim, SEEDS_004), (vel_claim, SEEDS_004), (better_claim, SEEDS_004),
+                  (_ratio_claim(neural_method, pcrb_ratio_target), TOOLKIT_TARGET),
+                  (_divergence_claim(neural_method, divergence_target), TOOLKIT_TARGET)]
+        return [ClaimCheck(c, "n/a", NOT_MEASURED, reason, paper) for c, paper in claims]
 
     checks: list[ClaimCheck] = []
 
@@ -295,34 +303,37 @@ def check_claims(
     if not enough(neural):
         sigma = None
         few = too_few(neural_method, neural)
-        for claim in (f"position error < {pos_limit_m:g} m (1σ) [SEEDS 004]",
-                      f"velocity error < {vel_limit_mps:g} m/s (1σ) [SEEDS 004]",
-                      f"neural map ≈ {improvement_m:g} m (1σ) better than classical [SEEDS 004]"):
-            checks.append(ClaimCheck(claim, "n/a", few, "1σ over the converged runs only"))
+        for claim in (pos_claim, vel_claim, better_claim):
+            checks.append(ClaimCheck(claim, "n/a", few, "1σ over the converged runs only",
+                                     SEEDS_004))
         return checks + _target_checks(neural, pcrb_ratio_target, divergence_target,
-                                       min_converged)
+                                       min_converged, neural_method)
     checks.append(
         ClaimCheck(
-            claim=f"position error < {pos_limit_m:g} m (1σ) [SEEDS 004]",
+            claim=pos_claim,
             measured=f"1σ = {_fmt(sigma, '{:.1f}')} m",
             verdict=verdict(sigma < pos_limit_m if _finite(sigma) else None),
             detail="1σ of the horizontal error of the non-diverged runs "
             f"({neural.get('n_converged', 'n/a')} of {neural.get('n_included', 'n/a')} on-map "
             "runs), last half of the flight"
             + ("" if _finite(sigma) else "; no converged run to measure"),
+            paper=SEEDS_004,
         )
     )
 
     if _finite(neural.get("sigma_vel_mps")):
-        vel, vel_what = neural["sigma_vel_mps"], "1σ of the velocity error"
+        vel, vel_what = (neural["sigma_vel_mps"], "1σ of the velocity error of the converged "
+                         "runs (table column \"1σ vel conv\")")
     else:
-        vel, vel_what = neural.get("rmse_vel_mps"), "velocity RMSE (an upper bound of the 1σ)"
+        vel, vel_what = (neural.get("rmse_vel_mps"), "velocity RMSE, an upper bound of the 1σ "
+                         "(table column \"RMSE vel\")")
     checks.append(
         ClaimCheck(
-            claim=f"velocity error < {vel_limit_mps:g} m/s (1σ) [SEEDS 004]",
+            claim=vel_claim,
             measured=f"{_fmt(vel, '{:.2f}')} m/s",
             verdict=verdict(vel < vel_limit_mps if _finite(vel) else None),
             detail=vel_what,
+            paper=SEEDS_004,
         )
     )
 
@@ -336,11 +347,11 @@ def check_claims(
         for name in classical_names
         if name not in short and _finite(methods[name].get("sigma_pos_m"))
     }
-    claim = f"neural map ≈ {improvement_m:g} m (1σ) better than classical [SEEDS 004]"
+    claim = better_claim + (f" ({', '.join(classical_names)})" if classical_names else "")
     if short:
         checks.append(ClaimCheck(
             claim, "n/a", "; ".join(too_few(n, methods[n]) for n in short),
-            "every classical method needs enough converged runs for the comparison"))
+            "every classical method needs enough converged runs for the comparison", SEEDS_004))
     elif not classical or not _finite(sigma):
         checks.append(
             ClaimCheck(
@@ -348,6 +359,7 @@ def check_claims(
                 "n/a",
                 NOT_MEASURED,
                 "needs the neural method and at least one classical method with a finite 1σ",
+                SEEDS_004,
             )
         )
     else:
@@ -364,15 +376,25 @@ def check_claims(
                 "Δ = 1σ(classical) − 1σ(neural); holds when the neural map beats every "
                 f"classical method and mean Δ ≥ {0.5 * improvement_m:g} m, partly when "
                 f"mean Δ ≥ {0.2 * improvement_m:g} m",
+                SEEDS_004,
             )
         )
 
     return checks + _target_checks(neural, pcrb_ratio_target, divergence_target,
-                                   min_converged)
+                                   min_converged, neural_method)
+
+
+def _ratio_claim(method: str, target: float) -> str:
+    return f"{method}: RMSE (all runs) ≤ {target:g}× PCRB"
+
+
+def _divergence_claim(method: str, target: float) -> str:
+    return f"{method}: divergence ≤ {target:.0%}"
 
 
 def _target_checks(neural: Mapping[str, Any], pcrb_ratio_target: float,
-                   divergence_target: float, min_converged: int) -> list[ClaimCheck]:
+                   divergence_target: float, min_converged: int,
+                   neural_method: str = NEURAL_METHOD) -> list[ClaimCheck]:
     """The toolkit's accuracy targets on the neural method (all runs count; a numerical
     failure counts as a failed run, and the RMSE of a method with numerical failures or
     too few converged runs gets no verdict)."""
@@ -387,7 +409,7 @@ def _target_checks(neural: Mapping[str, Any], pcrb_ratio_target: float,
                                 runs=runs.all_runs(), min_converged=min_converged)
     return [
         ClaimCheck(
-            claim=f"RMSE (all runs) ≤ {pcrb_ratio_target:g}× PCRB [toolkit target]",
+            claim=_ratio_claim(neural_method, pcrb_ratio_target),
             measured=f"all runs {_fmt(ratio, '{:.2f}')}, converged "
             f"{_fmt(neural.get('pcrb_ratio_converged'), '{:.2f}')}",
             verdict=ratio_verdict,
@@ -395,7 +417,7 @@ def _target_checks(neural: Mapping[str, Any], pcrb_ratio_target: float,
             "the last half (the converged-run ratio beside it)",
         ),
         ClaimCheck(
-            claim=f"divergence ≤ {divergence_target:.0%} [toolkit target]",
+            claim=_divergence_claim(neural_method, divergence_target),
             measured=f"{_fmt(rate, '{:.1%}')} ({neural.get('n_diverged', 'n/a')} diverged + "
             f"{runs.failed} numerical failures of {runs.total} on-map runs)",
             verdict=verdict(rate <= divergence_target if _finite(rate) else None,

@@ -34,6 +34,36 @@ def _curve(values: object, n: int, what: str) -> np.ndarray:
     return array
 
 
+#: Markers that tell the curves apart where they lie on top of each other (one per curve).
+_MARKERS = ("o", "s", "^", "v", "D", "P", "X", "<", ">", "*")
+#: Markers drawn per curve (spread over the time axis, staggered between curves).
+_MARKS_PER_CURVE = 10
+
+
+def coinciding_curves(curves: Mapping[str, np.ndarray], *, rtol: float = 1e-9
+                      ) -> dict[str, str]:
+    """Which curves equal an earlier one (to ``rtol``, NaN gaps equal).
+
+    Args:
+        curves: Label -> ``(K+1,)`` values, in drawing order.
+        rtol: Relative tolerance of "equal".
+
+    Returns:
+        Label -> the first earlier label it coincides with (only labels that do).
+    """
+    same: dict[str, str] = {}
+    names = list(curves)
+    for i, name in enumerate(names):
+        for other in names[:i]:
+            if other in same:
+                continue
+            a, b = curves[name], curves[other]
+            if a.shape == b.shape and np.allclose(a, b, rtol=rtol, atol=0.0, equal_nan=True):
+                same[name] = other
+                break
+    return same
+
+
 def plot_error_vs_time(
     t: object,
     curves: Mapping[str, object],
@@ -47,6 +77,10 @@ def plot_error_vs_time(
 ) -> Figure:
     """RMSE curves with the horizontal PCRB (log scale): the one error-vs-time figure of
     every study.
+
+    Each curve has its own colour and marker (the markers staggered along the time axis),
+    so a curve lying on another stays visible; a curve equal to an earlier one is also
+    labelled "= <that one>" in the legend (:func:`coinciding_curves`).
 
     Args:
         t: ``(K+1,)`` seconds (or steps, with ``xlabel``).
@@ -69,10 +103,15 @@ def plot_error_vs_time(
     fig = Figure(figsize=(8.0, 4.8))
     ax = fig.add_subplot()
     colors = [f"C{i}" for i in range(10)]
-    for i, (name, values) in enumerate(curves.items()):
+    arrays = {name: _curve(values, n, f"curve '{name}'") for name, values in curves.items()}
+    same = coinciding_curves(arrays)
+    every = max(n // _MARKS_PER_CURVE, 1)
+    for i, (name, values) in enumerate(arrays.items()):
         color = colors[i % len(colors)]
         style = {"color": "k", "ls": "-."} if name in references else {"color": color}
-        ax.plot(time, _curve(values, n, f"curve '{name}'"), lw=1.4, label=name, **style)
+        label = f"{name} (= {same[name]})" if name in same else name
+        ax.plot(time, values, lw=1.4, label=label, marker=_MARKERS[i % len(_MARKERS)], ms=4,
+                markevery=((i * every) // max(len(arrays), 1), every), **style)
         if converged_curves and name in converged_curves:
             ax.plot(
                 time,
@@ -81,7 +120,7 @@ def plot_error_vs_time(
                 lw=1.0,
                 ls=":",
             )
-    lines = [_curve(v, n, f"curve '{k}'") for k, v in curves.items()]
+    lines = list(arrays.values())
     if pcrb_pos is not None:
         bound = _curve(pcrb_pos, n, "pcrb_pos")
         ax.plot(time, bound, color="k", lw=1.6, ls="--", label="PCRB")
@@ -104,7 +143,13 @@ def plot_trajectories(
     *,
     title: str = "Trajectories over the tile (truth and estimates)",
 ) -> Figure:
-    """Truth trajectories and filter estimates over the tile's hillshade.
+    """Truth trajectories over the tile's hillshade, and beside them each estimate's error.
+
+    At the tile's scale a 20 m error is a fraction of a line width, so the estimates hide
+    under the truth. The left panel shows where the flights are (truth, estimates over the
+    hillshade); the right panel zooms on the error: the path of ``estimate − truth`` (east,
+    north, metres) of every drawn run and method, from its start (o) to its end (x), with
+    the truth at the origin.
 
     Args:
         tile: The DEM tile (background).
@@ -112,20 +157,29 @@ def plot_trajectories(
         estimates: Method -> ``(M, K+1, 2)`` estimated positions, metres (coloured).
 
     Returns:
-        The figure.
+        The figure (two panels: ``fig.axes[0]`` the tile, ``fig.axes[1]`` the error).
     """
     truth = np.asarray(truth_xy, dtype=np.float64)
     if truth.ndim != 3 or truth.shape[-1] != 2:
         raise NeuralMapError(
             f"plot_trajectories: truth_xy must have shape (M, K+1, 2), got {truth.shape}."
         )
+    arrays = {}
+    for name, values in estimates.items():
+        est = np.asarray(values, dtype=np.float64)
+        if est.shape != truth.shape:
+            raise NeuralMapError(
+                f"plot_trajectories: estimates['{name}'] has shape {est.shape}, expected "
+                f"{truth.shape} like truth_xy."
+            )
+        arrays[name] = est
     xmin, xmax, ymin, ymax = tile.extent
     dx, dy = tile.spacing
     shade = hillshade(tile.heights, tile.spacing)
     aspect = (ymax - ymin + dy) / max(xmax - xmin + dx, 1e-9)
-    width = 8.0
-    fig = Figure(figsize=(width, float(np.clip(width * aspect, 3.0, 12.0)) + 0.8))
-    ax = fig.add_subplot()
+    width = 6.5
+    fig = Figure(figsize=(2 * width, float(np.clip(width * aspect, 3.0, 10.0)) + 0.8))
+    ax, zoom = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     ax.imshow(
         shade,
         origin="lower",
@@ -144,28 +198,31 @@ def plot_trajectories(
             label="truth (o = start)" if m == 0 else None,
         )
         ax.plot(truth[m, 0, 0], truth[m, 0, 1], "o", color="w", mec="k", ms=5)
-    for i, (name, values) in enumerate(estimates.items()):
-        est = np.asarray(values, dtype=np.float64)
-        if est.shape != truth.shape:
-            raise NeuralMapError(
-                f"plot_trajectories: estimates['{name}'] has shape {est.shape}, expected "
-                f"{truth.shape} like truth_xy."
-            )
+    for i, (name, est) in enumerate(arrays.items()):
+        color = f"C{i % 10}"
+        error = est - truth
         for m in range(est.shape[0]):
-            ax.plot(
-                est[m, :, 0],
-                est[m, :, 1],
-                color=f"C{i % 10}",
-                lw=0.9,
-                alpha=0.85,
-                label=name if m == 0 else None,
-            )
+            ax.plot(est[m, :, 0], est[m, :, 1], color=color, lw=0.9, alpha=0.85,
+                    label=name if m == 0 else None)
+            zoom.plot(error[m, :, 0], error[m, :, 1], color=color, lw=0.9, alpha=0.85,
+                      label=name if m == 0 else None)
+            zoom.plot(error[m, 0, 0], error[m, 0, 1], "o", color=color, ms=4)
+            zoom.plot(error[m, -1, 0], error[m, -1, 1], "x", color=color, ms=6, mew=1.6)
     ax.set_xlim(xmin - dx / 2, xmax + dx / 2)
     ax.set_ylim(ymin - dy / 2, ymax + dy / 2)
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
-    ax.set_title(title)
+    ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8, loc="upper right", framealpha=0.8)
+    zoom.plot(0.0, 0.0, "+", color="k", ms=12, mew=1.5, label="truth")
+    zoom.axhline(0.0, color="k", lw=0.5, alpha=0.4)
+    zoom.axvline(0.0, color="k", lw=0.5, alpha=0.4)
+    zoom.set_aspect("equal", adjustable="datalim")
+    zoom.grid(True, alpha=0.3)
+    zoom.set_xlabel("estimate − truth, east [m]")
+    zoom.set_ylabel("estimate − truth, north [m]")
+    zoom.set_title("Zoom on the error of the same runs (o start, x end)", fontsize=10)
+    zoom.legend(fontsize=8, loc="upper right", framealpha=0.8)
     fig.tight_layout()
     return fig
 

@@ -341,3 +341,82 @@ def test_one_error_vs_time_figure_for_every_study() -> None:
     import neuralmap.studies.tan_outliers as tan_outliers
 
     assert learned.plot_error_vs_time is tan_outliers.plot_error_vs_time is plot_error_vs_time
+
+
+def test_claims_name_their_method_once_and_their_source_apart() -> None:
+    """Every claim names the method it is about; the source is the paper column, not a tag
+    repeated in the text; the velocity claim's number is a column of the table."""
+    results = _results(20.0, (60.0, 70.0), vel=2.0)
+    checks = check_claims(results)
+    assert [c.paper for c in checks] == ["SEEDS 004"] * 3 + ["toolkit target"] * 2
+    for check in checks:
+        assert check.claim.startswith("neural"), check.claim
+        assert "[" not in check.claim and "SEEDS" not in check.claim
+        assert "toolkit target" not in check.claim
+    assert "RMSE (all runs) ≤ 1.5× PCRB" in checks[3].claim
+    assert "(bilinear, nine_point)" in checks[2].claim  # the classical methods compared
+    vel = checks[1].measured.split()[0]  # sigma_vel_mps = 0.8 * 2.0
+    assert vel == "1.60" and "1σ vel conv" in checks[1].detail
+    table = format_table(results)
+    header, _, neural_row = table.splitlines()[:3]
+    assert "1σ vel conv [m/s]" in header and vel in neural_row.split()
+
+
+def test_tan_study_claims_use_the_one_verdict_rule() -> None:
+    """The tracker's and the recommended EKF's targets on a handful of runs get "not enough
+    converged runs", never holds/does not hold (the old rule judged NEES on 1 run)."""
+    from neuralmap.studies.tan import _consistency_claims, _tracker_claims
+
+    few = _metrics(20.0)
+    few.update(n_runs=1, n_off_map=0, n_included=1, n_converged=1, n_diverged=0,
+               pcrb_map_ratio_all=1.0)
+    results = {"methods": {"point_mass_ekf": dict(few), "point_mass_tracker": dict(few)},
+               "noise": {"mode": "measured"}}
+    claims = _consistency_claims(results) + _tracker_claims(results)
+    assert len(claims) == 5
+    for claim in claims:
+        assert claim.verdict.startswith("not enough converged runs (1 of 1"), claim
+        assert claim.paper == "toolkit target" and "toolkit target" not in claim.claim
+    assert claims[0].claim.startswith("point_mass_ekf (recommended EKF method): NEES")
+    many = _metrics(20.0)
+    many.update(pcrb_map_ratio_all=1.0, pcrb_ratio_all=1.2)
+    results["methods"] = {"point_mass_ekf": dict(many), "point_mass_tracker": dict(many)}
+    verdicts = [c.verdict for c in _consistency_claims(results) + _tracker_claims(results)]
+    # NEES 0.9 >= 0.9; map ratio 1.0 <= 1.05; true ratio 1.2 > 1.10; 0 diverged
+    assert verdicts == ["holds", "holds", "does not hold", "holds", "holds"]
+
+
+def test_identical_error_curves_stay_visible() -> None:
+    """Two methods with the same curve: different markers at staggered samples, and the
+    legend says that the second coincides with the first."""
+    from neuralmap.viz.navigation import coinciding_curves, plot_error_vs_time
+
+    t = np.arange(40.0)
+    same = np.linspace(100.0, 10.0, 40)
+    fig = plot_error_vs_time(t, {"neural": same, "neural_region": same.copy(),
+                                 "bilinear": same * 1.5}, None)
+    ax = fig.axes[0]
+    labels = [line.get_label() for line in ax.lines]
+    assert labels == ["neural", "neural_region (= neural)", "bilinear"]
+    markers = [line.get_marker() for line in ax.lines]
+    assert len(set(markers)) == 3
+    first, second = (np.asarray(ax.lines[i].get_markevery()) for i in (0, 1))
+    assert first[0] != second[0]  # markers of the coinciding curves do not overlap
+    assert coinciding_curves({"a": same, "b": same + 1e-3}) == {}
+
+
+def test_trajectory_figure_zooms_on_the_error() -> None:
+    """The second panel draws estimate − truth (metres), which the tile-wide panel cannot."""
+    from neuralmap.viz.navigation import plot_trajectories
+
+    rng = np.random.default_rng(1)
+    tile = DemTile(rng.normal(size=(20, 30)).cumsum(0), spacing=(30.0, 30.0), name="t")
+    truth = np.stack([np.linspace(100, 800, K1), np.linspace(100, 500, K1)], -1)[None]
+    offset = np.stack([np.linspace(40.0, 3.0, K1), np.linspace(-20.0, 1.0, K1)], -1)[None]
+    fig = plot_trajectories(tile, truth, {"neural": truth + offset})
+    assert len(fig.axes) >= 2
+    zoom = fig.axes[1]
+    paths = [line for line in zoom.lines if line.get_label() == "neural"]
+    assert len(paths) == 1
+    np.testing.assert_allclose(paths[0].get_xdata(), offset[0, :, 0], atol=1e-9)
+    np.testing.assert_allclose(paths[0].get_ydata(), offset[0, :, 1], atol=1e-9)

@@ -1,0 +1,27 @@
+"""Study options refused at the start: exit 2, one ``error:`` line naming the option and the
+fix, and no run folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from neuralmap.studies import cli
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+ACQUISITION_TINY = REPO_ROOT / "configs" / "acquisition_tiny.yaml"
+
+
+@pytest.mark.parametrize("value", ["0", "-3"])
+def test_acquisition_bank_per_axis_below_one_is_refused(value: str, tmp_path: Path,
+                                                        capsys: pytest.CaptureFixture[str]
+                                                        ) -> None:
+    code = cli.main(["--config", str(ACQUISITION_TINY), "--bank_per_axis", value,
+                     "--runs_dir", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert "error: --bank_per_axis must be an integer >= 1" in lines[0]
+    assert f"got {value}" in lines[0] and "--bank_per_axis 7" in lines[0]
+    assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("*"))

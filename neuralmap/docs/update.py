@@ -104,7 +104,7 @@ def _stamp_table(stamp: RunStamp, run_dir: Path) -> str:
         ("date", stamp.date),
         ("overrides", ", ".join(f"`{k}`" for k in stamp.overrides) or "none"),
         ("rerun", f"`{rerun}`"),
-        ("run folder", f"`{run_dir.name}`"),
+        ("run folder", f"`{run_dir.parent.name}/{run_dir.name}`"),
     ]
     return "| run stamp | |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
 

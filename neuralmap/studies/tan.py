@@ -33,6 +33,7 @@ from neuralmap.nav.noise_calibration import derive_method_noise
 from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
 from neuralmap.nav.simulator import simulate
 from neuralmap.nav.tracking import TRACKER_METHOD, TrackerOptions, run_tracker
+from neuralmap.studies.cluster_options import ClusterOptions
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.setup import (
     DEFAULT_METHODS,
@@ -77,7 +78,7 @@ _FIGURES = {
 
 
 @dataclass
-class TanStudyConfig(TanOptions):
+class TanStudyConfig(TanOptions, ClusterOptions):
     """Options of the TAN Monte Carlo study (``study: tan``): the shared TAN options
     (:class:`~neuralmap.studies.setup.TanOptions`) plus the plots.
 
@@ -96,6 +97,9 @@ class TanStudyConfig(TanOptions):
             = the scenario's ``R_m2 + fit_variance_m2`` + each method's own variance.
         noise_pilot_runs: Pilot runs of the in-flight measurement (0 = the map table only).
         noise_iterations: Pilot flights (fixed-point iterations).
+        cluster: Where the EKF methods' filters run (one task per method on a Dask cluster,
+            :func:`neuralmap.nav.monte_carlo.run_filters`; bit-identical); default this
+            process. The tracker, the point-mass EKF and the pilot flights run here.
     """
 
     experiment: str = "evaluate"
@@ -238,6 +242,7 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         truth, runs = run_monte_carlo(
             filter_scenario, methods, n_runs=config.n_runs, seed=seed, progress=config.progress,
             device=device, dtype=dtype, tile=tile, truth_terrain=truth_terrain,
+            cluster=config.cluster,
         )
     else:
         truth, runs = simulate(scenario, tile, n_runs=config.n_runs, seed=seed, dtype=dtype,
@@ -292,6 +297,7 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         pcrb_kind=scenario.pcrb_kind(),
     )
     _add_map_aware_bound(results, pcrb_map_pos, dem_bound)
+    _add_diverged_runs(results, method_metrics, runs, scenario)
     if tracker_info:
         results["tracker"] = tracker_info
     if pm_ekf_info:
@@ -417,6 +423,29 @@ def _order_runs(config: Any, runs: dict[str, Any]) -> None:
     ordered = {name: runs[name] for name in config.methods if name in runs}
     runs.clear()
     runs.update(ordered)
+
+
+#: Diverged runs listed per method in results.json and the report (the first ones).
+_MAX_LISTED_DIVERGED = 10
+
+
+def _add_diverged_runs(results: dict[str, Any], method_metrics: dict[str, Any],
+                       runs: dict[str, Any], scenario: Any) -> None:
+    """Each method's diverged runs with their initial horizontal error, in metres and in
+    the prior's σ (``sqrt(P0_xx)``; the radial error's ``r/σ``, whose tail beyond ``c`` has
+    probability ``exp(−c²/2)`` for a 2-D Gaussian): a cold-started EKF that loses the
+    terrain match does so from the far tail of the prior."""
+    sigma0 = float(np.sqrt(TanModel.from_scenario(scenario).filter_prior()[0, 0]))
+    for name, metrics in method_metrics.items():
+        flags = np.asarray(metrics.get("diverged") or [], dtype=bool)
+        index = np.flatnonzero(flags)
+        if not index.size or name not in runs:
+            continue
+        start = runs[name].err[:, 0, :2].detach().to("cpu", torch.float64).norm(dim=-1).numpy()
+        results["methods"][name]["diverged_runs"] = [
+            {"run": int(i), "initial_error_m": float(start[i]),
+             "initial_error_sigma": float(start[i] / sigma0)}
+            for i in index[:_MAX_LISTED_DIVERGED]]
 
 
 def _add_map_aware_bound(results: dict[str, Any], bound: np.ndarray, dem: dict[str, Any]) -> None:

@@ -468,6 +468,28 @@ def format_table(results: Mapping[str, Any], *, markdown: bool = False) -> str:
     return "\n".join(out)
 
 
+def diverged_section(results: Mapping[str, Any]) -> list[str]:
+    """Markdown lines: which runs diverged, per method, with their initial horizontal error
+    (``diverged_runs`` of the results; nothing when no run diverged)."""
+    listed = {name: entry["diverged_runs"] for name, entry in results["methods"].items()
+              if entry.get("diverged_runs")}
+    if not listed:
+        return []
+    lines = ["## Diverged runs", ""]
+    for name, items in listed.items():
+        n = results["methods"][name].get("n_diverged", len(items))
+        cells = ", ".join(f"run {d['run']} (initial error {d['initial_error_m']:.0f} m = "
+                          f"{d['initial_error_sigma']:.1f}σ of the prior)" for d in items)
+        more = f" and {n - len(items)} more" if n > len(items) else ""
+        lines.append(f"- **{name}**: {cells}{more}.")
+    lines += ["", "A cold-started EKF linearises the terrain at its prior estimate; from the "
+              "far tail of the prior (a radial error of c σ has probability exp(−c²/2)) "
+              "it can settle on a wrong terrain match and stay there, whatever the map. "
+              "`point_mass_ekf` acquires on the grid first and hands over to the EKF only once "
+              "the posterior is unimodal and small.", ""]
+    return lines
+
+
 #: Position σ (m) at which the report prints the derived R.
 _NOISE_REPORT_SIGMAS = (0.0, 10.0, 20.0, 40.0, 100.0, 300.0)
 
@@ -598,6 +620,7 @@ def report_text(results: Mapping[str, Any]) -> str:
     )
     lines.append("")
 
+    lines += diverged_section(results)
     lines += noise_section(results.get("noise") or {})
 
     lines.append("## Divergence rule")

@@ -420,3 +420,15 @@ def test_trajectory_figure_zooms_on_the_error() -> None:
     assert len(paths) == 1
     np.testing.assert_allclose(paths[0].get_xdata(), offset[0, :, 0], atol=1e-9)
     np.testing.assert_allclose(paths[0].get_ydata(), offset[0, :, 1], atol=1e-9)
+
+
+def test_report_lists_the_diverged_runs_with_their_start() -> None:
+    results = _results(20.0, (60.0, 70.0), rate=0.02)
+    assert "## Diverged runs" not in report_text(results)
+    results["methods"]["neural"]["diverged_runs"] = [
+        {"run": 283, "initial_error_m": 300.4, "initial_error_sigma": 3.004}]
+    text = report_text(results)
+    assert "## Diverged runs" in text
+    assert "- **neural**: run 283 (initial error 300 m = 3.0σ of the prior)." in text
+    results["methods"]["neural"]["n_diverged"] = 3  # more diverged than listed
+    assert "3.0σ of the prior) and 2 more." in report_text(results)

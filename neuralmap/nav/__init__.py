@@ -28,6 +28,8 @@ _EXPORTS: dict[str, str] = {
     "MonteCarloResult": "monte_carlo",
     "run_filter": "monte_carlo",
     "run_monte_carlo": "monte_carlo",
+    "run_filters": "monte_carlo",
+    "FilterJob": "monte_carlo",
     "check_map_matches": "monte_carlo",
     "DIVERGENCE_RULE": "metrics",
     "divergence_rule": "metrics",

@@ -2,7 +2,9 @@
 
 :func:`run_filter` runs the 5-state TAN EKF (:func:`neuralmap.nav.tan.tan_filter_step`) for
 all N runs of a :class:`~neuralmap.nav.simulator.Truth` at once with one linearisation
-method; :func:`run_monte_carlo` simulates the truth once and runs every method on it.
+method; :func:`run_monte_carlo` simulates the truth once and runs every method on it;
+:func:`run_filters` runs several filters on one truth, in this process or one filter per
+task on a Dask cluster (:mod:`neuralmap.cluster`; bit-identical to this process).
 
 Timing convention: sample 0 is the prior (``δX̂_0 = 0``, ``P_0 = diag(P0_diag)``, no
 altimeter update at t = 0, matching the PCRB's ``J_0 = P_0⁻¹``); steps ``k = 1 … K`` each
@@ -234,6 +236,96 @@ def run_filter(
 
 
 
+@dataclass(frozen=True)
+class FilterJob:
+    """One filter of :func:`run_filters`: what :func:`run_filter` takes besides the truth.
+
+    Attributes:
+        linearizer: The map linearisation method.
+        scenario: The filter tuning (``P0_diag``, ``Q_diag``, ``R_m2``...).
+        policy: Optional update policy (reset before the run).
+        model: Optional filter model (None = the scenario's 5-state model).
+    """
+
+    linearizer: Any
+    scenario: Scenario
+    policy: Any = None
+    model: Any = None
+
+
+def _filter_task(truth: Truth, job: tuple[str, FilterJob, int]) -> FilterRun:
+    """One filter on a cluster's worker, on the caller's torch thread count."""
+    name, filter_job, threads = job
+    torch.set_num_threads(threads)
+    return run_filter(truth, filter_job.linearizer, filter_job.scenario, method=name,
+                      policy=filter_job.policy, model=filter_job.model)
+
+
+def run_filters(
+    truth: Truth,
+    jobs: dict[str, FilterJob],
+    *,
+    cluster: Any = None,
+    progress: bool = False,
+) -> dict[str, FilterRun]:
+    """Runs several filters on the same truth, in this process or on a Dask cluster.
+
+    On a cluster the truth is scattered to the workers once and every filter is one task,
+    run with this process's torch thread count, so each :class:`FilterRun` is bit-identical
+    to :func:`run_filter` here; the progress bar advances as filters finish (with
+    heartbeat lines while waiting).
+
+    Args:
+        truth: The simulated truth every filter flies.
+        jobs: Filter name to its :class:`FilterJob` (picklable on a cluster: linearizers,
+            policies and models travel to the workers).
+        cluster: :func:`neuralmap.cluster.open_cluster`'s value: None/``"none"`` = this
+            process, ``"local:N"``, a scheduler address, or an open ``distributed.Client``.
+        progress: A progress bar over the filters' steps (this process) or over the
+            filters (a cluster).
+
+    Returns:
+        Filter name to its :class:`FilterRun`, in the order of ``jobs``.
+
+    Raises:
+        NeuralMapError: A map of another tile, a bad ``cluster``, Dask not installed.
+    """
+    from neuralmap.cluster import open_cluster
+    from neuralmap.progress import progress_bar
+
+    for name, job in jobs.items():
+        check_map_matches(job.linearizer, truth, method=name)
+    with open_cluster(cluster) as dispatcher:
+        if dispatcher.client is None:
+            bar = progress_bar(total=len(jobs) * truth.n_steps, desc="Monte Carlo",
+                               unit="step") if progress else None
+            runs: dict[str, FilterRun] = {}
+            try:
+                for name, job in jobs.items():
+                    if bar is not None:
+                        bar.set_description(f"Monte Carlo [{name}]")
+                    runs[name] = run_filter(truth, job.linearizer, job.scenario,
+                                            progress=bar if bar is not None else False,
+                                            method=name, policy=job.policy, model=job.model)
+            finally:
+                if bar is not None:
+                    bar.close()
+            return runs
+        bar = progress_bar(total=len(jobs), unit="filter", desc=(
+            f"Monte Carlo ({len(jobs)} filters, {dispatcher.description})")) if progress else None
+        threads = torch.get_num_threads()
+        try:
+            done = dispatcher.map(
+                _filter_task, [(name, job, threads) for name, job in jobs.items()],
+                shared=truth, name="tan-filter",
+                on_done=None if bar is None else lambda _, __: bar.update(1),
+                on_idle=None if bar is None else lambda: bar.update(0))
+        finally:
+            if bar is not None:
+                bar.close()
+        return dict(zip(jobs, done, strict=True))
+
+
 def run_monte_carlo(
     scenario: Scenario | str,
     methods: dict[str, Linearizer],
@@ -245,6 +337,7 @@ def run_monte_carlo(
     dtype: torch.dtype = torch.float64,
     tile: DemTile | None = None,
     truth_terrain: Any = None,
+    cluster: Any = None,
 ) -> MonteCarloResult:
     """Simulates the truth once and runs the TAN EKF with every linearisation method.
 
@@ -264,12 +357,15 @@ def run_monte_carlo(
         tile: The scenario's tile, when already loaded (else :func:`scenario_tile`).
         truth_terrain: The truth terrain, when already built
             (:func:`neuralmap.nav.truth_terrain.true_terrain`; else built from the seed).
+        cluster: Where the methods' filters run (:func:`run_filters`): None = this
+            process, else one task per method on a Dask cluster (bit-identical).
 
     Returns:
         :class:`MonteCarloResult` ``(truth, runs)``.
 
     Raises:
-        NeuralMapError: Bad scenario, empty ``methods``, or a map of another tile.
+        NeuralMapError: Bad scenario, empty ``methods``, a map of another tile, a bad
+            ``cluster``.
     """
     scenario = load_scenario(scenario)
     if not isinstance(methods, dict) or not methods:
@@ -283,23 +379,8 @@ def run_monte_carlo(
                      truth_terrain=truth_terrain)
     for name, linearizer in methods.items():
         check_map_matches(linearizer, truth, method=name)
-    bar = None
-    if progress:
-        from neuralmap.progress import progress_bar
-
-        bar = progress_bar(total=len(methods) * truth.n_steps, desc="Monte Carlo", unit="step")
-    runs: dict[str, FilterRun] = {}
-    try:
-        for name, linearizer in methods.items():
-            if bar is not None:
-                bar.set_description(f"Monte Carlo [{name}]")
-            if isinstance(linearizer, torch.nn.Module):
-                linearizer.to(device)
-            runs[name] = run_filter(
-                truth, linearizer, scenario, progress=bar if bar is not None else False,
-                method=name,
-            )
-    finally:
-        if bar is not None:
-            bar.close()
+        if isinstance(linearizer, torch.nn.Module):
+            linearizer.to(device)
+    runs = run_filters(truth, {name: FilterJob(lin, scenario) for name, lin in methods.items()},
+                       cluster=cluster, progress=progress)
     return MonteCarloResult(truth, runs)

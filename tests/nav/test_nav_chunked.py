@@ -1,4 +1,5 @@
-"""Chunked Monte Carlo: the same results, bit for bit, whatever the chunking or the cluster."""
+"""Chunked Monte Carlo: the same results, bit for bit, whatever the chunking or the cluster;
+filters on one truth dealt to a Dask cluster: the same as in this process."""
 
 from __future__ import annotations
 
@@ -14,12 +15,14 @@ from neuralmap.nav.scenario import load_scenario, scenario_tile
 
 @pytest.fixture(scope="module")
 def dask_client():  # noqa: ANN201
-    """A 2-worker Dask LocalCluster (worker processes, one thread each, no dashboard)."""
-    distributed = pytest.importorskip("distributed")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None) as cluster, \
-            distributed.Client(cluster) as client:
-        yield client
+    """A 2-worker Dask LocalCluster as ``--cluster local:2`` starts it (worker processes,
+    one thread each), without the dashboard."""
+    pytest.importorskip("distributed")
+    from neuralmap.cluster import open_cluster
+
+    with open_cluster("local:2", dashboard_address=None) as dispatcher:
+        assert dispatcher.workers == 2
+        yield dispatcher.client
 
 
 @pytest.fixture(scope="module")
@@ -64,10 +67,8 @@ def test_batches_of_several_blocks_do_not_depend_on_the_chunking(setup) -> None:
     _same(one, many)
 
 
-@pytest.mark.slow
 def test_dask_cluster_equals_one_process(setup, dask_client) -> None:  # noqa: ANN001
-    """Chunks dealt to two Dask worker processes: bit-identical to this process, run by run
-    (the study-level test in tests/studies/test_studies_tan_scale.py runs by default)."""
+    """Chunks dealt to two Dask worker processes: bit-identical to this process, run by run."""
     scenario, tile, methods = setup
     kwargs = {"n_runs": 7, "seed": 5, "tile": tile, "keep_errors": True, "block_runs": 2,
               "batch_runs": 2, "chunk_runs": 2}
@@ -79,6 +80,37 @@ def test_dask_cluster_equals_one_process(setup, dask_client) -> None:  # noqa: A
     chunks = [task for task in stream.data if str(task["key"]).startswith("tan-chunk")]
     assert len(chunks) == here.n_chunks == dask.n_chunks == 4  # every chunk ran on a worker
     _same(here, dask)
+
+
+def test_filters_on_a_dask_cluster_equal_this_process(setup, dask_client) -> None:  # noqa: ANN001
+    """One filter per task (the TAN and learned studies' Monte Carlo): every FilterRun field
+    bit-identical to run_filter here, a policy and a second tuning included."""
+    import dataclasses
+
+    from distributed import get_task_stream
+
+    from neuralmap.filters.policies.registry import make_policy
+    from neuralmap.nav.monte_carlo import FilterJob, run_filters
+    from neuralmap.nav.simulator import simulate
+
+    scenario, tile, methods = setup
+    truth = simulate(scenario, tile, n_runs=6, seed=3)
+    tuned = dataclasses.replace(scenario, R_m2=4.0 * scenario.R_m2)
+    jobs = {"bilinear": FilterJob(methods["bilinear"], scenario),
+            "nine_point": FilterJob(methods["nine_point"], tuned),
+            "igg3": FilterJob(methods["bilinear"], scenario, policy=make_policy("igg3"))}
+    here = run_filters(truth, jobs)
+    with get_task_stream(dask_client) as stream:
+        dask = run_filters(truth, jobs, cluster=dask_client)
+    assert len([t for t in stream.data if str(t["key"]).startswith("tan-filter")]) == 3
+    assert list(dask) == list(jobs)
+    for name in jobs:
+        for f in dataclasses.fields(here[name]):
+            a, b = getattr(here[name], f.name), getattr(dask[name], f.name)
+            if isinstance(a, torch.Tensor):  # exact, NaN where no update happened
+                torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True,
+                                           msg=f"{name}.{f.name}")
+    assert not torch.equal(here["bilinear"].P, here["nine_point"].P)  # the jobs differ
 
 
 def test_first_block_is_the_plain_simulation(setup) -> None:  # noqa: ANN001

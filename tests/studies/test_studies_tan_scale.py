@@ -39,9 +39,11 @@ def test_tan_scale_tiny_chunking_does_not_change_results(tmp_path: Path) -> None
     assert three["methods"]["bilinear"]["n_included"] == 1100
 
 
+@pytest.mark.slow
 def test_tan_scale_on_a_local_dask_cluster_equals_one_process(tmp_path: Path) -> None:
     """``--cluster local:2`` (two worker processes) against ``--cluster none``: the results
-    of the study, bit for bit (3 chunks of one seed block each)."""
+    of the study, bit for bit (3 chunks of one seed block each; the chunks themselves run
+    by run on a 2-worker cluster by default in tests/nav/test_nav_chunked.py)."""
     pytest.importorskip("distributed")
     args = ("--n_runs", "2100", "--chunk_runs", "1024", "--batch_runs", "1024")
     here = _run(tmp_path / "here", *args)

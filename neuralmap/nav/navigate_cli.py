@@ -28,9 +28,16 @@ PROG = "neuralmap-navigate"
 EXIT_BAD_INPUT = 2
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the toolkit's refusal style: one ``error:`` line, exit 2."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line parser."""
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog=PROG, description="Navigate a recorded flight (INS + radar altimeter) over a map "
         "with terrain-aided navigation; writes fixes with covariance and status.")
     p.add_argument("log", help="Flight log: map-frame CSV/NPZ (time, ins_x, ins_y, ins_h, "
@@ -70,7 +77,10 @@ def main(argv: list[str] | None = None) -> int:
         0 on success, 2 on bad input (one ``error:`` line on stderr, nothing written), 130
         when interrupted.
     """
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a bad option (2, one error line printed)
+        return exc.code if isinstance(exc.code, int) else 0
     import torch
 
     from neuralmap.exceptions import NeuralMapError

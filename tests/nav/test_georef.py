@@ -140,3 +140,29 @@ def test_vertical_datum_rules() -> None:
     with pytest.raises(NeuralMapError, match="below the map surface"):
         check_datum(np.full(50, 390.0), ground, np.full(50, 5.0), sigma_m=10.0,
                     alt_datum="ellipsoidal", where="w")
+
+
+def test_trained_map_carries_its_frame_and_fit_error(tmp_path: Path) -> None:
+    """A neural_map.pt records the tile's georeference and fit error: --map on it gives the
+    same frame as the DEM and the map error variance σ_DEM² + σ_fit²."""
+    from neuralmap.terrain.blockwise import BlockwiseTerrainNet
+    from neuralmap.terrain.export import save_map
+
+    h = _heights()
+    tif = write_geotiff(tmp_path / "utm.tif", h, crs="EPSG:32617", west=600000.0,
+                        north=4050000.0, dx=30.0, dy=30.0)
+    dem = resolve_map(str(tif), dem_accuracy_m=2.0)
+    net = BlockwiseTerrainNet.from_tile(dem.tile, block_nodes=24, hidden=8)
+    path = save_map(net, tmp_path / "neural_map.pt", metrics={"rmse_m": 1.5})
+    trained = resolve_map(str(path), dem_accuracy_m=2.0)
+    assert trained.kind == "trained_map" and dem.kind == "dem"
+    assert trained.extent == pytest.approx(dem.extent)
+    assert trained.map_error_variance == pytest.approx(2.0**2 + 1.5**2)
+    assert dem.map_error_variance == pytest.approx(2.0**2)
+    lat, lon = dem.frame.to_geo(np.array([100.0, 900.0]), np.array([50.0, 1000.0]))
+    np.testing.assert_array_equal(np.stack(trained.frame.to_map(lat, lon)),
+                                  np.stack(dem.frame.to_map(lat, lon)))
+    preview = trained.preview_tile()
+    assert preview.extent == pytest.approx(dem.extent) and np.isfinite(preview.heights).all()
+    with pytest.raises(NeuralMapError, match="not an embedded tile"):
+        resolve_map(str(tmp_path / "missing.tif"))

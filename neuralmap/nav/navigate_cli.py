@@ -67,6 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1, help="torch threads (default 1).")
     p.add_argument("--tensorboard", default="true", choices=("true", "false"),
                    help="Write TensorBoard events (default true).")
+    p.add_argument("--progress", default="true", choices=("true", "false"),
+                   help="Progress bar on a terminal, heartbeat lines otherwise (default true).")
     return p
 
 
@@ -97,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
             reference=args.reference, alt_datum=args.alt_datum,
             geoid_undulation=args.geoid_undulation, dem_accuracy_m=args.dem_accuracy_m,
             datum_check=not args.no_datum_check, dtype=args.dtype, threads=args.threads,
-            tensorboard=args.tensorboard == "true")
+            tensorboard=args.tensorboard == "true", progress=args.progress == "true")
         config.validate()
         if config.threads is not None:
             torch.set_num_threads(config.threads)

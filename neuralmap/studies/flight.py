@@ -63,7 +63,6 @@ class FlightStudyConfig(StudyConfig):
     study: str = "flight"
     experiment: str = "flight"
     threads: int | None = 1
-    progress: bool = False
     log: str | None = None
     map: str | None = None
     navigator: str | None = None
@@ -206,12 +205,29 @@ def navigate_flight(config: FlightStudyConfig) -> FlightNavigation:
           f"({float(flight.t[-1] - flight.t[0]):.1f} s) from {flight.source}, map "
           f"{source.name} ({source.kind}), method {nav_cfg.method}", flush=True)
     start = time.perf_counter()
-    track = navigator.replay(flight.t, flight.ins_position, flight.ins_altitude,
-                             flight.clearance)
+    track = _replay(navigator, flight, progress=config.progress)
     seconds = time.perf_counter() - start
     return FlightNavigation(config=config, source=source, flight=flight,
                             navigator_config=nav_cfg, track=track, datum=datum, noise=noise,
                             seconds=seconds)
+
+
+def _replay(navigator: Any, flight: Any, *, progress: bool) -> Any:
+    """:meth:`Navigator.replay` with a progress bar (heartbeat lines off a terminal): the
+    same reset and :meth:`Navigator.step` per epoch, so the same fixes bit for bit."""
+    from neuralmap.nav.fix import FixTrack
+    from neuralmap.progress import stage_progress
+
+    k = flight.n_epochs
+    navigator.reset()
+    fixes = []
+    with stage_progress("navigate", k, "epochs", enabled=progress) as advance:
+        for i in range(k):
+            fixes.append(navigator.step(flight.t[i], flight.ins_position[:, i],
+                                        flight.ins_altitude[:, i], flight.clearance[:, i]))
+            if advance is not None:
+                advance(1.0 / k)
+    return FixTrack.stack(fixes, counts=navigator.counts)
 
 
 def write_flight(nav: FlightNavigation, outputs: StudyOutputs) -> None:

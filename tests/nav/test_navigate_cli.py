@@ -190,6 +190,32 @@ def test_refused_log_one_error_line_exit_2_nothing_written(
     assert not out.exists()
 
 
+def test_counted_cases_reach_the_report(study_flight, tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """Missing radar, a clearance outside the sensor's range and a time gap are counted (by
+    the reader and by the navigator), not refused."""
+    def edit(rows: list[list[str]]) -> None:
+        rows[4][5] = ""            # missing radar
+        rows[8][5] = "nan"         # missing radar
+        rows[12][5] = "-5.0"       # below clearance_min_m
+        del rows[20:22]            # a 3 s step: one gap (flight 0)
+
+    log = _edit_log(study_flight["log"], tmp_path / "counted.csv", edit)
+    # a 2-flight log needs both flights on the same times: keep flight 0 only
+    rows = [r for r in csv.reader(log.open(newline="")) if r[0] in ("flight", "0")]
+    with log.open("w", newline="") as handle:
+        csv.writer(handle).writerows(rows)
+    out = tmp_path / "out"
+    code = main([str(log), "--map", str(study_flight["tif"]), "--config",
+                 str(study_flight["nav"]), "--out", str(out), "--tensorboard", "false"])
+    assert code == 0, capsys.readouterr().err
+    counts = json.loads((_only_version(out) / "results.json").read_text())["counts"]
+    assert counts["input_missing_radar"] == 2 and counts["missing_radar"] == 2
+    assert counts["input_out_of_range"] == 1 and counts["out_of_range"] == 1
+    assert counts["input_gaps"] == 1 and counts["gaps"] == 1
+    status = [r["status"] for r in _read_csv(_only_version(out) / "navigation.csv")]
+    assert status.count("no_measurement") == 3
+
+
 def test_gnss_outage_example_tiny(tmp_path: Path) -> None:
     """The worked GNSS/INS -> TAN hand-over at its tiny size: the KF-GINS result and radar
     log go through neuralmap-navigate, the navigator tracks the whole outage and its error

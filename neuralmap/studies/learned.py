@@ -44,11 +44,11 @@ from neuralmap.learning.noise_model import NoiseModel
 from neuralmap.linearize.factory import make_linearizer
 from neuralmap.nav.metrics import divergence_rule, navigation_metrics
 from neuralmap.nav.model import TanModel
-from neuralmap.nav.monte_carlo import run_filter
+from neuralmap.nav.monte_carlo import FilterJob, run_filters
 from neuralmap.nav.pcrb import pcrb, pcrb_position
 from neuralmap.nav.scenario import load_scenario
 from neuralmap.nav.simulator import simulate
-from neuralmap.studies.base import StudyConfig
+from neuralmap.studies.cluster_options import ClusterOptions
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.setup import prepare_tan
 from neuralmap.terrain.grid import GridTerrain
@@ -60,7 +60,7 @@ _STATES = ("x", "y", "h", "vx", "vy")
 
 
 @dataclass
-class LearnedStudyConfig(StudyConfig):
+class LearnedStudyConfig(ClusterOptions):
     """Options of the learned-filter study (``study: learned``).
 
     Attributes:
@@ -87,6 +87,9 @@ class LearnedStudyConfig(StudyConfig):
         em_flights, em_steps, em_max_iter: The linear-Gaussian EM comparison.
         target_param_rel, target_em_rel, target_map_ratio: Targets.
         pcrb_factor, divergence_sigma: Divergence rule (as the tan study).
+        cluster: Where the configurations' test filters run (one task per configuration on
+            a Dask cluster, :func:`neuralmap.nav.monte_carlo.run_filters`; bit-identical);
+            default this process. Noise learning, refinement and EM run here.
     """
 
     study: str = "learned"
@@ -395,11 +398,12 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
 
     metrics: dict[str, Any] = {}
     rows = []
-    for name, (scn, lin, policy, map_label) in configurations.items():
-        if policy is not None:
-            run_ = run_filter(test, lin, scn, method=name, policy=policy)
-        else:
-            run_ = run_filter(test, lin, scn, method=name)
+    filter_runs = run_filters(
+        test, {name: FilterJob(lin, scn, policy=policy)
+               for name, (scn, lin, policy, _) in configurations.items()},
+        cluster=config.cluster, progress=config.progress)
+    for name, (_, _, _, map_label) in configurations.items():
+        run_ = filter_runs[name]
         m = navigation_metrics(run_, pcrb_pos, pcrb_factor=config.pcrb_factor,
                                divergence_sigma=config.divergence_sigma)
         metrics[name] = m

@@ -40,6 +40,11 @@ _EXPORTS: dict[str, str] = {
     "AugmentedTanModel": "augmented",
     "augment_information": "augmented",
     "paper_tan_model": "augmented",
+    "MapFrame": "georef",
+    "FlightInput": "flight_input",
+    "read_flight_input": "flight_input",
+    "MapSource": "map_source",
+    "resolve_map": "map_source",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -166,3 +166,11 @@ def test_trained_map_carries_its_frame_and_fit_error(tmp_path: Path) -> None:
     assert preview.extent == pytest.approx(dem.extent) and np.isfinite(preview.heights).all()
     with pytest.raises(NeuralMapError, match="not an embedded tile"):
         resolve_map(str(tmp_path / "missing.tif"))
+
+
+def test_projected_map_without_pyproj_names_the_extra(monkeypatch) -> None:  # noqa: ANN001
+    import sys
+
+    monkeypatch.setitem(sys.modules, "pyproj", None)  # import pyproj -> ImportError
+    with pytest.raises(NeuralMapError, match=r"pip install 'neuralmap\[nav\]'"):
+        MapFrame(ProjectedReference(0.0, 0.0, crs="EPSG:32617"))

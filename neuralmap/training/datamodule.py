@@ -151,6 +151,26 @@ def _is_mosaic(path: str | list[str]) -> bool:
     return any(c in path for c in "*?[") and not Path(path).exists()
 
 
+def spacing_argument(spacing: float | list[float] | None
+                     ) -> float | tuple[float, ...] | None:
+    """``--data.spacing`` as :func:`neuralmap.dem.load_tile` takes it: one number (square
+    cells) or ``[dx, dy]`` metres, the same in every ``train.py`` mode.
+
+    Raises:
+        NeuralMapError: Neither a number nor two numbers.
+    """
+    if spacing is None:
+        return None
+    if np.ndim(spacing) == 0:
+        return float(spacing)  # type: ignore[arg-type]
+    values = tuple(spacing)  # type: ignore[arg-type]
+    if len(values) != 2:
+        raise NeuralMapError(
+            f"--data.spacing {list(values)}: give one number (square cells) or two, "
+            "[dx, dy] metres, e.g. --data.spacing [30,30].")
+    return tuple(float(v) for v in values)
+
+
 class DemDataModule(pl.LightningDataModule):
     """The valid nodes of one DEM tile, split into training and validation nodes.
 
@@ -260,10 +280,7 @@ class DemDataModule(pl.LightningDataModule):
         self.refit_epochs = int(refit_epochs)
         self.refit_epochs_requested = int(refit_epochs)
         self.refit_note: str | None = None
-        spacing_arg: float | tuple[float, ...] | None = None
-        if spacing is not None:
-            scalar = np.ndim(spacing) == 0
-            spacing_arg = float(spacing) if scalar else tuple(spacing)  # type: ignore[arg-type]
+        spacing_arg = spacing_argument(spacing)
         if tile_given:
             self.tile: DemTile = path  # type: ignore[assignment]
         elif mosaic:

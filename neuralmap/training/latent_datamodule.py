@@ -17,6 +17,7 @@ from torch.utils.data import DataLoader, Dataset
 from neuralmap.dem import load_tile
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.training.datamodule import spacing_argument
 
 
 class _Steps(Dataset):
@@ -40,14 +41,15 @@ class LatentDataModule(pl.LightningDataModule):
     Args:
         path: Sample name (``jacksboro``, ``synthetic``, ``synthetic:64x48``) or a DEM file
             (:func:`neuralmap.dem.load_tile`); from Python also a :class:`DemTile`.
-        spacing: Grid spacing override in metres (for files without one).
+        spacing: Grid spacing in metres for files that do not carry it: one number or
+            ``[dx, dy]`` (as ``train.py map``'s ``--data.spacing``).
         steps_per_epoch: Optimisation steps per epoch (each over the whole tile).
 
     Raises:
         NeuralMapError: Bad path / file, or ``steps_per_epoch`` < 1.
     """
 
-    def __init__(self, path: str | Path = "jacksboro", spacing: float | None = None,
+    def __init__(self, path: str | Path = "jacksboro", spacing: float | list[float] | None = None,
                  steps_per_epoch: int = 100) -> None:
         super().__init__()
         if int(steps_per_epoch) < 1:
@@ -57,7 +59,7 @@ class LatentDataModule(pl.LightningDataModule):
         if isinstance(path, DemTile):
             self.tile: DemTile = path
         else:
-            self.tile = load_tile(str(path), spacing=spacing)
+            self.tile = load_tile(str(path), spacing=spacing_argument(spacing))  # type: ignore[arg-type]
         rank_zero_info(
             f"tile '{self.tile.name}': {self.tile.shape[0]} x {self.tile.shape[1]} nodes, "
             f"spacing {self.tile.spacing[0]:.2f} x {self.tile.spacing[1]:.2f} m")

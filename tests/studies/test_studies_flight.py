@@ -84,3 +84,17 @@ def test_study_without_log_is_refused(tmp_path: Path, capsys) -> None:  # noqa: 
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "--log LOG is required" in err[0]
     assert not (tmp_path / "runs").exists()
+
+
+def test_study_refuses_a_bad_log_with_one_line(small_log, tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    log, nav = small_log
+    rows = log.read_text().splitlines()
+    rows[3], rows[4] = rows[4], rows[3]  # time out of order at line 5
+    bad = tmp_path / "bad.csv"
+    bad.write_text("\n".join(rows) + "\n")
+    code = evaluate_main(["--config", str(config_file("flight_tiny.yaml")), "--log", str(bad),
+                          "--navigator", str(nav), "--runs_dir", str(tmp_path / "runs")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert err[0].startswith("evaluate.py: error: ") and "line 5, column 1 ('time')" in err[0]
+    assert not (tmp_path / "runs").exists()

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from neuralmap.cluster import open_cluster
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.nav.acquisition import (
@@ -36,7 +37,7 @@ from neuralmap.nav.acquisition import (
 from neuralmap.nav.metrics import bound_rms_last_half, divergence_rule, navigation_metrics, nees
 from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
 from neuralmap.nav.simulator import simulate
-from neuralmap.studies.base import StudyConfig
+from neuralmap.studies.cluster_options import ClusterOptions
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.setup import dem_error_model, prepare_tan
 from neuralmap.terrain.base import inside_extent
@@ -51,7 +52,7 @@ _MAP_LINEARIZERS = {"grid": "bilinear", "neural": "neural_region"}
 
 
 @dataclass
-class AcquisitionStudyConfig(StudyConfig):
+class AcquisitionStudyConfig(ClusterOptions):
     """Options of the acquisition study (``study: acquisition``).
 
     Attributes:
@@ -98,6 +99,10 @@ class AcquisitionStudyConfig(StudyConfig):
         n_runs_flat: Runs of the flat leg.
         pcrb_factor: Divergence when the final error exceeds this times the final PCRB.
         divergence_sigma: ... or this many times the filter's own 1σ horizontal bound.
+        cluster: Where the rows run: default this process (row by row, the progress bar
+            step by step); on a Dask cluster (``local:N``, ``tcp://HOST:8786``) every row
+            (σ0 × map × method) is one task, dealt once all σ0 are simulated (their inputs
+            are held together), with the same results bit for bit. The flat leg runs here.
     """
 
     study: str = "acquisition"
@@ -315,6 +320,23 @@ def _likelihood_map(setup: Any, config: AcquisitionStudyConfig, notes: list[str]
     return baked
 
 
+def _run_row(_: Any, job: dict[str, Any], *, progress: Any = None) -> dict[str, Any]:
+    """One row (one method on one σ0 and map): in this process or as a cluster's task.
+
+    Returns:
+        ``{"result": AcquisitionResult}``, or ``{"error": message}`` when the method refused
+        its input (the study keeps the other rows and reports this one).
+    """
+    torch.set_num_threads(int(job["threads"]))  # the caller's: the same rounding
+    try:
+        return {"result": run_acquisition(job["inputs"], method=job["method"],
+                                          terrain=job["terrain"], linearizer=job["linearizer"],
+                                          config=job["config"], name=job["name"],
+                                          progress=progress)}
+    except NeuralMapError as exc:
+        return {"error": str(exc)}
+
+
 def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     """Runs the acquisition study and fills ``outputs``.
 
@@ -359,79 +381,118 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
 
         bar = ProgressLines(total=len(config.sigmas_m) * len(maps) * len(config.methods),
                             desc="acquisition", unit="row")
-    for sigma in config.sigmas_m:
-        scenario = scenario_at_sigma(base, float(sigma), tile.extent)
-        per_sigma: dict[str, Any] = {}
-        for kind, (terrain, lin, extra_r) in maps.items():
-            n = config.n_runs if kind == "grid" or config.n_runs_neural is None else min(
-                config.n_runs, config.n_runs_neural)
-            truth = simulate(scenario, tile, n_runs=n, seed=seed, dtype=dtype, device=device,
-                             truth_terrain=truth_terrain)
-            # runs whose truth leaves the map (or whose INS starts off it: draws beyond the
-            # ±3σ0 the start keeps on the tile) are counted and excluded, as in `tan`
-            kept = truth.on_map.all(dim=1) & inside_extent(truth.ins_pos[:, 0, :2],
-                                                           truth.extent)
-            n_off = int((~kept).sum())
-            off_map[f"{sigma:g}/{kind}"] = {"runs": n, "off_map": n_off}
-            if n_off:
-                print(f"acquisition: sigma0 {sigma:g} m, {kind}: {n_off} of {n} runs leave the "
-                      "map (or start off it); excluded and counted", flush=True)
-            if not bool(kept.any()):
-                notes.append(f"sigma0 {sigma:g} m, {kind}: all {n} runs leave the map; no rows.")
-                continue
-            bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
-                                       runs=kept)).to("cpu")
-            bound_map = map_bound(truth, scenario, kept)
-            inputs = _runs_on_map(tan_inputs(truth, scenario), kept)
-            inputs = dataclasses.replace(inputs, R=inputs.R + extra_r)
-            for method in config.methods:
-                cfg = acq_cfg
-                if method == "point_mass" and config.adaptive_point_mass:
-                    cfg = dataclasses.replace(acq_cfg, adaptive=True)
-                run_inputs, run_bound, run_bound_map = inputs, bound, bound_map
-                if method == "point_mass_tracker" and config.n_runs_tracker is not None:
-                    sub = kept & (torch.cumsum(kept.long(), 0) <= config.n_runs_tracker)
-                    if int(sub.sum()) < int(kept.sum()):
-                        run_inputs = _runs_on_map(inputs, sub[kept])
-                        run_bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
-                                                       runs=sub)).to("cpu")
-                        run_bound_map = map_bound(truth, scenario, sub)
-                if bar is not None:
-                    bar.set_description(f"acquisition sigma0 {sigma:g} m, {kind}, {method}")
-                try:
-                    # the bar advances step by step inside the row (heartbeat lines)
-                    res = run_acquisition(run_inputs, method=method, terrain=terrain,
-                                          linearizer=lin, config=cfg, name=f"{method}/{kind}",
-                                          progress=None if bar is None else bar.update)
-                except NeuralMapError as exc:  # keep every finished stage; report this one
-                    notes.append(f"sigma0 {sigma:g} m, {kind}, {method} failed: {exc}")
-                    print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method} failed: {exc}",
-                          flush=True)
+    threads = torch.get_num_threads()
+
+    def stages() -> Any:
+        """Per (σ0, map): the simulated runs' bounds and one job per method's row."""
+        for sigma in config.sigmas_m:
+            scenario = scenario_at_sigma(base, float(sigma), tile.extent)
+            results["sigmas"][f"{sigma:g}"] = {}
+            for kind, (terrain, lin, extra_r) in maps.items():
+                n = config.n_runs if kind == "grid" or config.n_runs_neural is None else min(
+                    config.n_runs, config.n_runs_neural)
+                truth = simulate(scenario, tile, n_runs=n, seed=seed, dtype=dtype,
+                                 device=device, truth_terrain=truth_terrain)
+                # runs whose truth leaves the map (or whose INS starts off it: draws beyond
+                # the ±3σ0 the start keeps on the tile) are counted and excluded, as in `tan`
+                kept = truth.on_map.all(dim=1) & inside_extent(truth.ins_pos[:, 0, :2],
+                                                               truth.extent)
+                n_off = int((~kept).sum())
+                off_map[f"{sigma:g}/{kind}"] = {"runs": n, "off_map": n_off}
+                if n_off:
+                    print(f"acquisition: sigma0 {sigma:g} m, {kind}: {n_off} of {n} runs leave "
+                          "the map (or start off it); excluded and counted", flush=True)
+                if not bool(kept.any()):
+                    notes.append(f"sigma0 {sigma:g} m, {kind}: all {n} runs leave the map; "
+                                 "no rows.")
                     continue
-                m = _row_metrics(res, run_bound, config, scenario.dt)
-                m["n_off_map"] = n_off
-                m["pcrb_map_pos_m"] = bound_rms_last_half(run_bound_map)
-                m["pcrb_map_ratio_all"] = (
-                    m["rmse_pos_m"] / m["pcrb_map_pos_m"]
-                    if m["rmse_pos_m"] is not None and m["pcrb_map_pos_m"] else None)
-                per_sigma[f"{kind}/{method}"] = m
-                curves[f"{sigma:g}/{kind}/{method}"] = m["rmse_pos_curve"]
-                rows.append([sigma, kind, method, m["n_included"], n_off, m["n_diverged"],
-                             m["rmse_pos_m"], m["pcrb_pos_m"], m["pcrb_ratio_all"],
-                             m["pcrb_ratio_converged"], m["pcrb_map_pos_m"],
-                             m["pcrb_map_ratio_all"], m["acquired_fraction"],
-                             m["time_to_acquire_median_s"], m["handoff_median_s"],
-                             m["n_fallbacks"], m["n_recoveries"], m["wall_s"],
-                             m["cell_updates_per_s"]])
-                print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method}: diverged "
-                      f"{m['n_diverged']}/{m['n_included']}, RMSE/PCRB "
-                      f"{_fmt(m['pcrb_ratio_all'])} (map-aware {_fmt(m['pcrb_map_ratio_all'])}), "
-                      f"wall {m['wall_s']:.1f} s", flush=True)
-            curves[f"{sigma:g}/pcrb"] = bound.tolist()
-            curves[f"{sigma:g}/pcrb_map_aware"] = bound_map.tolist()
-        results["sigmas"][f"{sigma:g}"] = per_sigma
-    if bar is not None:
-        bar.close()
+                bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
+                                           runs=kept)).to("cpu")
+                bound_map = map_bound(truth, scenario, kept)
+                inputs = _runs_on_map(tan_inputs(truth, scenario), kept)
+                inputs = dataclasses.replace(inputs, R=inputs.R + extra_r)
+                jobs = []
+                for method in config.methods:
+                    cfg = acq_cfg
+                    if method == "point_mass" and config.adaptive_point_mass:
+                        cfg = dataclasses.replace(acq_cfg, adaptive=True)
+                    run_inputs, run_bound, run_bound_map = inputs, bound, bound_map
+                    if method == "point_mass_tracker" and config.n_runs_tracker is not None:
+                        sub = kept & (torch.cumsum(kept.long(), 0) <= config.n_runs_tracker)
+                        if int(sub.sum()) < int(kept.sum()):
+                            run_inputs = _runs_on_map(inputs, sub[kept])
+                            run_bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
+                                                           runs=sub)).to("cpu")
+                            run_bound_map = map_bound(truth, scenario, sub)
+                    jobs.append({"inputs": run_inputs, "method": method, "terrain": terrain,
+                                 "linearizer": lin, "config": cfg, "name": f"{method}/{kind}",
+                                 "threads": threads, "bound": run_bound,
+                                 "bound_map": run_bound_map})
+                del truth
+                yield {"sigma": sigma, "kind": kind, "scenario": scenario, "n_off": n_off,
+                       "bound": bound, "bound_map": bound_map, "jobs": jobs}
+
+    def finish(stage: dict[str, Any], outs: list[dict[str, Any]]) -> None:
+        """The rows, curves and lines of one (σ0, map) from its finished rows."""
+        sigma, kind, n_off = stage["sigma"], stage["kind"], stage["n_off"]
+        per_sigma = results["sigmas"][f"{sigma:g}"]
+        for job, out in zip(stage["jobs"], outs, strict=True):
+            method = job["method"]
+            if "error" in out:  # keep every finished stage; report this one
+                notes.append(f"sigma0 {sigma:g} m, {kind}, {method} failed: {out['error']}")
+                print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method} failed: "
+                      f"{out['error']}", flush=True)
+                continue
+            m = _row_metrics(out["result"], job["bound"], config, stage["scenario"].dt)
+            m["n_off_map"] = n_off
+            m["pcrb_map_pos_m"] = bound_rms_last_half(job["bound_map"])
+            m["pcrb_map_ratio_all"] = (
+                m["rmse_pos_m"] / m["pcrb_map_pos_m"]
+                if m["rmse_pos_m"] is not None and m["pcrb_map_pos_m"] else None)
+            per_sigma[f"{kind}/{method}"] = m
+            curves[f"{sigma:g}/{kind}/{method}"] = m["rmse_pos_curve"]
+            rows.append([sigma, kind, method, m["n_included"], n_off, m["n_diverged"],
+                         m["rmse_pos_m"], m["pcrb_pos_m"], m["pcrb_ratio_all"],
+                         m["pcrb_ratio_converged"], m["pcrb_map_pos_m"],
+                         m["pcrb_map_ratio_all"], m["acquired_fraction"],
+                         m["time_to_acquire_median_s"], m["handoff_median_s"],
+                         m["n_fallbacks"], m["n_recoveries"], m["wall_s"],
+                         m["cell_updates_per_s"]])
+            print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method}: diverged "
+                  f"{m['n_diverged']}/{m['n_included']}, RMSE/PCRB "
+                  f"{_fmt(m['pcrb_ratio_all'])} (map-aware {_fmt(m['pcrb_map_ratio_all'])}), "
+                  f"wall {m['wall_s']:.1f} s", flush=True)
+        curves[f"{sigma:g}/pcrb"] = stage["bound"].tolist()
+        curves[f"{sigma:g}/pcrb_map_aware"] = stage["bound_map"].tolist()
+
+    try:
+        with open_cluster(config.cluster) as dispatcher:
+            if dispatcher.client is None:  # row by row; the bar advances step by step inside
+                for stage in stages():
+                    outs = []
+                    for job in stage["jobs"]:
+                        if bar is not None:
+                            bar.set_description(f"acquisition sigma0 {stage['sigma']:g} m, "
+                                                f"{stage['kind']}, {job['method']}")
+                        outs.append(_run_row(None, job,
+                                             progress=None if bar is None else bar.update))
+                    finish(stage, outs)
+            else:  # every row a task; the cluster reports each finished row
+                staged = list(stages())
+                if bar is not None:
+                    bar.set_description(f"acquisition rows on {dispatcher.description}")
+                outs = dispatcher.map(
+                    _run_row, [job for stage in staged for job in stage["jobs"]],
+                    name="acquisition-row",
+                    on_done=None if bar is None else lambda _, __: bar.update(1),
+                    on_idle=None if bar is None else lambda: bar.update(0))
+                start = 0
+                for stage in staged:
+                    finish(stage, outs[start:start + len(stage["jobs"])])
+                    start += len(stage["jobs"])
+    finally:
+        if bar is not None:
+            bar.close()
     flat = None
     if config.flat_leg:
         try:

@@ -1,10 +1,12 @@
-"""Acquisition study: runs that leave the map are counted and excluded, never fatal."""
+"""Acquisition study: runs that leave the map are counted and excluded, never fatal; the rows
+on a Dask cluster equal those of one process."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[2]
@@ -57,3 +59,29 @@ def test_tracker_rows_fly_the_first_n_runs_tracker_runs(tmp_path: Path) -> None:
     assert results["pcrb_map_aware"]["map_error_m2"] > 0
     claims = [c["claim"] for c in results["claims"]]
     assert any("point_mass_tracker" in c and "map-aware PCRB" in c for c in claims)
+
+
+@pytest.mark.slow
+def test_rows_on_a_local_dask_cluster_equal_this_process(tmp_path: Path) -> None:
+    """Every row (σ0 × map × method) one task on two Dask workers: the rows, curves and
+    off-map counts of this process, bit for bit (wall times aside)."""
+    pytest.importorskip("distributed")
+    from neuralmap.studies.cli import main
+
+    def study(name: str, cluster: str) -> dict:  # type: ignore[type-arg]
+        code = main(["--config", str(REPO / "configs" / "acquisition_tiny.yaml"),
+                     "--runs_dir", str(tmp_path / name), "--n_runs_tracker", "4",
+                     "--flat_leg", "false", "--tensorboard", "false", "--cluster", cluster])
+        assert code == 0
+        return json.loads((tmp_path / name / "acquisition_tiny" / "version_0" /
+                           "results.json").read_text())
+
+    here, dask = study("here", "none"), study("dask", "local:2")
+    timing = ("wall_s", "cell_updates_per_s")
+    rows = [(s, k) for s, per in here["sigmas"].items() for k in per]
+    assert len(rows) == 8
+    for sigma, key in rows:
+        a, b = here["sigmas"][sigma][key], dask["sigmas"][sigma][key]
+        assert {k: v for k, v in a.items() if k not in timing} == {
+            k: v for k, v in b.items() if k not in timing}, (sigma, key)
+    assert here["curves"] == dask["curves"] and here["off_map"] == dask["off_map"]

@@ -13,9 +13,12 @@ from __future__ import annotations
 import math
 import sys
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from typing import IO, Any
 
-__all__ = ["ProgressLines", "format_duration", "is_terminal", "progress_bar", "progress_line"]
+__all__ = ["ProgressLines", "ScaledUpdates", "format_duration", "is_terminal", "progress_bar",
+           "progress_line", "stage_progress"]
 
 #: Seconds between two heartbeat lines inside one stage.
 HEARTBEAT_S = 60.0
@@ -143,6 +146,58 @@ class ProgressLines:
         self.close()
 
 
+class ScaledUpdates:
+    """A bar-like object whose ``update(n)`` reports ``n * scale`` to a callback.
+
+    Lets a loop that advances a bar one unit per step (``run_filter``) feed a stage's
+    fraction callback (``progress(fraction)``).
+
+    Args:
+        callback: Called with each update's share (e.g. a bar's ``update``).
+        scale: Share of one unit.
+    """
+
+    def __init__(self, callback: Callable[[float], Any], scale: float) -> None:
+        self.callback = callback
+        self.scale = float(scale)
+
+    def update(self, n: float = 1) -> None:
+        """Reports ``n`` units."""
+        self.callback(n * self.scale)
+
+
+@contextmanager
+def stage_progress(desc: str, total: float, unit: str, *, enabled: bool = True
+                   ) -> Iterator[Callable[[float], None] | None]:
+    """A bar (or log lines) for one stage, as a callback of the fraction of it done.
+
+    Library loops take ``progress: Callable[[float], None] | None`` and call it with the
+    share of their work each step finishes (:func:`neuralmap.nav.acquisition.
+    run_acquisition`, :func:`neuralmap.nav.tracking.run_tracker`, the PCRB, the noise
+    derivation); a study wraps each stage in this: the bar counts ``total`` units of
+    ``unit`` (steps, runs), prints a heartbeat line at least every :data:`HEARTBEAT_S`
+    seconds while the stage runs when stdout is not a terminal, and its last line when
+    the stage ends.
+
+    Args:
+        desc: What runs (the line's prefix).
+        total: Units in the whole stage (a fraction f is ``f * total`` units).
+        unit: Name of one unit.
+        enabled: False yields None (no output; the loops stay silent).
+
+    Yields:
+        The fraction callback, or None when disabled.
+    """
+    if not enabled:
+        yield None
+        return
+    bar = progress_bar(total=total, desc=desc, unit=unit)
+    try:
+        yield lambda fraction: bar.update(fraction * total)
+    finally:
+        bar.close()
+
+
 def progress_bar(total: float | None = None, desc: str = "", unit: str = "it") -> Any:
     """A tqdm bar on a terminal, :class:`ProgressLines` when stdout is not one.
 
@@ -158,4 +213,4 @@ def progress_bar(total: float | None = None, desc: str = "", unit: str = "it") -
         from tqdm.auto import tqdm
 
         return tqdm(total=total, desc=desc, unit=unit)
-    return ProgressLines(total=total, desc=desc, unit=unit)
+    return ProgressLines(total=total, desc=desc, unit=unit, interval_s=HEARTBEAT_S)

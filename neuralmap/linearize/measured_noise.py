@@ -24,6 +24,7 @@ variance, the table's variance at the filter's current ``σ = sqrt(tr P_xy / 2)`
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -193,6 +194,7 @@ def measure_linearization_noise(
     draws: int = 8,
     seed: int = 0,
     local: bool = False,
+    progress: Callable[[float], None] | None = None,
 ) -> NoiseTable:
     """Measures a method's miss ``e = t(p̂ + d) − h(p̂) − slope(p̂) · d`` against the truth.
 
@@ -212,6 +214,8 @@ def measure_linearization_noise(
         local: Fit ``e² ≈ a + b u`` on the method's own variance ``u``
             (:func:`fit_offset_scale`, per point ``e²`` averaged over the draws); False:
             ``a = E[e²]``, ``b = 0``.
+        progress: Called with the share of the work done as each σ node ends
+            (:func:`neuralmap.progress.stage_progress`); None = silent.
 
     Returns:
         :class:`NoiseTable` (``variance_m2`` = ``a``, ``scale`` = ``b``).
@@ -245,6 +249,8 @@ def measure_linearization_noise(
             mse[-1], 0.0)
         offset.append(a)
         scale.append(b)
+        if progress is not None:
+            progress(1.0 / len(sig))
     return NoiseTable(tuple(sig), tuple(mse), tuple(mean), tuple(offset), (0.0,) * len(sig),
                       int(n_points), int(draws), int(seed), tuple(scale))
 

@@ -18,6 +18,7 @@ map value.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -142,7 +143,8 @@ def isotonic_increasing(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
 
 def calibrate_noise(linearizer: Any, table: NoiseTable, *, pilot: Any, scenario: Any,
                     model: Any, truth_model: Any, iterations: int = 2,
-                    min_weight: float = 200.0, local: bool = False) -> NoiseTable:
+                    min_weight: float = 200.0, local: bool = False,
+                    progress: Callable[[float], None] | None = None) -> NoiseTable:
     """Replaces a table's ``variance_m2`` by the miss met on pilot flights.
 
     Each iteration flies the EKF (``run_filter``) on ``pilot`` with the current table,
@@ -161,19 +163,24 @@ def calibrate_noise(linearizer: Any, table: NoiseTable, *, pilot: Any, scenario:
         min_weight: Pilot weight a node needs to use the flight value.
         local: Fit ``e² ≈ a + b u`` per node on the method's own variance ``u``
             (:func:`~neuralmap.linearize.measured_noise.fit_offset_scale`, tent weights).
+        progress: Called with the share of the work each pilot step does
+            (:func:`neuralmap.progress.stage_progress`); None = silent.
 
     Returns:
         The table with ``variance_m2`` and ``flight_samples`` from the last iteration.
     """
     from neuralmap.nav.monte_carlo import run_filter
+    from neuralmap.progress import ScaledUpdates
 
     if iterations < 1:
         raise NeuralMapError(f"calibrate_noise: iterations must be >= 1, got {iterations}.")
     current = table
     map_mse = np.asarray(table.map_mse_m2)
     for _ in range(iterations):
+        bar = (False if progress is None
+               else ScaledUpdates(progress, 1.0 / (iterations * pilot.n_steps)))
         run = run_filter(pilot, MeasuredNoiseLinearizer(linearizer, current), scenario,
-                         model=model)
+                         model=model, progress=bar)
         sigma, miss, own = flight_miss(run, pilot, linearizer, model, truth_model)
         mean, weight = binned_mean_square(sigma, miss.square(), current.sigmas_m)
         enough = weight >= min_weight
@@ -198,6 +205,7 @@ def derive_method_noise(methods: dict[str, Any], *, scenario: Any, tile: Any, tr
                         seed: int, n_pilot: int, iterations: int, n_points: int = 4000,
                         draws: int = 8, sigmas: tuple[float, ...] = DEFAULT_NOISE_SIGMAS_M,
                         local: bool = False, pilot_duration_s: float | None = None,
+                        progress: Callable[[float], None] | None = None,
                         ) -> tuple[dict[str, Any], Any, dict[str, Any]]:
     """Measured R for every EKF method: map table, then (``n_pilot > 0``) pilot flights.
 
@@ -223,6 +231,8 @@ def derive_method_noise(methods: dict[str, Any], *, scenario: Any, tile: Any, tr
         pilot_duration_s: Length of the pilot flights (s); None = the scenario's. The
             filter's σ passes from the prior to the converged level in the first part of
             a flight, so a shorter pilot samples the same σ range for less time.
+        progress: Called with the share of the work done (each method an equal share:
+            its map table one part, each pilot flight one more); None = silent.
 
     Returns:
         ``(wrapped methods, scenario without the hand map variance, info)``; ``info`` has
@@ -243,14 +253,21 @@ def derive_method_noise(methods: dict[str, Any], *, scenario: Any, tile: Any, tr
         pilot = simulate(pilot_scenario, tile, n_runs=int(n_pilot), seed=int(seed) + 1,
                          truth_terrain=truth_terrain)
     wrapped, info = {}, {}
+    parts = 1 + (iterations if pilot is not None else 0)  # per method: table + pilot flights
+
+    def share(fraction: float) -> Callable[[float], None] | None:
+        return None if progress is None else (lambda f: progress(f * fraction))
+
     for name, linearizer in methods.items():
         table = measure_linearization_noise(linearizer, truth_model, extent=extent,
                                             sigmas=sigmas, n_points=n_points, draws=draws,
-                                            seed=seed, local=local)
+                                            seed=seed, local=local,
+                                            progress=share(1.0 / (parts * len(methods))))
         if pilot is not None:
             table = calibrate_noise(linearizer, table, pilot=pilot, scenario=pilot_scenario,
                                     model=model, truth_model=truth_model,
-                                    iterations=iterations, local=local)
+                                    iterations=iterations, local=local,
+                                    progress=share((parts - 1) / (parts * len(methods))))
         wrapped[name] = MeasuredNoiseLinearizer(linearizer, table)
         info[name] = {**table.to_dict(),
                       "R_m2": [float(filter_scenario.R_m2) + v for v in table.variance_m2]}

@@ -25,6 +25,7 @@ fine). It equals the Kalman filter covariance when the model is linear-Gaussian.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -154,11 +155,12 @@ def pcrb_position(bound: torch.Tensor) -> torch.Tensor:
     return (bound[:, 0, 0] + bound[:, 1, 1]).clamp_min(0.0).sqrt()
 
 
-def _terrain_slopes(terrain: Any, xy: torch.Tensor) -> torch.Tensor:
+def _terrain_slopes(terrain: Any, xy: torch.Tensor,
+                    progress: Callable[[float], None] | None = None) -> torch.Tensor:
     """``(M, 2)`` terrain slopes at ``(M, 2)`` points (float64), chunked.
 
     Uses ``terrain.height_and_slope`` when the model has it (analytic, e.g. GridTerrain),
-    else autograd of ``terrain(xy)``.
+    else autograd of ``terrain(xy)``. ``progress`` is called with each chunk's share.
     """
     parts = []
     analytic = getattr(terrain, "height_and_slope", None)
@@ -173,6 +175,8 @@ def _terrain_slopes(terrain: Any, xy: torch.Tensor) -> torch.Tensor:
                 height = terrain(pts)
                 (slope,) = torch.autograd.grad(height.sum(), pts)
         parts.append(slope.detach().to(torch.float64))
+        if progress is not None:
+            progress(chunk.shape[0] / xy.shape[0])
     if not parts:
         return torch.zeros(0, 2, dtype=torch.float64, device=xy.device)
     return torch.cat(parts)
@@ -184,6 +188,7 @@ def terrain_information(
     R_m2: float,
     *,
     on_map: torch.Tensor | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Expected measurement information ``E[Hᵀ R⁻¹ H]`` per step over true trajectories.
 
@@ -199,6 +204,8 @@ def terrain_information(
         R_m2: Measurement-noise variance, m².
         on_map: ``(N, K + 1)`` bool, where the measurement exists (default: the terrain's
             ``contains``, or everywhere if it has none).
+        progress: Called with the share of the slope evaluations each chunk does
+            (:func:`neuralmap.progress.stage_progress`); None = silent.
 
     Returns:
         ``(K + 1, 5, 5)`` information per step (float64) and ``(K + 1,)`` the number of
@@ -223,7 +230,7 @@ def terrain_information(
     if tuple(on_map.shape) != (N, steps):
         raise shape_error(where, "on_map", f"(N, K+1) = ({N}, {steps})", on_map.shape)
     flat = xy.reshape(-1, 2).to(torch.float64)
-    slope = _terrain_slopes(terrain, flat).reshape(N, steps, 2)
+    slope = _terrain_slopes(terrain, flat, progress).reshape(N, steps, 2)
     valid = on_map & torch.isfinite(slope).all(-1)
     slope = torch.where(valid.unsqueeze(-1), slope, 0.0)
     w = valid.to(torch.float64)
@@ -243,6 +250,7 @@ def pcrb(
     R_m2: float | None = None,
     runs: torch.Tensor | None = None,
     update_at_step0: bool = False,
+    progress: Callable[[float], None] | None = None,
 ) -> torch.Tensor:
     """PCRB of the 5-state TAN error state over the simulated truth trajectories.
 
@@ -275,6 +283,8 @@ def pcrb(
         R_m2: Measurement variance override, m².
         runs: ``(N,)`` bool, trajectories to include (e.g. those the metrics keep).
         update_at_step0: Add the step-0 measurement information to ``J_0``.
+        progress: Called with the share of the work done (the terrain slopes at the true
+            positions, the costly part); None = silent.
 
     Returns:
         ``(K + 1, 5, 5)`` bound covariances (float64, inverse information), step 0 = prior.
@@ -311,7 +321,7 @@ def pcrb(
         base = on_map if on_map is not None else torch.ones(pos.shape[:2], dtype=torch.bool,
                                                            device=pos.device)
         on_map = base & runs[:, None]
-    info, _ = terrain_information(pos, terrain, float(R_m2), on_map=on_map)
+    info, _ = terrain_information(pos, terrain, float(R_m2), on_map=on_map, progress=progress)
     device = info.device
     return pcrb_recursion(
         P0.to(device),
@@ -331,6 +341,7 @@ def map_aware_pcrb(
     map_error_corr: float = 0.0,
     runs: torch.Tensor | None = None,
     R_m2: float | None = None,
+    progress: Callable[[float], None] | None = None,
 ) -> torch.Tensor:
     """PCRB of a filter that knows the map (the DEM), not the true terrain.
 
@@ -354,6 +365,7 @@ def map_aware_pcrb(
         map_error_corr: Correlation ρ of the map error between successive samples, [0, 1).
         runs: ``(N,)`` bool, trajectories to include.
         R_m2: Altimeter variance override (default: the truth's, ``altimeter_sigma_m²``).
+        progress: As for :func:`pcrb`.
 
     Returns:
         ``(K + 1, 5, 5)`` bound covariances of the navigation states (float64).
@@ -370,7 +382,8 @@ def map_aware_pcrb(
     tan = TanModel.from_scenario(scenario)
     r_alt = tan.truth_R if R_m2 is None else float(R_m2)
     if map_error_corr == 0.0 or map_error_var == 0.0:
-        return pcrb(truth, scenario, map_terrain, R_m2=r_alt + map_error_var, runs=runs)
+        return pcrb(truth, scenario, map_terrain, R_m2=r_alt + map_error_var, runs=runs,
+                    progress=progress)
     pos = truth.pos
     n, steps = pos.shape[0], pos.shape[1]
     on_map = getattr(truth, "on_map", None)
@@ -378,7 +391,8 @@ def map_aware_pcrb(
               else torch.as_tensor(on_map, device=pos.device).to(torch.bool))
     if runs is not None:
         on_map = on_map & torch.as_tensor(runs, device=pos.device).to(torch.bool)[:, None]
-    slope = _terrain_slopes(map_terrain, pos[..., :2].detach().reshape(-1, 2).double())
+    slope = _terrain_slopes(map_terrain, pos[..., :2].detach().reshape(-1, 2).double(),
+                            progress)
     slope = slope.reshape(n, steps, 2)
     valid = on_map & torch.isfinite(slope).all(-1)
     slope = torch.where(valid.unsqueeze(-1), slope, 0.0)

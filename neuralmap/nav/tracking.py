@@ -19,6 +19,7 @@ like every EKF method's, so the metrics, PCRB comparison and reports take it unc
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -151,7 +152,8 @@ _heights = heights_on_cells
 
 def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, R: float,
                 dt: float, options: TrackerOptions | None = None,
-                method: str = TRACKER_METHOD) -> TrackerResult:
+                method: str = TRACKER_METHOD,
+                progress: Callable[[float], None] | None = None) -> TrackerResult:
     """Runs the point-mass tracker over every run of a simulated truth.
 
     Timing as :func:`neuralmap.nav.monte_carlo.run_filter`: sample 0 is the prior
@@ -168,6 +170,8 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
         dt: Period T, s.
         options: :class:`TrackerOptions`.
         method: Name stored in the run.
+        progress: Called with the share of the work each step of each chunk of runs does
+            (:func:`neuralmap.progress.stage_progress`); None = silent.
 
     Returns:
         :class:`TrackerResult`.
@@ -225,6 +229,8 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
             residual[rows, k] = torch.where(upd.applied, upd.innovation, 0.0).to(out_dtype)
             updated[rows, k] = upd.applied
             est_on_map[rows, k] = inside_extent(ins_xy - mean[:, :2].to(out_dtype), truth.extent)
+            if progress is not None:
+                progress(m / (n * max(k1 - 1, 1)))
         for key in counters:
             counters[key][rows] = getattr(tracker, key).cpu()
         lost[rows] = tracker.lost.cpu()

@@ -33,6 +33,7 @@ from neuralmap.nav.noise_calibration import derive_method_noise
 from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
 from neuralmap.nav.simulator import simulate
 from neuralmap.nav.tracking import TRACKER_METHOD, TrackerOptions, run_tracker
+from neuralmap.progress import stage_progress
 from neuralmap.studies.cluster_options import ClusterOptions
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.setup import (
@@ -228,9 +229,12 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     filter_scenario = scenario
     if methods and config.noise == "measured":
         tick = time.perf_counter()
-        methods, filter_scenario, noise_info = derive_method_noise(
-            methods, scenario=scenario, tile=tile, truth_terrain=truth_terrain, seed=seed,
-            n_pilot=config.noise_pilot_runs, iterations=config.noise_iterations)
+        with stage_progress(f"R derivation ({len(methods)} methods: map table, pilot flights)",
+                            len(methods), "method", enabled=config.progress) as progress:
+            methods, filter_scenario, noise_info = derive_method_noise(
+                methods, scenario=scenario, tile=tile, truth_terrain=truth_terrain, seed=seed,
+                n_pilot=config.noise_pilot_runs, iterations=config.noise_iterations,
+                progress=progress)
         timing["noise"] = time.perf_counter() - tick
         print(f"R: measured per method ({config.noise_pilot_runs} pilot runs, "
               f"{timing['noise']:.1f} s): " + "; ".join(
@@ -264,11 +268,15 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     _check_scored(truth, config, tile)
 
     tick = time.perf_counter()
-    bound = pcrb(truth, scenario, truth_terrain.model, runs=kept)
-    pcrb_pos = pcrb_position(bound).detach().to("cpu", torch.float64).numpy()
-    pcrb_map_pos = pcrb_position(map_aware_pcrb(
-        truth, scenario, dem_bound["terrain"], map_error_var=dem_bound["mse_m2"],
-        map_error_corr=dem_bound["corr"], runs=kept)).detach().to("cpu", torch.float64).numpy()
+    with stage_progress("PCRB (true terrain, map-aware)", 2, "bound",
+                        enabled=config.progress) as progress:
+        half = None if progress is None else (lambda f: progress(0.5 * f))
+        bound = pcrb(truth, scenario, truth_terrain.model, runs=kept, progress=half)
+        pcrb_pos = pcrb_position(bound).detach().to("cpu", torch.float64).numpy()
+        pcrb_map_pos = pcrb_position(map_aware_pcrb(
+            truth, scenario, dem_bound["terrain"], map_error_var=dem_bound["mse_m2"],
+            map_error_corr=dem_bound["corr"], runs=kept, progress=half)
+        ).detach().to("cpu", torch.float64).numpy()
     timing["pcrb"] = time.perf_counter() - tick
 
     method_metrics = {
@@ -356,9 +364,12 @@ def _run_tracker(config: Any, scenario: Any, truth: Any, dem: dict[str, Any],
         return {}
     model = TanModel.from_scenario(scenario)
     R = float(scenario.R_m2) + dem["mse_m2"]
-    result = run_tracker(truth, dem["terrain"], P0=model.filter_prior(),
-                         Q=model.filter_process_noise(), R=R, dt=scenario.dt,
-                         options=TrackerOptions(cells=config.tracker_cells))
+    with stage_progress(TRACKER_METHOD, truth.n_steps, "step",
+                        enabled=config.progress) as progress:
+        result = run_tracker(truth, dem["terrain"], P0=model.filter_prior(),
+                             Q=model.filter_process_noise(), R=R, dt=scenario.dt,
+                             options=TrackerOptions(cells=config.tracker_cells),
+                             progress=progress)
     runs[TRACKER_METHOD] = result.run
     elapsed = max(result.run.elapsed_s, 1e-9)
     print(f"{TRACKER_METHOD}: {config.tracker_cells}² cells, R {R:.1f} m² (altimeter + DEM error "
@@ -394,16 +405,20 @@ def _run_point_mass_ekf(config: Any, scenario: Any, truth: Any, tile: Any, truth
     tick = time.perf_counter()
     bilinear = build_methods(["bilinear"], tile=tile, terrain_map=None,
                              device=truth.pos.device)["bilinear"]
-    table = measure_linearization_noise(bilinear, truth_terrain.model,
-                                        extent=tuple(float(e) for e in tile.extent),
-                                        seed=config.seed)
-    shared = float(table.variance_m2[0])
-    excess = dataclasses.replace(
-        table, variance_m2=tuple(max(v - shared, 0.0) for v in table.variance_m2))
-    inputs = dataclasses.replace(tan_inputs(truth, scenario), R=float(scenario.R_m2) + shared)
-    result = run_acquisition(inputs, method=PM_EKF_METHOD, terrain=dem["terrain"],
-                             linearizer=MeasuredNoiseLinearizer(bilinear, excess),
-                             config=AcquisitionConfig(), name=PM_EKF_METHOD)
+    # the map table one part, the filter over the flight the other
+    with stage_progress(PM_EKF_METHOD, 2, "part", enabled=config.progress) as progress:
+        half = None if progress is None else (lambda f: progress(0.5 * f))
+        table = measure_linearization_noise(bilinear, truth_terrain.model,
+                                            extent=tuple(float(e) for e in tile.extent),
+                                            seed=config.seed, progress=half)
+        shared = float(table.variance_m2[0])
+        excess = dataclasses.replace(
+            table, variance_m2=tuple(max(v - shared, 0.0) for v in table.variance_m2))
+        inputs = dataclasses.replace(tan_inputs(truth, scenario), R=float(scenario.R_m2) + shared)
+        result = run_acquisition(inputs, method=PM_EKF_METHOD, terrain=dem["terrain"],
+                                 linearizer=MeasuredNoiseLinearizer(bilinear, excess),
+                                 config=AcquisitionConfig(), name=PM_EKF_METHOD,
+                                 progress=half)
     runs[PM_EKF_METHOD] = result.run
     handed = result.handoff_step[result.handoff_step >= 0].double() * float(scenario.dt)
     info = {"R_shared_m2": float(inputs.R), "table": table.to_dict(),

@@ -270,7 +270,9 @@ def _status_figure(track: FixTrack) -> Any:
 
 
 def add_reference_errors(outputs: Any, track: FixTrack, reference_xy: torch.Tensor, *,
-                         ins_xy: torch.Tensor, preview: Any, n_ellipses: int = 20) -> dict:
+                         ins_xy: torch.Tensor, preview: Any, n_ellipses: int = 20,
+                         reference_altitude: torch.Tensor | None = None,
+                         ins_altitude: torch.Tensor | None = None) -> dict:
     """Errors against the reference into a :class:`~neuralmap.studies.outputs.StudyOutputs`
     (table, results.json ``errors``, three figures, TensorBoard curves).
 
@@ -281,6 +283,9 @@ def add_reference_errors(outputs: Any, track: FixTrack, reference_xy: torch.Tens
         ins_xy: ``(N, K, 2)`` INS positions (drawn beside the estimate).
         preview: A :class:`~neuralmap.dem.tile.DemTile` drawn as hillshade.
         n_ellipses: σ ellipses drawn along the track.
+        reference_altitude: ``(N, K)`` reference altitude (same datum), optional: adds the
+            vertical RMSE of TAN and of the INS.
+        ins_altitude: ``(N, K)`` INS altitude, with ``reference_altitude``.
 
     Returns:
         The error summary (:func:`reference_errors`).
@@ -288,16 +293,24 @@ def add_reference_errors(outputs: Any, track: FixTrack, reference_xy: torch.Tens
     errors = reference_errors(track, reference_xy)
     ins_err = (ins_xy.double() - reference_xy.double()).norm(dim=-1)
     errors["ins_rmse_horizontal_m"] = float(ins_err.pow(2).mean().sqrt())
+    errors["rmse_vertical_m"] = errors["ins_rmse_vertical_m"] = None
+    if reference_altitude is not None:
+        ref_h = reference_altitude.detach().cpu().double()
+        dh = track.altitude.detach().cpu().double() - ref_h
+        errors["rmse_vertical_m"] = float(dh.pow(2).mean().sqrt())
+        if ins_altitude is not None:
+            errors["ins_rmse_vertical_m"] = float(
+                (ins_altitude.detach().cpu().double() - ref_h).pow(2).mean().sqrt())
     outputs.results["errors"] = errors
     outputs.add_table(
         "Errors against the reference",
         ["estimate", "horizontal RMSE [m]", "RMSE while tracking [m]", "final error [m]",
-         "inside 3σ ellipse", "mean NEES (xy, 2 = consistent)"],
+         "inside 3σ ellipse", "mean NEES (xy, 2 = consistent)", "vertical RMSE [m]"],
         [["TAN", errors["rmse_horizontal_m"], errors["rmse_horizontal_tracking_m"],
           float(np.mean(errors["final_horizontal_error_m"])), errors["inside_3sigma"],
-          errors["mean_nees_xy"]],
+          errors["mean_nees_xy"], errors["rmse_vertical_m"]],
          ["INS alone", errors["ins_rmse_horizontal_m"], None, float(ins_err[:, -1].mean()),
-          None, None]],
+          None, None, errors["ins_rmse_vertical_m"]]],
         note="Final error: mean over vehicles. Inside 3σ: fraction of epochs whose error "
              "lies inside the 3σ ellipse of the reported covariance (98.9 % for a "
              "consistent Gaussian).")

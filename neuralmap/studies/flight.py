@@ -275,7 +275,9 @@ def write_flight(nav: FlightNavigation, outputs: StudyOutputs) -> None:
     if flight.reference_position is not None:
         add_reference_errors(outputs, track, flight.reference_position,
                              ins_xy=flight.ins_position, preview=source.preview_tile(),
-                             n_ellipses=nav.config.n_ellipses)
+                             n_ellipses=nav.config.n_ellipses,
+                             reference_altitude=flight.reference_altitude,
+                             ins_altitude=flight.ins_altitude)
     else:
         outputs.add_text("The log carries no reference position: no errors are reported.")
     final = track.fix(track.n_epochs - 1)

@@ -127,6 +127,9 @@ def test_study_flight_through_the_cli_equals_the_navigator(study_flight, tmp_pat
     err = np.hypot(*(track.xy - truth.pos[..., :2]).unbind(-1))
     assert results["errors"]["rmse_horizontal_m"] == pytest.approx(
         float(err.pow(2).mean().sqrt()), rel=1e-12)
+    dh = track.altitude - truth.pos[..., 2]
+    assert results["errors"]["rmse_vertical_m"] == pytest.approx(
+        float(dh.pow(2).mean().sqrt()), rel=1e-12)
     assert results["study"] == "flight" and results["log"]["kind"] == "map_frame"
     for name in ("report.md", "track.png", "error_vs_time.png", "status_timeline.png",
                  "navigation.geojson", "config.yaml"):

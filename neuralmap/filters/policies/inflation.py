@@ -13,9 +13,10 @@ the whole ``P⁻`` (``α P⁻``). α ≥ 1 keeps ``P⁻`` positive definite.
 Float32 caution: used alone (without a robust R policy), this factor inflates ``P⁻`` in
 every direction, including directions no measurement sees; their variances then grow
 epoch after epoch until, in float32, samples lose positive definiteness and the filter
-freezes them (``healthy`` False). Run it in float64 (the default), or restrict it to the observed block with
-:class:`~neuralmap.filters.policies.WindowedInflation`, and count the frozen samples
-(``(~ekf.healthy).sum()``).
+freezes them (``healthy`` False), and long before that a float32 run departs from the
+float64 one. Run it in float64 (the default), or pass ``scope="observed"`` (the same gain,
+only the measured directions inflated), or use the windowed factor on the observed block,
+:class:`~neuralmap.filters.policies.WindowedInflation`.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from __future__ import annotations
 import torch
 
 from neuralmap.filters.policies._common import check_positive, residual_statistic
+from neuralmap.filters.policies.observed import check_scope, observed_increase
 from neuralmap.filters.policy import Adaptation, FilterPolicy, UpdateContext
 
 __all__ = ["InnovationInflation", "innovation_inflation_factor"]
@@ -47,14 +49,19 @@ class InnovationInflation(FilterPolicy):
 
     Args:
         c0: Threshold on λ (1–1.5 in SEEDS 003).
+        scope: ``"full"`` (default, SEEDS 003's ``α Φ P Φᵀ + Q``) or ``"observed"``: the
+            same gain and state update with only the measured directions inflated
+            (:mod:`~neuralmap.filters.policies.observed`), which keeps ``P`` conditioned
+            along a whole trajectory, in float32 too.
 
     Reports ``alpha`` ``(N,)`` and ``lambda`` ``(N,)``.
     """
 
     name = "inflation"
 
-    def __init__(self, c0: float = 1.2) -> None:
+    def __init__(self, c0: float = 1.2, scope: str = "full") -> None:
         self.c0 = check_positive(c0, name="c0", where="InnovationInflation")
+        self.scope = check_scope(scope, "InnovationInflation")
 
     def adapt(self, context: UpdateContext) -> Adaptation:
         """α from λ; ``P⁻ = α P⁻ − (α − 1) Q`` (``α P⁻`` when Q is unknown)."""
@@ -64,6 +71,11 @@ class InnovationInflation(FilterPolicy):
         Q = context.process_noise
         if not alpha.requires_grad and bool((alpha == 1).all()):
             return Adaptation(info=info)  # clean epoch: P⁻ unchanged
+        if self.scope == "observed":  # Δ = (α − 1) Φ P Φᵀ (or (α − 1) P⁻), seen through H
+            a = alpha.reshape(-1, 1, 1)
+            spread = context.P_prior if Q is None else context.P_prior - Q
+            return Adaptation(P_prior=observed_increase(context, (a - 1.0) * spread),
+                              info=info)
         if Q is None:
             return Adaptation(p_scale=alpha, info=info)
         a = alpha.reshape(-1, 1, 1)

@@ -18,9 +18,10 @@ too large for it). Typical constants: c0 = 1.0–1.5, c1 = 3.0–8.5.
 Float32 caution: used alone (without a robust R policy), this factor inflates ``P⁻`` in
 every direction, including directions no measurement sees; their variances then grow
 epoch after epoch until, in float32, samples lose positive definiteness and the filter
-freezes them (``healthy`` False). Run it in float64 (the default), or restrict it to the observed block with
-:class:`~neuralmap.filters.policies.WindowedInflation`, and count the frozen samples
-(``(~ekf.healthy).sum()``).
+freezes them (``healthy`` False), and long before that a float32 run departs from the
+float64 one. Run it in float64 (the default), or pass ``scope="observed"`` (the same gain,
+only the measured directions inflated), or use the windowed factor on the observed block,
+:class:`~neuralmap.filters.policies.WindowedInflation`.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from neuralmap.filters.policies._common import (
     check_positive,
     residual_statistic,
 )
+from neuralmap.filters.policies.observed import check_scope, observed_increase
 from neuralmap.filters.policy import Adaptation, FilterPolicy, UpdateContext
 
 __all__ = ["YangAdaptive", "yang_factor"]
@@ -105,6 +107,10 @@ class YangAdaptive(FilterPolicy):
         c1: Second breakpoint (3.0–8.5), > c0; ignored by the two-segment form.
         segments: 3 (default) or 2.
         floor: Smallest α (so ``1/α`` stays finite), default 1e-3.
+        scope: ``"full"`` (default, SEEDS 002's ``P⁻/α`` in every direction) or
+            ``"observed"``: the same gain and state update with only the measured
+            directions inflated (:mod:`~neuralmap.filters.policies.observed`), which keeps
+            ``P`` conditioned along a whole trajectory, in float32 too.
 
     Reports ``alpha`` ``(N,)`` and ``delta`` ``(N,)``.
     """
@@ -117,8 +123,10 @@ class YangAdaptive(FilterPolicy):
         c1: float | None = 3.0,
         segments: int = 3,
         floor: float = ALPHA_FLOOR,
+        scope: str = "full",
     ) -> None:
         _check_yang(c0, c1, segments, floor, "YangAdaptive")
+        self.scope = check_scope(scope, "YangAdaptive")
         self.c0 = float(c0)
         self.c1 = None if c1 is None else float(c1)
         self.segments = int(segments)
@@ -132,4 +140,7 @@ class YangAdaptive(FilterPolicy):
         info = {"alpha": alpha, "delta": delta}
         if not alpha.requires_grad and bool((alpha == 1).all()):
             return Adaptation(info=info)  # nothing to scale (clean epoch): skip the product
+        if self.scope == "observed":  # Δ = (1/α − 1) P⁻, seen through H only
+            delta = context.P_prior * (1.0 / alpha - 1.0).reshape(-1, 1, 1)
+            return Adaptation(P_prior=observed_increase(context, delta), info=info)
         return Adaptation(p_scale=1.0 / alpha, info=info)

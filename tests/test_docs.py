@@ -191,3 +191,11 @@ def test_update_refuses_a_folder_that_is_not_a_run(tmp_path: Path,
         assert len(err) == 1 and err[0].startswith("error: ")
     assert "summary.md" in err[0]
     assert not (tmp_path / "docs").exists()  # nothing written
+
+
+def test_every_study_is_in_the_studies_table() -> None:
+    from neuralmap.studies.registry import STUDIES
+
+    table = (REPO / "docs" / "studies" / "index.md").read_text(encoding="utf-8")
+    missing = [name for name in STUDIES if f"[`{name}`](" not in table]
+    assert not missing, f"docs/studies/index.md lacks {missing}"

@@ -482,9 +482,11 @@ def diverged_section(results: Mapping[str, Any]) -> list[str]:
                           f"{d['initial_error_sigma']:.1f}σ of the prior)" for d in items)
         more = f" and {n - len(items)} more" if n > len(items) else ""
         lines.append(f"- **{name}**: {cells}{more}.")
-    lines += ["", "A cold-started EKF linearises the terrain at its prior estimate; from the "
-              "far tail of the prior (a radial error of c σ has probability exp(−c²/2)) "
-              "it can settle on a wrong terrain match and stay there, whatever the map. "
+    lines += ["", "A cold-started EKF linearises the terrain at its prior estimate and can "
+              "settle on a wrong terrain match and stay there, the more likely the farther "
+              "out in the prior it starts (a radial error beyond c σ has probability "
+              "exp(−c²/2)); which runs are lost changes with small differences between "
+              "methods (their R tables, their slopes), not with the map alone. "
               "`point_mass_ekf` acquires on the grid first and hands over to the EKF only once "
               "the posterior is unimodal and small.", ""]
     return lines

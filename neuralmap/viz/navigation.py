@@ -204,10 +204,10 @@ def plot_trajectories(
         for m in range(est.shape[0]):
             ax.plot(est[m, :, 0], est[m, :, 1], color=color, lw=0.9, alpha=0.85,
                     label=name if m == 0 else None)
-            zoom.plot(error[m, :, 0], error[m, :, 1], color=color, lw=0.9, alpha=0.85,
+            zoom.plot(error[m, :, 0], error[m, :, 1], color=color, lw=0.7, alpha=0.6,
                       label=name if m == 0 else None)
-            zoom.plot(error[m, 0, 0], error[m, 0, 1], "o", color=color, ms=4)
-            zoom.plot(error[m, -1, 0], error[m, -1, 1], "x", color=color, ms=6, mew=1.6)
+            zoom.plot(error[m, 0, 0], error[m, 0, 1], "o", color=color, ms=3)
+            zoom.plot(error[m, -1, 0], error[m, -1, 1], "x", color=color, ms=7, mew=2.0)
     ax.set_xlim(xmin - dx / 2, xmax + dx / 2)
     ax.set_ylim(ymin - dy / 2, ymax + dy / 2)
     ax.set_xlabel("east [m]")

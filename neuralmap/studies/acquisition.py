@@ -37,6 +37,7 @@ from neuralmap.nav.acquisition import (
 from neuralmap.nav.metrics import bound_rms_last_half, divergence_rule, navigation_metrics, nees
 from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
 from neuralmap.nav.simulator import simulate
+from neuralmap.progress import stage_progress
 from neuralmap.studies.cluster_options import ClusterOptions
 from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.setup import dem_error_model, prepare_tan
@@ -496,7 +497,9 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     flat = None
     if config.flat_leg:
         try:
-            flat = _flat_leg(config, base, tile, acq_cfg, device, dtype, seed)
+            with stage_progress("acquisition flat-terrain leg", 1, "leg",
+                                enabled=config.progress) as progress:
+                flat = _flat_leg(config, base, tile, acq_cfg, device, dtype, seed, progress)
         except NeuralMapError as exc:  # the finished stages stay; the leg is reported
             notes.append(f"flat-terrain leg failed: {exc}")
     results["flat_leg"] = flat
@@ -515,8 +518,9 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
 
 def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: DemTile,
               acq_cfg: AcquisitionConfig, device: torch.device, dtype: torch.dtype,
-              seed: int) -> dict[str, Any]:
-    """Point mass over a plane: no terrain information, the posterior must stay wide."""
+              seed: int, progress: Any = None) -> dict[str, Any]:
+    """Point mass over a plane: no terrain information, the posterior must stay wide
+    (``progress``: the filter's fraction callback, :func:`neuralmap.progress.stage_progress`)."""
     flat = _flat_tile(tile)
     sigma = float(min(config.sigmas_m))
     scenario = scenario_at_sigma(base, sigma, flat.extent)
@@ -527,7 +531,7 @@ def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: DemTile,
                      device=device, truth_terrain=leg.truth_terrain)
     res = run_acquisition(tan_inputs(truth, scenario), method="point_mass_ekf",
                           terrain=GridTerrain(flat, method="bilinear").to(device),
-                          config=acq_cfg, linearizer=leg.methods["bilinear"])
+                          config=acq_cfg, linearizer=leg.methods["bilinear"], progress=progress)
     P = res.run.P[:, -1, :2, :2].double()
     post_sigma = torch.linalg.eigvalsh(P)[:, -1].clamp_min(0).sqrt()
     err = res.run.err[:, -1, :2].norm(dim=-1).double()

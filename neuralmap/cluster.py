@@ -257,7 +257,8 @@ def open_cluster(
             raise NeuralMapError(
                 f"cluster {cluster!r}: expected none, local, local:N, a scheduler address or "
                 "a distributed.Client.")
-        yield Dispatcher(cluster, f"the Dask client {getattr(cluster, 'scheduler', '')}")
+        address = getattr(getattr(cluster, "scheduler", None), "address", "") or "?"
+        yield Dispatcher(cluster, f"the Dask scheduler at {address}")
         return
     spec = parse_cluster(cluster)
     if spec.kind == "process":

@@ -144,6 +144,15 @@ def test_every_run_writes_a_summary_with_its_headline_table_claims_and_provenanc
     assert "| SEEDS 002 | a claim | 1.5 m | **holds** |" in body
 
 
+def test_a_study_can_name_its_headline_table(tmp_path: Path) -> None:
+    with StudyOutputs(tmp_path, config=_Config(), title="A study", echo=False,
+                      tensorboard=False) as outputs:
+        outputs.add_table("First", ["x"], [[1]])
+        outputs.add_table("Navigation", ["method", "RMSE [m]"], [["a", 2.0]], headline=True)
+        text = (outputs.finalize() / "summary.md").read_text()
+    assert "## Navigation" in text and "| a | 2 |" in text and "First" not in text
+
+
 def _wind_tiny_run(tmp_path: Path, **override: object) -> Path:
     """A run folder as evaluate.py writes it for configs/wind_tiny.yaml (its resolved
     config), without running the study."""

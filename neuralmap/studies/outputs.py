@@ -258,6 +258,7 @@ class StudyOutputs:
         self._staging: Path | None = None
         self.published: Path | None = None
         self._report: str | None = None
+        self._headline: str | None = None
 
     def __enter__(self) -> StudyOutputs:
         return self
@@ -283,11 +284,16 @@ class StudyOutputs:
         self._sections.append(markdown.rstrip() + "\n")
 
     def add_table(self, title: str, headers: list[str], rows: list[list[Any]],
-                  *, note: str | None = None) -> str:
-        """Appends a table to the report (and prints it); returns its markdown."""
+                  *, note: str | None = None, headline: bool = False) -> str:
+        """Appends a table to the report (and prints it); returns its markdown.
+
+        ``headline=True`` makes it the table of ``summary.md`` (default: the report's first).
+        """
         table = markdown_table(headers, rows)
         text = f"### {title}\n\n{table}\n" + (f"\n{note}\n" if note else "")
         self._sections.append(text)
+        if headline:
+            self._headline = f"## {title}\n\n{table}"
         if self.echo:
             print(f"\n{title}\n{table}" + (f"\n{note}" if note else ""), flush=True)
         return table
@@ -377,13 +383,13 @@ class StudyOutputs:
         return "\n".join(parts)
 
     def summary(self) -> str:
-        """The run's ``summary.md``: its provenance line, the headline table (the report's
-        first table) and the claims table; ``python -m neuralmap.docs update`` copies it
+        """The run's ``summary.md``: its provenance line, the headline table (the one added
+        with ``headline=True``, else the report's first) and the claims table; ``python -m neuralmap.docs update`` copies it
         into the documentation."""
         provenance = json.dumps(run_provenance(self.config), sort_keys=True)
         body = self._report if self._report is not None else "\n".join(self._sections)
         parts = [f"{SUMMARY_MARK} {provenance} -->", f"# {self.title}\n"]
-        table = _first_table(body)
+        table = self._headline or _first_table(body)
         if table:
             parts.append(table + "\n")
         claims = self.render().split("## Papers' claims beside the measurements", 1)

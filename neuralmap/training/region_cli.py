@@ -21,6 +21,10 @@ second run into the same ``OUT`` while one runs is refused.
 With ``--trainer.strategy ddp`` (Lightning's script launcher, or ``torchrun`` over several
 nodes) every rank re-runs this command; only rank 0 writes the mosaic / synthetic region
 and publishes. Over several machines, write the ``.npy`` once on a shared disk first.
+Under ``torchrun`` every rank starts at once: rank 0 takes the output's lock and builds
+the hidden folder beside ``--out``, and sends its path to the other ranks (a gloo
+broadcast), which write their shards there, so ``--out`` must be on a disk every node
+sees at the same path; the ranks start training once rank 0's region file is written.
 
 Exit codes: 0 with the summary (JSON) on stdout; 2 for bad input (one ``error:`` line on
 stderr); 1 when interrupted (Ctrl-C: nothing is published).
@@ -31,7 +35,7 @@ from __future__ import annotations
 import json
 import os
 import sys
-from contextlib import nullcontext
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
@@ -123,9 +127,31 @@ def _region_file(sources: list[str], build: Path, cfg: Any, launched: bool) -> P
     return path
 
 
+def _torchrun() -> bool:
+    """Whether ``torchrun`` started this process as one rank of several (it sets
+    ``TORCHELASTIC_RUN_ID`` and ``WORLD_SIZE``)."""
+    return "TORCHELASTIC_RUN_ID" in os.environ and int(os.environ.get("WORLD_SIZE", "1")) > 1
+
+
+def _torchrun_build(build: Path | None) -> Path:
+    """Rank 0's build folder, sent to every rank of a ``torchrun`` job (gloo broadcast on
+    the process group Fabric then reuses); rank 0 passes it, the others ``None``."""
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group("gloo")  # env:// from torchrun's RANK, WORLD_SIZE, MASTER_*
+    box = [str(build) if build is not None else ""]
+    dist.broadcast_object_list(box, src=0)
+    return Path(box[0])
+
+
 def _train(cfg: Any, build: Path, out: Path, launched: bool) -> dict[str, Any]:
     sources = _sources(cfg.data.path)
     region = _region_file(sources, build, cfg, launched)
+    if _torchrun():  # every rank started at once: the others wait for rank 0's region file
+        import torch.distributed as dist
+
+        dist.barrier()
     data = RegionData.open(region, spacing=cfg.data.spacing)
     published_region = region if _is_npy(sources) else out / "region.npy"
     summary = fit_region(
@@ -166,12 +192,16 @@ def main_region(argv: list[str] | None = None) -> Path | None:
             devices=cfg.trainer.devices, num_nodes=cfg.trainer.num_nodes,
             strategy=cfg.trainer.strategy, threads=cfg.threads)
         _sources(cfg.data.path)
-        if launched and os.environ.get(STAGING_ENV):
-            building: Any = nullcontext(Path(os.environ[STAGING_ENV]))
-        else:
-            _check_out(out)
-            building = replacing_dir(out, option="--out")
-        with building as build:
+        with ExitStack() as building:
+            if launched and _torchrun():  # rank 0's folder; torchrun ends us if rank 0 fails
+                build = _torchrun_build(None)
+            elif launched and os.environ.get(STAGING_ENV):  # Lightning's script launcher
+                build = Path(os.environ[STAGING_ENV])
+            else:
+                _check_out(out)
+                build = building.enter_context(replacing_dir(out, option="--out"))
+                if _torchrun():
+                    _torchrun_build(build)
             os.environ[STAGING_ENV] = str(build)
             summary = _train(cfg, build, out, launched)
     except NeuralMapError as exc:

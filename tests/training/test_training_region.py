@@ -425,3 +425,36 @@ def test_void_shard_is_stored_as_void(tmp_path: Path) -> None:
     probe = torch.tensor([[2000.0, 2000.0]], requires_grad=True)
     (grad,) = torch.autograd.grad(model(probe).sum(), probe)
     assert bool(torch.isfinite(grad).all())
+
+
+@pytest.mark.slow
+def test_torchrun_ranks_build_one_map_equal_to_one_process(region_path: Path,
+                                                           tmp_path: Path) -> None:
+    """``torchrun --nproc_per_node 2 train.py region --trainer.strategy ddp``: every rank
+    starts at once, rank 0's build folder reaches the other by a broadcast, and the map
+    published is the one-process map (the multi-node launch on one node)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[2]
+    args = ["--data.path", str(region_path), "--model.shard_blocks", "[1,1]",
+            "--model.steps", "40", "--model.points_per_block", "64", "--model.lr", "1e-2"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(
+        [sys.executable, "-m", "torch.distributed.run", "--nnodes", "1", "--nproc_per_node",
+         "2", "--master_port", "29517", str(repo / "train.py"), "region", *args,
+         "--out", str(tmp_path / "torchrun"), "--trainer.strategy", "ddp",
+         "--trainer.devices", "2"],
+        cwd=repo, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads(proc.stdout[proc.stdout.index("{"):])
+    assert summary["world_size"] == 2 and [r["shards"] for r in summary["per_rank"]] == [3, 3]
+    one = _region([*args, "--out", str(tmp_path / "one")])
+    data = RegionData.open(region_path)
+    xy = _grid_xy(data)
+    with torch.no_grad():
+        h1 = load_map(one)(xy)
+        h2 = load_map(tmp_path / "torchrun" / "map_index.json")(xy)
+    np.testing.assert_allclose(h2.numpy(), h1.numpy(), atol=1e-4, rtol=0)

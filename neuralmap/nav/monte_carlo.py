@@ -314,6 +314,10 @@ def run_filters(
         bar = progress_bar(total=len(jobs), unit="filter", desc=(
             f"Monte Carlo ({len(jobs)} filters, {dispatcher.description})")) if progress else None
         threads = torch.get_num_threads()
+        if threads > 1:
+            print(f"note: each filter task runs on {threads} torch threads (this process's "
+                  "count, for results bit-identical to it); with one worker per core pass "
+                  "--threads 1", flush=True)
         try:
             done = dispatcher.map(
                 _filter_task, [(name, job, threads) for name, job in jobs.items()],

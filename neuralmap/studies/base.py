@@ -28,7 +28,10 @@ class StudyConfig:
         device: Torch device (``cpu``, ``cuda``, ``cuda:1``...).
         dtype: Filter precision.
         threads: ``torch.set_num_threads`` for the run (restored afterwards); ``None``
-            keeps torch's setting.
+            keeps torch's setting (all physical cores). Default 1, measured: on the
+            2-core machine with a second job running, the TAN study's R derivation took
+            95 s on one thread and 1212 s on two; the studies' batched filter steps
+            are too small to gain from a second thread (README, "Threads").
         progress: Show progress bars.
         tensorboard: Write TensorBoard event files.
     """
@@ -39,7 +42,7 @@ class StudyConfig:
     seed: int | None = 0
     device: str = "cpu"
     dtype: Literal["float64", "float32"] = "float64"
-    threads: int | None = None
+    threads: int | None = 1
     progress: bool = True
     tensorboard: bool = True
 

@@ -14,6 +14,7 @@ SIGKILL is removed by the next run into the same experiment).
 
 from __future__ import annotations
 
+import re
 import signal
 import sys
 from dataclasses import fields
@@ -22,7 +23,7 @@ from typing import Any
 
 import torch
 import yaml
-from jsonargparse import ActionConfigFile, ArgumentParser, set_loader
+from jsonargparse import ActionConfigFile, ArgumentError, ArgumentParser, set_loader
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import check_writable_dir, load_yaml
@@ -82,10 +83,19 @@ def build_parser(study: str = "tan") -> ArgumentParser:
         description=f"{spec.description} (study '{study}'; other studies: "
         f"{', '.join(s for s in sorted(STUDIES) if s != study)}).",
         default_config_files=[str(default)] if default.is_file() else None,
+        exit_on_error=False,  # parse errors become one error line (parse_config)
     )
     parser.add_argument("--config", action=ActionConfigFile, help="YAML configuration file.")
     parser.add_class_arguments(config_cls, nested_key=None, as_group=False)
     return parser
+
+
+def parse_error_line(exc: BaseException) -> str:
+    """A jsonargparse parse error as one line naming the option (``--seed``, not
+    ``Parser key "seed"``) and where to look up its type."""
+    text = " ".join(str(exc).split())
+    text = re.sub(r'Parser key "([\w.]+)":?', lambda m: f"--{m.group(1)}:", text)
+    return f"{text} Run {PROG} --help for every option and its type."
 
 
 def parse_config(args: list[str] | None = None) -> Any:
@@ -101,7 +111,10 @@ def parse_config(args: list[str] | None = None) -> Any:
     args = list(sys.argv[1:] if args is None else args)
     study = _study_name(args)
     config_cls, _, _ = get_study(study)
-    namespace = build_parser(study).parse_args(args)
+    try:
+        namespace = build_parser(study).parse_args(args)
+    except ArgumentError as exc:
+        raise NeuralMapError(parse_error_line(exc)) from None
     values = {f.name: namespace[f.name] for f in fields(config_cls) if f.name in namespace}
     values["study"] = study
     config = config_cls(**values)

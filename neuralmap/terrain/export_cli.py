@@ -12,6 +12,7 @@ prints one ``error:`` line and exits 2.
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -46,13 +47,36 @@ def _parser() -> ArgumentParser:
     return parser
 
 
+#: Units a DEM without a CRS can be read in (``--units``).
+UNITS = ("metres", "degrees")
+
+#: train.py's DEM options as the loader names them -> this CLI's.
+_OPTION_NAMES = {"--data.spacing": "--spacing", "--data.units": "--units",
+                 "--data.nodata": "--nodata"}
+
+
+def _cli_option_names(text: str) -> str:
+    for theirs, ours in _OPTION_NAMES.items():
+        text = text.replace(theirs, ours)
+    return text
+
+
 def export(args: object) -> dict[str, Path]:
     """Loads the map and its DEM and writes the layers; returns layer -> path."""
     from neuralmap.dem import load_tile
     from neuralmap.io import check_writable_dir
     from neuralmap.terrain.export import load_map
-    from neuralmap.terrain.geotiff import write_map_geotiffs
+    from neuralmap.terrain.geotiff import LAYERS, write_map_geotiffs
 
+    if args.spacing is not None and not (math.isfinite(args.spacing) and args.spacing > 0):
+        raise NeuralMapError(f"--spacing must be a grid spacing > 0 in metres, got "
+                             f"{args.spacing}; leave it out for a DEM that carries its own.")
+    if args.units is not None and args.units not in UNITS:
+        raise NeuralMapError(f"--units must be one of {', '.join(UNITS)}, got {args.units!r}.")
+    unknown = [name for name in args.layers if name not in LAYERS]
+    if unknown or not args.layers:
+        raise NeuralMapError(f"--layers: unknown or empty {unknown or args.layers}; choose "
+                             f"from {list(LAYERS)}, e.g. --layers [height,slope].")
     terrain = load_map(args.map)
     info = getattr(terrain, "tile_info", {}) or {}
     dem = args.dem or info.get("source") or info.get("name")
@@ -66,7 +90,11 @@ def export(args: object) -> dict[str, Path]:
     if spacing is None and str(dem).lower().endswith(".npy") and info.get("spacing"):
         spacing = tuple(info["spacing"])
     origin = tuple(info["origin"]) if info.get("origin") else None
-    tile = load_tile(dem, spacing=spacing, units=args.units, nodata=args.nodata, origin=origin)
+    try:
+        tile = load_tile(dem, spacing=spacing, units=args.units, nodata=args.nodata,
+                         origin=origin)
+    except NeuralMapError as exc:  # the loader names train.py's options; name this CLI's
+        raise NeuralMapError(f"--dem {dem}: {_cli_option_names(str(exc))}") from None
     paths = write_map_geotiffs(terrain, tile, out, layers=tuple(args.layers))
     for name, path in paths.items():
         print(f"{PROG}: {name} -> {path}", flush=True)

@@ -81,6 +81,12 @@ class NeuralMapCLI(LightningCLI):
         check_writable_dir(Path(self.config.get("runs_dir") or "runs"), option="--runs_dir")
         max_epochs = self.config.get("trainer.max_epochs")
         max_steps = self.config.get("trainer.max_steps")
+        for which, value in (("max_epochs", max_epochs), ("max_steps", max_steps)):
+            if isinstance(value, int) and value < -1:
+                raise NeuralMapError(
+                    f"--trainer.{which} {value}: give a count >= 1, or -1 for no limit "
+                    f"(then bound the run with --trainer.max_time or the other of "
+                    f"max_epochs / max_steps).")
         if max_epochs == 0 or max_steps == 0:
             which = "max_epochs" if max_epochs == 0 else "max_steps"
             raise NeuralMapError(

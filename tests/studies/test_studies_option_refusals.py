@@ -25,3 +25,23 @@ def test_acquisition_bank_per_axis_below_one_is_refused(value: str, tmp_path: Pa
     assert "error: --bank_per_axis must be an integer >= 1" in lines[0]
     assert f"got {value}" in lines[0] and "--bank_per_axis 7" in lines[0]
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("*"))
+
+
+TAN_TINY = REPO_ROOT / "configs" / "tan_tiny.yaml"
+
+
+@pytest.mark.parametrize(("extra", "expected"), [
+    (["--seed", "abc"], "error: --seed:"),
+    (["--n_runs", "abc"], "error: --n_runs: Expected a <class 'int'>. Got value: abc"),
+    (["--dtype", "float16"], "error: --dtype: Expected a typing.Literal['float64', 'float32']"),
+    (["--no_such_option", "1"], "error: unrecognized arguments: --no_such_option 1"),
+])
+def test_parse_errors_are_one_line_naming_the_option(extra: list[str], expected: str,
+                                                     tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    code = cli.main(["--config", str(TAN_TINY), "--runs_dir", str(tmp_path / "runs"), *extra])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert expected in lines[0] and "evaluate.py --help" in lines[0], lines[0]
+    assert "Parser key" not in lines[0]

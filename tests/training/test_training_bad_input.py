@@ -222,3 +222,14 @@ def test_run_that_exports_nothing_exits_1(
     monkeypatch.setattr(FitReport, "on_train_end", lambda self, trainer, module: None)
     err = _fails(_args(tile_path, tmp_path, "--trainer.fast_dev_run", "true"), capsys, code=1)
     assert "without exporting a map" in err
+
+
+@pytest.mark.parametrize("which", ["max_epochs", "max_steps"])
+def test_negative_run_length_names_the_option(which: str, tile_path: Path, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    """Lightning's own message pointed at the accelerator options; the refusal names the
+    option and what it accepts, before any run folder is made."""
+    err = _fails(_args(tile_path, tmp_path, f"--trainer.{which}", "-5"), capsys)
+    assert f"error: --trainer.{which} -5: give a count >= 1, or -1 for no limit" in err
+    assert "accelerator" not in err
+    assert not (tmp_path / "small").exists()

@@ -62,3 +62,14 @@ def test_missing_dask_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_an_object_that_is_no_client_is_refused() -> None:
     with pytest.raises(NeuralMapError, match="distributed.Client"), open_cluster(3.5):
         pass
+
+
+def test_a_study_asking_for_dask_without_it_is_refused_at_validation(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    from neuralmap.studies.tan_scale import TanScaleConfig
+
+    TanScaleConfig(cluster="none").validate()
+    monkeypatch.setitem(sys.modules, "distributed", None)
+    TanScaleConfig(cluster="none").validate()  # this process needs no Dask
+    with pytest.raises(NeuralMapError, match=r"--cluster local.*neuralmap\[dask\]"):
+        TanScaleConfig().validate()  # the default local cluster

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from neuralmap.cluster import ClusterSpec, parse_cluster
+from neuralmap.cluster import ClusterSpec, parse_cluster, require_distributed
 from neuralmap.studies.base import StudyConfig
 
 __all__ = ["ClusterOptions"]
@@ -27,9 +27,12 @@ class ClusterOptions(StudyConfig):
     cluster: str | None = None
 
     def validate(self) -> None:
-        """Checks the shared options and the cluster value (not its reachability)."""
+        """Checks the shared options, the cluster value and that Dask is installed when it
+        is asked for (before any work; the scheduler's reachability is checked at the
+        start of the Monte Carlo)."""
         super().validate()
-        parse_cluster(self.cluster)
+        if parse_cluster(self.cluster).kind != "process":
+            require_distributed(f"--cluster {self.cluster}")
 
     @property
     def cluster_spec(self) -> ClusterSpec:

@@ -342,7 +342,11 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
                     truth_terrain=world)
     kept = test.on_map.all(dim=1)
     if not bool(kept.any()):
-        raise NeuralMapError("no run could be scored: every truth trajectory left the tile.")
+        raise NeuralMapError(
+            f"no run could be scored: all {config.n_runs} test trajectories left the tile "
+            f"{tile.name!r} or started off it (--scenario {config.scenario}). Move the "
+            "scenario's start_xy/waypoints inside the tile, shorten duration_s, or lower "
+            "start_spread_m.")
     bound = pcrb(test, scenario, world.model, runs=kept)
     pcrb_pos = pcrb_position(bound).detach().to("cpu", torch.float64)
     hand = load_scenario(config.hand_scenario)

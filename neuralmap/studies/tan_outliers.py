@@ -174,8 +174,10 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
           + ", ".join(f"{k} {v:.1%}" for k, v in fault_share.items()), flush=True)
     kept = clean.on_map.all(dim=1)
     if not bool(kept.any()):
-        raise NeuralMapError("no run could be scored: every truth trajectory left the tile; "
-                             "move the scenario's start_xy/waypoints inside it.")
+        raise NeuralMapError(
+            f"no run could be scored: all {config.n_runs} truth trajectories left the tile "
+            f"or started off it (--scenario {config.scenario}). Move the scenario's "
+            "start_xy/waypoints inside the tile, shorten duration_s, or lower start_spread_m.")
     bound = pcrb(clean, clean_scenario, setup.truth_terrain.model, runs=kept)
     pcrb_pos = pcrb_position(bound).detach().to("cpu", torch.float64)
     R = TanModel.from_scenario(clean_scenario).base_R

@@ -43,3 +43,19 @@ def test_no_scorable_run_is_one_clean_refusal(case: str, tmp_path: Path, tiny_ma
                                 "left the tile") in lines[0], err
     assert "start_xy" in lines[-1] and "Traceback" not in err
     assert not any((tmp_path / "runs").rglob("*.json")) if (tmp_path / "runs").exists() else True
+
+
+def test_tan_outliers_refusal_names_the_scenario_and_the_fix(tmp_path: Path, tiny_map: Path,
+                                                             capsys: pytest.CaptureFixture[str]
+                                                             ) -> None:
+    scenario = tmp_path / "off.yaml"
+    scenario.write_text(SCENARIO.replace("start_xy: [500.0, 500.0]",
+                                         "start_xy: [-9000.0, -9000.0]"))
+    code = cli.main(["--config", str(REPO_ROOT / "configs" / "tan_outliers_tiny.yaml"),
+                     "--map", str(tiny_map), "--scenario", str(scenario),
+                     "--runs_dir", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1, err
+    assert "no run could be scored" in lines[0] and str(scenario) in lines[0]
+    assert "start_xy" in lines[0]

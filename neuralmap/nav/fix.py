@@ -99,7 +99,7 @@ class FixTrack:
             :class:`Fix`, with the time axis after N.
         counts: What the navigator counted over the replay (summed over vehicles):
             ``missing_radar`` (NaN clearances), ``out_of_range`` (clearances outside the
-            sensor's range), ``gaps`` (intervals longer than the nominal period, up to
+            sensor's range), ``spikes`` (clearances the tracker's spike gate left out), ``gaps`` (intervals longer than the nominal period, up to
             ``max_gap_s``, predicted across), ``long_gaps`` (intervals beyond
             ``max_gap_s``), ``off_map_epochs``, ``lost`` (lost-lock detections),
             ``reacquisitions`` (re-acquisitions from the open-loop prior), ``handoffs``

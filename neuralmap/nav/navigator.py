@@ -51,11 +51,13 @@ Integrity, per vehicle and epoch (status codes of :data:`~neuralmap.nav.fix.STAT
   length (``Q · Δt / T``, the transition with ``Δt``), counted (``gaps``); one longer than
   ``sensor.max_gap_s`` is predicted across too, but that epoch is not updated (status
   ``no_measurement``, counted ``long_gaps``; a log reader refuses such a log).
-* **Altimeter spikes**: the EKF methods take them through their policy (e.g. ``raf``,
-  ``igg3``, ``huber``); the point-mass methods have no robust likelihood of their own in
-  this navigator (Gaussian likelihood): a spike pulls the masses for that epoch and adds a
-  large NIS to the window — an isolated spike of a few σ is absorbed, a run of them can
-  fire the lost-lock test (then re-acquisition).
+* **Altimeter spikes**: the point-mass tracker gates them: a clearance whose predictive NIS
+  (against the predicted mixture, before the update) exceeds ``χ²₁(p)``, ``p =
+  integrity.spike_gate_prob``, is not used (counted ``spikes``, status
+  ``no_measurement``); the EKF methods take them through their policy (``raf``, ``igg3``,
+  ``huber``, ``chi2``, ...); the acquisition grid has no gate (its posterior is wide). In
+  every method the NIS entering the lost-lock window is capped at ``χ²₁(p)``: one spike
+  cannot fire the test alone, a run of them (or a lost lock) does.
 
 Streaming equals replay: :meth:`Navigator.replay` is :meth:`Navigator.step` over the epochs
 (the filter is recursive; the batch is over vehicles), so the two agree bit for bit.
@@ -80,8 +82,8 @@ from neuralmap.terrain.base import inside_extent
 __all__ = ["COUNT_KEYS", "Navigator"]
 
 #: Counters of :attr:`FixTrack.counts` / :attr:`Navigator.counts`.
-COUNT_KEYS = ("epochs", "missing_radar", "out_of_range", "gaps", "long_gaps", "off_map_epochs",
-              "lost", "reacquisitions", "handoffs", "updates")
+COUNT_KEYS = ("epochs", "missing_radar", "out_of_range", "spikes", "gaps", "long_gaps",
+              "off_map_epochs", "lost", "reacquisitions", "handoffs", "updates")
 
 _ACQ, _TRK, _LOST, _OFF, _NOMEAS = (STATUS_CODE[k] for k in (
     "acquiring", "tracking", "lost", "off_map", "no_measurement"))
@@ -97,6 +99,19 @@ class _StepOut:
     reacquired: torch.Tensor   # bool, re-acquisition from the open-loop prior started
     handoff: torch.Tensor      # bool, acquisition grid -> tracking filter
     off_map: torch.Tensor      # bool, estimate off the map: not updated
+
+
+def _chi2_quantile(prob: float) -> float:
+    """``χ²₁(prob)``: one consistent NIS exceeds it with probability ``1 − prob``."""
+    return _chi2_mean_threshold(prob, 1)
+
+
+def _largest_sigma(cov: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` ``sqrt(λ_max)`` of the horizontal block of ``cov (N, ≥2, ≥2)`` (closed form
+    of a symmetric 2 × 2: ``(a + c)/2 + sqrt(((a − c)/2)² + b²)``)."""
+    a, b, c = cov[:, 0, 0], 0.5 * (cov[:, 0, 1] + cov[:, 1, 0]), cov[:, 1, 1]
+    lam = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b * b)
+    return lam.clamp_min(0.0).sqrt()
 
 
 def _transition(dt: float, dtype: torch.dtype) -> torch.Tensor:
@@ -119,7 +134,9 @@ class _Window:
     """The windowed-NIS lost-lock test of the navigator (grid and EKF methods), and the
     windowed NIS every fix reports."""
 
-    def __init__(self, n: int, window: int, prob: float, dtype: torch.dtype) -> None:
+    def __init__(self, n: int, window: int, prob: float, dtype: torch.dtype,
+                 cap: float = math.inf) -> None:
+        self.cap = cap
         self.w = max(int(window), 1)
         self.enabled = window > 0
         self.threshold = _chi2_mean_threshold(prob, self.w) if self.enabled else math.inf
@@ -130,7 +147,8 @@ class _Window:
 
     def add(self, nis: torch.Tensor, applied: torch.Tensor) -> None:
         cur = self.values[self._rows, self.slot]
-        self.values[self._rows, self.slot] = torch.where(applied, nis.to(self.values.dtype), cur)
+        nis = nis.to(self.values.dtype).clamp(max=self.cap)
+        self.values[self._rows, self.slot] = torch.where(applied, nis, cur)
         self.slot = torch.where(applied, (self.slot + 1) % self.w, self.slot)
         self.count = self.count + applied.long()
 
@@ -188,6 +206,7 @@ class _TrackerFilter:
         self.terrain, self.extent = nav.terrain, nav.extent
         self.flatten = tc.flatten_likelihood
         self.R = nav.noise.R
+        self.gate = nav._gate
 
     def _set_interval(self, dt: float) -> None:
         """Transition of the velocity into the position over ``dt`` (E and the open-loop
@@ -210,20 +229,48 @@ class _TrackerFilter:
         else:
             self.tracker.predict(Q_s=self.qs * scale, Q_z=self.qz * scale)
 
+    def _predictive_nis(self, y: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` NIS of ``y`` against the predicted mixture, ``(y − ŷ)² / S_y`` with
+        ``ŷ = Σ w (g + c·μ)``, ``S_y = Σ w (g + c·μ − ŷ)² + cᵀPc + R`` over the cells on the
+        map (what :meth:`PointMassTracker.update` reports as its NIS)."""
+        trk = self.tracker
+        yc = g + torch.einsum("z,nzij->nij", trk.c, trk.lin_mean)
+        ok = torch.isfinite(yc)
+        w = torch.where(ok, trk.weights, 0.0)
+        mass = w.sum((1, 2)).clamp_min(torch.finfo(w.dtype).tiny)
+        yc = torch.where(ok, yc, 0.0)
+        yhat = (w * yc).sum((1, 2)) / mass
+        s_y = (w * (yc - yhat[:, None, None]) ** 2).sum((1, 2)) / mass + (
+            trk.lin_cov @ trk.c) @ trk.c + self.R
+        return (y - yhat) ** 2 / s_y
+
     def update(self, ins_pos: torch.Tensor, y: torch.Tensor, mask: torch.Tensor | None
-               ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Altimeter update of the rows in ``mask`` (None = all); returns ``nis, applied``."""
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Altimeter update of the rows in ``mask`` (None = all), clearances past the spike
+        gate left out; returns ``nis`` (the gated rows' predictive NIS), ``applied``,
+        ``gated``."""
         from neuralmap.nav.tracking import heights_on_cells
 
         trk = self.tracker
+        y = y.to(self.dtype)
         g = heights_on_cells(self.terrain, ins_pos[:, :2], self.extent)(trk.points())
+        gated = torch.zeros(y.shape[0], dtype=torch.bool)
+        nis_pred = None
+        if self.gate < math.inf:
+            nis_pred = self._predictive_nis(y, g)
+            gated = torch.isfinite(nis_pred) & (nis_pred > self.gate)
+            if mask is not None:
+                gated = gated & mask
+            if bool(gated.any()):
+                mask = ~gated if mask is None else mask & ~gated
         cell_var = None
         if self.flatten:
             from neuralmap.nav.acquisition import cell_height_variance
 
             cell_var = torch.nan_to_num(cell_height_variance(g), nan=0.0)
-        upd = trk.update(y.to(self.dtype), g, R=self.R, mask=mask, cell_variance=cell_var)
-        return upd.nis, upd.applied
+        upd = trk.update(y, g, R=self.R, mask=mask, cell_variance=cell_var)
+        nis = upd.nis if nis_pred is None else torch.where(gated, nis_pred, upd.nis)
+        return nis, upd.applied, gated
 
     def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.tracker.moments()
@@ -461,6 +508,8 @@ class Navigator:
         self._P0 = self.config.prior()
         self._Q = self.config.process_noise_per_period()
         self._T = float(self.config.sensor.dt_s)
+        gate_p = self.config.integrity.spike_gate_prob
+        self._gate = _chi2_quantile(gate_p) if gate_p > 0 else math.inf
         self.method = self.config.method
         self._linearizer: Any = None
         if self.method not in ("point_mass_tracker",):
@@ -530,9 +579,8 @@ class Navigator:
         # the grid holds the vehicle (acquisition); else the track filter does
         self._on_grid = torch.full((n,), on_grid, dtype=torch.bool)
         self._window = _Window(n, cfg.integrity.lost_window, cfg.integrity.lost_prob,
-                               torch.float64)
-        self._open_mean = torch.zeros(n, N_STATES, dtype=torch.float64)
-        self._open_cov = self._P0.expand(n, N_STATES, N_STATES).clone()
+                               torch.float64, cap=self._gate)
+        self._open_cov1 = self._P0.clone()
         self._t_prev: float | None = None
         self._ins_prev: torch.Tensor | None = None
         self._mean = torch.zeros(n, N_STATES, dtype=torch.float64)
@@ -633,7 +681,7 @@ class Navigator:
         zeros = torch.zeros(n, dtype=torch.bool)
         nis = torch.full((n,), math.nan, dtype=torch.float64)
         applied, reacq, handoff = zeros.clone(), zeros.clone(), zeros.clone()
-        lost = zeros.clone()
+        lost, spikes = zeros.clone(), zeros.clone()
         grid, track = self._grid, self._track
         on_grid = self._on_grid
         if grid is not None and bool(on_grid.any()):
@@ -644,10 +692,12 @@ class Navigator:
             track.predict(dt, scale)
             mask = tracking & use
             all_in = bool(mask.all())
-            t_nis, t_app = track.update(torch.cat([pos, alt[:, None]], 1), y,
-                                        None if all_in else mask)
+            t_nis, t_app, gated = track.update(torch.cat([pos, alt[:, None]], 1), y,
+                                               None if all_in else mask)
             applied = applied | (t_app & mask)
-            nis = torch.where(t_app & mask, t_nis.double(), nis)
+            nis = torch.where((t_app & mask) | gated, t_nis.double(), nis)
+            self.counts["spikes"] += int(gated.sum())
+            spikes = gated
             off_est = tracking & ~on_map
         else:
             track.predict(dt, scale)
@@ -663,7 +713,7 @@ class Navigator:
             g_mask = on_grid & use
             g_app = grid.update(pos, y, g_mask)
             applied = applied | (g_app & g_mask)
-        self._window.add(nis, applied & tracking)
+        self._window.add(nis, (applied | spikes) & tracking)
         if self._window.enabled:
             fired = tracking & self._window.fired()
             if bool(fired.any()):
@@ -689,20 +739,30 @@ class Navigator:
         off_now = (~on_map & ~self._on_grid) | off_est
         step = _StepOut(nis=nis, applied=applied, lost=lost, reacquired=reacq,
                         handoff=handoff, off_map=off_now & ~lost)
-        return ~valid, step
+        return ~valid | spikes, step
 
     def _propagate_open_loop(self, dt: float, scale: float) -> None:
-        """``m_ol ← Φ m_ol``, ``P_ol ← Φ P_ol Φᵀ + Q Δt/T``: the prior without measurements."""
+        """``m_ol ← Φ m_ol``, ``P_ol ← Φ P_ol Φᵀ + Q Δt/T``: the prior without measurements.
+
+        Every vehicle shares it (same prior, same epochs, no measurement), and its mean
+        stays 0 (``m_0 = 0``), so one ``(5, 5)`` covariance is carried."""
         phi = _transition(dt, torch.float64)
-        self._open_mean = self._open_mean @ phi.T
-        P = phi @ self._open_cov @ phi.T + self._Q * scale
-        self._open_cov = 0.5 * (P + P.transpose(1, 2))
+        P = phi @ self._open_cov1 @ phi.T + self._Q * scale
+        self._open_cov1 = 0.5 * (P + P.T)
+
+    @property
+    def _open_mean(self) -> torch.Tensor:
+        return torch.zeros(self.n_vehicles, N_STATES, dtype=torch.float64)
+
+    @property
+    def _open_cov(self) -> torch.Tensor:
+        return self._open_cov1.expand(self.n_vehicles, N_STATES, N_STATES).clone()
 
     def _reacquire(self, mask: torch.Tensor) -> None:
         """Vehicles ``mask`` restart from the open-loop prior ``N(m_ol, P_ol)``: on the
         acquisition grid when its horizontal σ exceeds ``acquisition.above_sigma_m`` (always
         for ``point_mass_ekf``), else in the tracking filter itself (EKF methods: always)."""
-        sigma = torch.linalg.eigvalsh(self._open_cov[:, :2, :2])[:, -1].clamp_min(0.0).sqrt()
+        sigma = _largest_sigma(self._open_cov)
         if self.method == "point_mass_ekf":
             to_grid = mask
         elif self.method == "point_mass_tracker":
@@ -734,7 +794,7 @@ class Navigator:
              lost: torch.Tensor, off: torch.Tensor, nomeas: torch.Tensor) -> Fix:
         n, dt = self.n_vehicles, self.dtype
         mean, cov = self._mean, self._cov
-        sigma = torch.linalg.eigvalsh(cov[:, :2, :2])[:, -1].clamp_min(0.0).sqrt()
+        sigma = _largest_sigma(cov)
         wide = self._on_grid | (sigma > self.config.integrity.acquired_sigma_m)
         status = torch.where(wide, _ACQ, _TRK)
         status = torch.where(nomeas, _NOMEAS, status)

@@ -10,7 +10,8 @@ every option checked on load with the file and key in the message. The shipped d
     initial:  {position_sigma_m: 100.0, altitude_sigma_m: 30.0, velocity_sigma_mps: 0.5}
     process_noise: {position_sigma_m: 1.0, altitude_sigma_m: 1.0, velocity_sigma_mps: 0.05}
     map_error: {dem_accuracy_m: null, fit_rmse_m: null, linearisation_table: null}
-    integrity: {lost_window: 20, lost_prob: 0.99999, acquired_sigma_m: 40.0}
+    integrity: {lost_window: 20, lost_prob: 0.99999, acquired_sigma_m: 40.0,
+                spike_gate_prob: 0.9999}
 
 The filter's numbers follow (SEEDS 004, 5-state error ``[δx, δy, δh, δv_x, δv_y]``):
 ``P0 = diag(σ_p², σ_p², σ_h², σ_v², σ_v²)`` from ``initial``; ``Q`` per nominal period
@@ -114,11 +115,17 @@ class IntegrityConfig:
             consistent updates exceeds ``χ²_p(W)/W`` with probability ``1 − p``.
         acquired_sigma_m: Largest horizontal σ (m, principal axis) reported ``tracking``;
             above it the status is ``acquiring``.
+        spike_gate_prob: Point-mass tracker: a clearance whose predictive NIS (against the
+            tracker's predicted mixture) exceeds ``χ²₁(p)`` is not used (counted
+            ``spikes``, status ``no_measurement``); every method: the NIS entering the
+            lost-lock window is capped at ``χ²₁(p)``, so one spike alone cannot fire the
+            test while a lost lock (many large NIS) still does. 0 disables both.
     """
 
     lost_window: int = 20
     lost_prob: float = 0.99999
     acquired_sigma_m: float = 40.0
+    spike_gate_prob: float = 0.9999
 
 
 @dataclass
@@ -294,6 +301,8 @@ class NavigatorConfig:
         i = self.integrity
         if not 0.0 < i.lost_prob < 1.0:
             raise bad("integrity.lost_prob", i.lost_prob, "in (0, 1)")
+        if not 0.0 <= i.spike_gate_prob < 1.0:
+            raise bad("integrity.spike_gate_prob", i.spike_gate_prob, "in [0, 1) (0 = off)")
         if not i.acquired_sigma_m > 0:
             raise bad("integrity.acquired_sigma_m", i.acquired_sigma_m, "> 0 m")
         for sec in ("tracker", "acquisition"):

@@ -50,7 +50,7 @@ def test_replay_gives_the_study_tracker_estimates(tiny_flight) -> None:
     map_var = 0.5
     study = run_tracker(truth, grid, P0=P0, Q=Q, R=scenario.R_m2 + map_var, dt=scenario.dt,
                         options=TrackerOptions(dtype="float64"))
-    cfg = dict(TINY, integrity={"lost_window": 10, "lost_prob": 0.9999},
+    cfg = dict(TINY, integrity={"lost_window": 10, "lost_prob": 0.9999, "spike_gate_prob": 0.0},
                tracker={"dtype": "float64"})
     nav = Navigator(grid, cfg, n_vehicles=4, map_error_variance=map_var)
     assert nav.R == scenario.R_m2 + map_var
@@ -118,7 +118,7 @@ def test_kalman_equality_on_a_tilted_plane(tiny_scenario_plane) -> None:
     ref = _kalman_reference(truth, P0, Q, 9.0, slope)
     ins_err = truth.ins_pos.numpy()
     for method, tol in (("bilinear", 1e-9), ("point_mass_tracker", 1e-3)):
-        cfg = dict(TINY, method=method, integrity={"lost_window": 0},
+        cfg = dict(TINY, method=method, integrity={"lost_window": 0, "spike_gate_prob": 0.0},
                    tracker={"dtype": "float64"})
         track = _replay(Navigator(grid, cfg, n_vehicles=truth.n_runs), truth)
         est = ins_err[..., :2] - track.xy.numpy()  # δp̂

@@ -170,7 +170,8 @@ def test_altimeter_spikes_are_taken_by_the_ekf_policy() -> None:
 def test_lost_lock_false_alarms_on_consistent_flights_at_the_production_setting() -> None:
     # 64 consistent flights (filter = truth's model) over a tilted plane (the measurement is
     # linear: the tracker's NIS is χ²(1) exactly), 100 updates each, the shipped detector
-    # setting (W = 20, p = 0.99999): measured 1 of 200 flights over 200 s; allow 1 of 64
+    # setting (W = 20, p = 0.99999, NIS capped at the spike gate): measured 0 of 200 flights
+    # of 200 s (tilted plane and jacksboro); allow 1 of 64
     scenario = dataclasses.replace(load_scenario("tiny"), truth_model="dem", duration_s=100.0,
                                    start_xy=[1000.0, 1000.0], start_spread_m=0.0).validate()
     xs = 30.0 * np.arange(240)
@@ -180,7 +181,9 @@ def test_lost_lock_false_alarms_on_consistent_flights_at_the_production_setting(
     nav = Navigator(GridTerrain(tile, method="bilinear"), _config(), n_vehicles=64)
     assert (nav.config.integrity.lost_window, nav.config.integrity.lost_prob) == (20, 0.99999)
     track = _replay(nav, truth)
-    assert track.counts["updates"] == 64 * 100
+    # the spike gate (χ²₁ at p = 0.9999) leaves out ~1e-4 of consistent clearances
+    assert track.counts["updates"] + track.counts["spikes"] == 64 * 100
+    assert track.counts["spikes"] <= 4
     assert track.counts["lost"] <= 1
     # the windowed NIS the fixes report is the consistent χ²(1) mean: near 1
     assert 0.8 < float(track.nis[:, 20:].mean()) < 1.2

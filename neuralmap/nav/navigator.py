@@ -56,8 +56,10 @@ Integrity, per vehicle and epoch (status codes of :data:`~neuralmap.nav.fix.STAT
   integrity.spike_gate_prob``, is not used (counted ``spikes``, status
   ``no_measurement``); the EKF methods take them through their policy (``raf``, ``igg3``,
   ``huber``, ``chi2``, ...); the acquisition grid has no gate (its posterior is wide). In
-  every method the NIS entering the lost-lock window is capped at ``χ²₁(p)``: one spike
-  cannot fire the test alone, a run of them (or a lost lock) does.
+  every method (when the gate is on) the NIS entering the lost-lock window is capped at
+  twice the test's threshold ``2 χ²_p(W)/W``: with W = 20 it takes 8 spikes in one window
+  to fire the test, while a lost lock (every NIS large) still fires it once the window
+  fills.
 
 Streaming equals replay: :meth:`Navigator.replay` is :meth:`Navigator.step` over the epochs
 (the filter is recursive; the batch is over vehicles), so the two agree bit for bit.
@@ -136,10 +138,11 @@ class _Window:
 
     def __init__(self, n: int, window: int, prob: float, dtype: torch.dtype,
                  cap: float = math.inf) -> None:
-        self.cap = cap
+        """``cap`` finite: NIS entering the window are capped at twice the threshold."""
         self.w = max(int(window), 1)
         self.enabled = window > 0
         self.threshold = _chi2_mean_threshold(prob, self.w) if self.enabled else math.inf
+        self.cap = 2.0 * self.threshold if cap < math.inf else math.inf
         self.values = torch.zeros(n, self.w, dtype=dtype)
         self.count = torch.zeros(n, dtype=torch.long)
         self.slot = torch.zeros(n, dtype=torch.long)

@@ -118,8 +118,9 @@ class IntegrityConfig:
         spike_gate_prob: Point-mass tracker: a clearance whose predictive NIS (against the
             tracker's predicted mixture) exceeds ``χ²₁(p)`` is not used (counted
             ``spikes``, status ``no_measurement``); every method: the NIS entering the
-            lost-lock window is capped at ``χ²₁(p)``, so one spike alone cannot fire the
-            test while a lost lock (many large NIS) still does. 0 disables both.
+            lost-lock window is capped at twice the test's threshold, so a few spikes cannot
+            fire the test (8 in one window of 20 can) while a lost lock (every NIS large)
+            still does. 0 disables both.
     """
 
     lost_window: int = 20

@@ -201,13 +201,13 @@ class WindStudyConfig(StudyConfig):
         for i, entry in enumerate(self.filters):
             if not isinstance(entry, dict) or "name" not in entry:
                 raise NeuralMapError(
-                    f"filters[{i}] must be a mapping with at least 'name' (and optionally "
+                    f"--filters[{i}] must be a mapping with at least 'name' (and optionally "
                     f"{sorted(allowed - {'name'})}), got {entry!r}."
                 )
             unknown = set(entry) - allowed
             if unknown:
                 raise NeuralMapError(
-                    f"filters[{i}] ('{entry['name']}'): unknown keys {sorted(unknown)}; "
+                    f"--filters[{i}] ('{entry['name']}'): unknown keys {sorted(unknown)}; "
                     f"allowed: {sorted(allowed)}."
                 )
             specs.append(WindFilterSpec(
@@ -217,8 +217,8 @@ class WindStudyConfig(StudyConfig):
             ).validate())
         names = [s.name for s in specs]
         if not specs or len(set(names)) != len(names):
-            raise NeuralMapError(f"filters: need at least one filter and unique names, got "
-                                 f"{names}.")
+            raise NeuralMapError(f"--filters: need at least one filter and unique names, got "
+                                 f"{names}; give each entry its own name.")
         return specs
 
     def validate(self) -> None:
@@ -231,11 +231,12 @@ class WindStudyConfig(StudyConfig):
         """
         super().validate()
         if self.n_runs < 1 or self.n_steps < 10:
-            raise NeuralMapError(f"n_runs must be >= 1 and n_steps >= 10, got {self.n_runs}, "
-                                 f"{self.n_steps}.")
+            raise NeuralMapError(f"--n_runs must be >= 1 and --n_steps >= 10, got "
+                                 f"{self.n_runs}, {self.n_steps}.")
         bad = [c for c in self.conditions if c not in CONDITIONS]
         if bad or not self.conditions:
-            raise NeuralMapError(f"conditions: unknown {bad}; choose from {list(CONDITIONS)}.")
+            raise NeuralMapError(f"--conditions: unknown or empty {bad or self.conditions}; "
+                                 f"choose from {list(CONDITIONS)}.")
         for cond in self.conditions:
             self.sim_config(cond).validate()
             fault = self.fault_config(cond)
@@ -249,8 +250,8 @@ class WindStudyConfig(StudyConfig):
         require_in_range(self.shear_time_fraction, "shear_time_fraction", "wind study",
                          0.0, 1.0)
         if not 0 <= self.plot_run < self.n_runs:
-            raise NeuralMapError(f"plot_run must be in [0, n_runs) = [0, {self.n_runs}), got "
-                                 f"{self.plot_run}.")
+            raise NeuralMapError(f"--plot_run must be in [0, --n_runs) = [0, {self.n_runs}), "
+                                 f"got {self.plot_run}.")
         for spec in self.filter_specs():
             if spec.policy == "sage_husa" and "b" in spec.policy_args:
                 require_open_unit(spec.policy_args["b"], "b",

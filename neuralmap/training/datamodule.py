@@ -246,12 +246,12 @@ class DemDataModule(pl.LightningDataModule):
         # hparams merge would refuse different values. The fit report logs both, prefixed.
         self.save_hyperparameters(ignore=["path"] if tile_given else None, logger=False)
         if int(batch_size) < 1:
-            raise NeuralMapError(f"data.batch_size must be >= 1, got {batch_size}.")
+            raise NeuralMapError(f"--data.batch_size must be >= 1, got {batch_size}.")
         if int(eval_batch_size) < 1:
-            raise NeuralMapError(f"data.eval_batch_size must be >= 1, got {eval_batch_size}.")
+            raise NeuralMapError(f"--data.eval_batch_size must be >= 1, got {eval_batch_size}.")
         if not (math.isfinite(val_fraction) and 0.0 < val_fraction <= 0.5):
             raise NeuralMapError(
-                f"data.val_fraction must be in (0, 0.5] (fraction of valid nodes held out for "
+                f"--data.val_fraction must be in (0, 0.5] (fraction of valid nodes held out for "
                 f"validation), got {val_fraction}. Try 0.02."
             )
         # A DemTile passed from Python is recorded by its source (or name).
@@ -265,15 +265,15 @@ class DemDataModule(pl.LightningDataModule):
         self.seed = int(seed)
         self.eval_batch_size = int(eval_batch_size)
         if int(refit_epochs) < 0:
-            raise NeuralMapError(f"data.refit_epochs must be >= 0, got {refit_epochs}.")
+            raise NeuralMapError(f"--data.refit_epochs must be >= 0, got {refit_epochs}.")
         if not (math.isfinite(offnode_ratio) and offnode_ratio >= 0.0):
             raise NeuralMapError(
-                f"data.offnode_ratio must be a finite number >= 0 (off-node points per node "
+                f"--data.offnode_ratio must be a finite number >= 0 (off-node points per node "
                 f"point of a batch; 0 = nodes only), got {offnode_ratio}. Try 0.5."
             )
         if int(offnode_val_points) < 1:
             raise NeuralMapError(
-                f"data.offnode_val_points must be >= 1, got {offnode_val_points}."
+                f"--data.offnode_val_points must be >= 1, got {offnode_val_points}."
             )
         self.offnode_ratio = float(offnode_ratio)
         self.offnode_val_points = int(offnode_val_points)
@@ -286,7 +286,7 @@ class DemDataModule(pl.LightningDataModule):
         elif mosaic:
             if spacing is not None or origin is not None:
                 raise NeuralMapError(
-                    f"data.path {path!r} is a mosaic: each tile's spacing and place come from "
+                    f"--data.path {path!r} is a mosaic: each tile's spacing and place come from "
                     "its own georeference, so remove --data.spacing / --data.origin.")
             self.tile = load_mosaic(path, name=name, units=units, nodata=nodata,
                                     height_check=height_check)
@@ -450,12 +450,12 @@ class DemDataModule(pl.LightningDataModule):
         max_epochs = getattr(trainer, "max_epochs", None) if trainer is not None else None
         if max_epochs is None or max_epochs < 0:
             self.refit_note = (
-                f"data.refit_epochs {self.refit_epochs} needs a run length in epochs "
+                f"--data.refit_epochs {self.refit_epochs} needs a run length in epochs "
                 "(trainer.max_epochs); refit disabled, validation stays held out"
             )
         elif self.refit_epochs >= max_epochs:
             self.refit_note = (
-                f"data.refit_epochs {self.refit_epochs} >= trainer.max_epochs {max_epochs} "
+                f"--data.refit_epochs {self.refit_epochs} >= --trainer.max_epochs {max_epochs} "
                 "would train on the validation nodes from epoch 0 (no held-out figures); "
                 "refit disabled for this run, validation stays held out. Set "
                 f"--data.refit_epochs below {max_epochs} to keep a refit"

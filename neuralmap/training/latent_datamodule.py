@@ -54,7 +54,7 @@ class LatentDataModule(pl.LightningDataModule):
         super().__init__()
         if int(steps_per_epoch) < 1:
             raise NeuralMapError(
-                f"data.steps_per_epoch must be >= 1, got {steps_per_epoch}.")
+                f"--data.steps_per_epoch must be >= 1, got {steps_per_epoch}.")
         self.steps_per_epoch = int(steps_per_epoch)
         if isinstance(path, DemTile):
             self.tile: DemTile = path

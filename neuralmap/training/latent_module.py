@@ -65,9 +65,9 @@ class LatentFitModule(pl.LightningModule):
         super().__init__()
         check_rate_weight(rate_weight)
         if not (math.isfinite(lr) and lr > 0):
-            raise NeuralMapError(f"model.lr must be finite and > 0, got {lr}.")
+            raise NeuralMapError(f"--model.lr must be finite and > 0, got {lr}.")
         if not 0.0 <= ste_fraction <= 1.0:
-            raise NeuralMapError(f"model.ste_fraction must be in [0, 1], got {ste_fraction}.")
+            raise NeuralMapError(f"--model.ste_fraction must be in [0, 1], got {ste_fraction}.")
         check_basis(basis, wavelet)
         self.save_hyperparameters()
         self.grid: LatentGrid | None = None

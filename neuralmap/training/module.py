@@ -108,34 +108,34 @@ class TerrainFitModule(pl.LightningModule):
         super().__init__()
         if optimizer not in OPTIMIZERS:
             raise NeuralMapError(
-                f"model.optimizer = {optimizer!r} is not supported; choose one of {OPTIMIZERS}."
+                f"--model.optimizer = {optimizer!r} is not supported; choose one of {OPTIMIZERS}."
             )
         if lr_schedule not in LR_SCHEDULES:
             raise NeuralMapError(
-                f"model.lr_schedule = {lr_schedule!r} is not supported; choose one of "
+                f"--model.lr_schedule = {lr_schedule!r} is not supported; choose one of "
                 f"{LR_SCHEDULES}."
             )
         if not (math.isfinite(lr) and lr > 0):
-            raise NeuralMapError(f"model.lr must be finite and > 0, got {lr}.")
+            raise NeuralMapError(f"--model.lr must be finite and > 0, got {lr}.")
         if momentum < 0 or weight_decay < 0:
             raise NeuralMapError(
-                f"model.momentum and model.weight_decay must be >= 0, got {momentum}, "
+                f"--model.momentum and --model.weight_decay must be >= 0, got {momentum}, "
                 f"{weight_decay}."
             )
         if target_rmse is not None and not target_rmse > 0:
             raise NeuralMapError(
-                f"model.target_rmse must be > 0 metres (or null to disable), got {target_rmse}."
+                f"--model.target_rmse must be > 0 metres (or null to disable), got {target_rmse}."
             )
         for key, weight in (("offnode_weight", offnode_weight),
                             ("offnode_slope_weight", offnode_slope_weight)):
             if not (math.isfinite(weight) and weight >= 0):
                 raise NeuralMapError(
-                    f"model.{key} must be a finite number >= 0, got {weight}. Try 1.0 "
+                    f"--model.{key} must be a finite number >= 0, got {weight}. Try 1.0 "
                     "(0 ignores the off-node points)."
                 )
         if num_blocks is not None and len(num_blocks) != 2:
             raise NeuralMapError(
-                f"model.num_blocks must be [nbx, nby] (blocks along east, north), got {num_blocks}."
+                f"--model.num_blocks must be [nbx, nby] (blocks along east, north), got {num_blocks}."
             )
         self.save_hyperparameters()
         self.net: BlockwiseTerrainNet | None = None

@@ -45,3 +45,17 @@ def test_parse_errors_are_one_line_naming_the_option(extra: list[str], expected:
     assert code == 2 and len(lines) == 1, err
     assert expected in lines[0] and "evaluate.py --help" in lines[0], lines[0]
     assert "Parser key" not in lines[0]
+
+
+@pytest.mark.parametrize(("extra", "expected"), [
+    (["--n_steps", "5"], "error: --n_runs must be >= 1 and --n_steps >= 10, got"),
+    (["--plot_run", "99999"], "error: --plot_run must be in [0, --n_runs)"),
+    (["--conditions", "[]"], "error: --conditions: unknown or empty []; choose from"),
+])
+def test_wind_option_refusals_name_the_option(extra: list[str], expected: str, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    code = cli.main(["--config", str(REPO_ROOT / "configs" / "wind_tiny.yaml"),
+                     "--runs_dir", str(tmp_path / "runs"), *extra])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert code == 2 and len(lines) == 1 and expected in lines[0], err

@@ -153,7 +153,10 @@ class AcquisitionStudyConfig(ClusterOptions):
                                  f"{self.neural_likelihood_oversample}.")
         if self.n_runs < 1 or any(k is not None and k < 1 for k in (self.n_runs_neural,
                                                                       self.n_runs_tracker)):
-            raise NeuralMapError("--n_runs, --n_runs_neural and --n_runs_tracker must be >= 1.")
+            raise NeuralMapError(
+                f"--n_runs, --n_runs_neural and --n_runs_tracker must be >= 1 (the last two may "
+                f"be null = --n_runs), got {self.n_runs}, {self.n_runs_neural}, "
+                f"{self.n_runs_tracker}.")
         if self.map_error_points < 100:
             raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
         if not self.sigmas_m or any(not s > 0 for s in self.sigmas_m):

@@ -55,7 +55,10 @@ Integrity, per vehicle and epoch (status codes of :data:`~neuralmap.nav.fix.STAT
   (against the predicted mixture, before the update) exceeds ``χ²₁(p)``, ``p =
   integrity.spike_gate_prob``, is not used (counted ``spikes``, status
   ``no_measurement``); the EKF methods take them through their policy (``raf``, ``igg3``,
-  ``huber``, ``chi2``, ...); the acquisition grid has no gate (its posterior is wide). In
+  ``huber``, ``chi2``, ...); the acquisition grid has no gate (Gaussian likelihood by
+  default; ``acquisition.outlier_prob`` makes it a Gaussian / uniform mixture): a spike in
+  its first epochs can move its mass to a wrong match, which the lost-lock test catches
+  after the hand-off. In
   every method (when the gate is on) the NIS entering the lost-lock window is capped at
   twice the test's threshold ``2 χ²_p(W)/W``: with W = 20 it takes 8 spikes in one window
   to fire the test, while a lost lock (every NIS large) still fires it once the window
@@ -362,7 +365,9 @@ class _Grid:
                                       handoff_hold=a.handoff_hold,
                                       min_acquire_steps=a.min_acquire_steps,
                                       flatten_likelihood=a.flatten_likelihood,
-                                      reacquire_sigma_m=a.reacquire_sigma_m).validate()
+                                      reacquire_sigma_m=a.reacquire_sigma_m,
+                                      outlier_prob=a.outlier_prob,
+                                      outlier_width_m=a.outlier_width_m).validate()
         self.dtype = torch.float32 if a.dtype == "float32" else torch.float64
         n, P0 = nav.n_vehicles, prior
         sigma0 = float(P0[:2, :2].diagonal().max()) ** 0.5
@@ -777,7 +782,9 @@ class Navigator:
             self._track.load(direct, self._open_mean, self._open_cov)
         if bool(to_grid.any()):
             if self._grid is None:  # sized for the widest prior it must hold now
-                widest = self._open_cov[int(torch.argmax(torch.where(to_grid, sigma, 0.0)))]
+                floor = self.config.acquisition.reacquire_sigma_m
+                widest = self._open_cov1.clone()
+                widest[:2, :2] *= max(1.0, floor / float(sigma.max())) ** 2
                 self._grid = _Grid(self, widest)
             self._grid.restart(to_grid, self._open_mean, self._open_cov)
             self._track.drop(to_grid)

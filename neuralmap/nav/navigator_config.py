@@ -155,8 +155,12 @@ class AcquisitionSection:
         above_sigma_m: ``point_mass_tracker`` starts on the grid when the initial
             horizontal σ exceeds this (else on the tracker directly).
         max_spacing_m, max_cells, span_sigma, dtype, handoff_sigma_m, handoff_affinity,
-        handoff_hold, min_acquire_steps, flatten_likelihood, reacquire_sigma_m: As
-            :class:`~neuralmap.nav.acquisition.AcquisitionConfig`.
+        handoff_hold, min_acquire_steps, flatten_likelihood, reacquire_sigma_m,
+        outlier_prob, outlier_width_m: As
+            :class:`~neuralmap.nav.acquisition.AcquisitionConfig` (``outlier_prob`` > 0:
+            the grid's likelihood is a Gaussian / uniform mixture; default 0: with 0.01 or
+            0.001 and the flattened likelihood the grid never reached the hand-off on the
+            tiny synthetic tile from σ0 = 250 m, not investigated).
     """
 
     above_sigma_m: float = 150.0
@@ -170,6 +174,8 @@ class AcquisitionSection:
     min_acquire_steps: int = 5
     flatten_likelihood: bool = True
     reacquire_sigma_m: float = 200.0
+    outlier_prob: float = 0.0
+    outlier_width_m: float = 1000.0
 
 
 _SECTIONS: dict[str, type] = {
@@ -312,6 +318,10 @@ class NavigatorConfig:
                 raise bad(f"{sec}.dtype", dtype, "'float32' or 'float64'")
         if self.tracker.cells < 8:
             raise bad("tracker.cells", self.tracker.cells, "an integer >= 8")
+        if not 0.0 <= self.acquisition.outlier_prob < 1.0:
+            raise bad("acquisition.outlier_prob", self.acquisition.outlier_prob, "in [0, 1)")
+        if not self.acquisition.outlier_width_m > 0:
+            raise bad("acquisition.outlier_width_m", self.acquisition.outlier_width_m, "> 0 m")
         if not 0.0 < self.acquisition.handoff_affinity <= 1.0:
             raise bad("acquisition.handoff_affinity", self.acquisition.handoff_affinity,
                       "in (0, 1]")

@@ -62,7 +62,7 @@ def test_replay_gives_the_study_tracker_estimates(tiny_flight) -> None:
     assert track.counts["updates"] == int(study.run.updated.sum())
 
 
-@pytest.mark.parametrize("method", ["point_mass_tracker", "bilinear"])
+@pytest.mark.parametrize("method", ["point_mass_tracker", "point_mass_ekf", "bilinear"])
 def test_streaming_equals_replay_bit_for_bit(tiny_flight, method) -> None:
     _, _, truth, grid = tiny_flight
     radar = truth.radar.clone()

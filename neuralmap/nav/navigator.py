@@ -241,13 +241,18 @@ class _TrackerFilter:
         map (what :meth:`PointMassTracker.update` reports as its NIS)."""
         trk = self.tracker
         yc = g + torch.einsum("z,nzij->nij", trk.c, trk.lin_mean)
-        ok = torch.isfinite(yc)
-        w = torch.where(ok, trk.weights, 0.0)
-        mass = w.sum((1, 2)).clamp_min(torch.finfo(w.dtype).tiny)
-        yc = torch.where(ok, yc, 0.0)
-        yhat = (w * yc).sum((1, 2)) / mass
-        s_y = (w * (yc - yhat[:, None, None]) ** 2).sum((1, 2)) / mass + (
-            trk.lin_cov @ trk.c) @ trk.c + self.R
+        w = trk.weights
+        if bool(torch.isfinite(g).all()):  # every cell on the map (masses sum to 1)
+            yhat = (w * yc).sum((1, 2))
+            spread = (w * (yc - yhat[:, None, None]).square_()).sum((1, 2))
+        else:
+            ok = torch.isfinite(yc)
+            w = torch.where(ok, w, 0.0)
+            mass = w.sum((1, 2)).clamp_min(torch.finfo(w.dtype).tiny)
+            yc = torch.where(ok, yc, 0.0)
+            yhat = (w * yc).sum((1, 2)) / mass
+            spread = (w * (yc - yhat[:, None, None]) ** 2).sum((1, 2)) / mass
+        s_y = spread + (trk.lin_cov @ trk.c) @ trk.c + self.R
         return (y - yhat) ** 2 / s_y
 
     def update(self, ins_pos: torch.Tensor, y: torch.Tensor, mask: torch.Tensor | None

@@ -219,3 +219,30 @@ def test_step_refusals(tiny_flight) -> None:
         nav.step(0.0, p, h, r)
     with pytest.raises(NeuralMapError, match="finite"):
         nav.step(1.0, p * math.nan, h, r)
+
+
+def test_linearisation_table_for_ekf_methods(tiny_flight, tmp_path) -> None:
+    # a measured table with a constant 4 m² miss: the EKF's R is the altimeter variance plus
+    # the table's value (replacing the method's own), i.e. the same filter as a 4 m² map
+    # error with a zero-variance linearizer
+    import json
+
+    _, _, truth, grid = tiny_flight
+    table = {"sigmas_m": [0.0, 100.0], "map_mse_m2": [4.0, 4.0], "map_mean_m": [0.0, 0.0],
+             "variance_m2": [4.0, 4.0], "flight_samples": [0.0, 0.0], "n_points": 10,
+             "draws": 1, "seed": 0}
+    path = tmp_path / "table.json"
+    path.write_text(json.dumps(table))
+    cfg = dict(TINY, method="bilinear", map_error={"linearisation_table": str(path)})
+    with_table = _replay(Navigator(grid, cfg, n_vehicles=4), truth)
+    from neuralmap.linearize.factory import make_linearizer
+
+    ref = Navigator(grid, dict(TINY, method="bilinear"), n_vehicles=4, map_error_variance=4.0)
+    # the table replaces the method's own variance: the reference has none
+    ref._linearizer = make_linearizer("bilinear", tile=ref._dem_tile(), variance="zero")
+    plain = _replay(ref, truth)
+    torch.testing.assert_close(with_table.xy, plain.xy, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(with_table.cov, plain.cov, rtol=1e-12, atol=1e-9)
+    path.write_text("{\"sigmas_m\": [0.0]}")
+    with pytest.raises(NeuralMapError, match="lacks"):
+        Navigator(grid, cfg, n_vehicles=4)

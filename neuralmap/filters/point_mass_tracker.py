@@ -840,7 +840,10 @@ class PointMassTracker:
         tiny = torch.finfo(self.dtype).tiny
         log_r = w_o.clamp_min(tiny).log() - self._log_gauss(u_o, cu_o)
         log_r = (log_r - log_r.amax((1, 2), keepdim=True)).clamp_min(_LOG_R_FLOOR)
-        gzu = torch.linalg.lstsq(cu_o, czu_o.transpose(1, 2)).solution.transpose(1, 2)
+        # gelsd, not the default gelsy: gelsy's result differs in the last bits from call to
+        # call on some CPUs, and the tracker must repeat itself exactly (streaming = replay)
+        gzu = torch.linalg.lstsq(cu_o, czu_o.transpose(1, 2),
+                                 driver="gelsd").solution.transpose(1, 2)
         resid = mu_o - mz_o[:, :, None, None] - self._affine(gzu, u_o)
         chans = torch.cat([log_r[:, None], resid], 1)
         out = nnf.grid_sample(chans, uv.to(chans.dtype), mode="bilinear", padding_mode="border",

@@ -63,15 +63,7 @@ def test_replay_gives_the_study_tracker_estimates(tiny_flight) -> None:
 
 
 @pytest.mark.parametrize("method", ["point_mass_tracker", "point_mass_ekf", "bilinear"])
-def test_streaming_equals_replay_bit_for_bit(tiny_flight, method, monkeypatch) -> None:
-    # torch.linalg.lstsq's default CPU driver (gelsy) is not deterministic here: the same
-    # call on the same tensors differs in the last bits ~1 in 150 (torch 2.13 + MKL 2024.2;
-    # gels/gelsd are deterministic). PointMassTracker.regrid calls it, so two identical
-    # trackers can part at round-off; the test pins the driver to check the navigator's
-    # streaming itself (until the tracker passes a deterministic driver).
-    lstsq = torch.linalg.lstsq
-    monkeypatch.setattr(torch.linalg, "lstsq",
-                        lambda a, b, **kw: lstsq(a, b, **{"driver": "gelsd", **kw}))
+def test_streaming_equals_replay_bit_for_bit(tiny_flight, method) -> None:
     _, _, truth, grid = tiny_flight
     radar = truth.radar.clone()
     radar[1, 7] = math.nan

@@ -1,6 +1,6 @@
 """Compiled covariance propagation of the 15-state ψ-angle model, vectorised over runs.
 
-The propagation point of :func:`~neuralmap.ins.kernels.propagate_block` (error model,
+The propagation point of :func:`propagate_block` (error model,
 ``Φ = I + FT + (FT)²/2``, ``Q_d = ½ (Φ G Q_c Gᵀ Φᵀ + G Q_c Gᵀ) T`` and
 ``P ← Φ P Φᵀ + Q_d``; :mod:`neuralmap.ins.error_model`, SEEDS 003 eqs. 1–2) computed for
 a group of :data:`LANES` = 8 runs at once: every matrix is stored ``(15, 15, 8)`` with the
@@ -26,10 +26,13 @@ import contextlib
 from collections.abc import Iterator
 
 import numpy as np
+import torch
 
+from neuralmap.ins import kernels
+from neuralmap.ins.error_model import continuous_noise, discretize, error_dynamics
 from neuralmap.ins.kernels import HAVE_NUMBA, _error_model_nb, _njit, _propagation_scratch
 
-__all__ = ["F_PATTERN", "LANES", "PHI_PATTERN", "propagate_lanes"]
+__all__ = ["F_PATTERN", "LANES", "PHI_PATTERN", "propagate_block", "propagate_lanes"]
 
 #: Runs propagated together (SIMD lanes: 8 doubles = one AVX-512 or two AVX2 registers);
 #: the kernels below spell out 8 lanes.
@@ -288,3 +291,52 @@ def propagate_lanes(
                             float(tau_a), phi_last, qd_last, _F_IDX, _F_COUNT, _PHI_IDX,
                             _PHI_COUNT)
     return phi_last, qd_last
+
+
+def propagate_block(
+    P: torch.Tensor,
+    healthy: torch.Tensor,
+    states: torch.Tensor,
+    accel: torch.Tensor,
+    intervals: list[float],
+    qc: torch.Tensor,
+    tau_g: float,
+    tau_a: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Error covariance over S propagation points; the last step is left to the filter.
+
+    Compiled: :func:`propagate_lanes` (8 runs per SIMD
+    lane group). For each point s: ``F`` and ``G Q_c Gᵀ`` of the solution there
+    (:func:`~neuralmap.ins.error_model.error_dynamics`,
+    :func:`~neuralmap.ins.error_model.continuous_noise`), ``Φ_s, Q_d,s``
+    (:func:`~neuralmap.ins.error_model.discretize` over the interval), and for
+    s < S: ``P ← ½(Φ P Φᵀ + (Φ P Φᵀ)ᵀ) + Q_d`` on healthy samples (the filter's predict).
+
+    Args:
+        P: ``(N, 15, 15)`` covariance at the first point's start.
+        healthy: ``(N,)`` bool; unhealthy samples keep their P.
+        states: ``(N, S, 10)`` solutions at the points.
+        accel: ``(N, S, 3)`` bias-corrected specific forces there.
+        intervals: S propagation intervals T (s).
+        qc: ``(12,)`` noise densities; tau_g, tau_a: bias correlation times (s).
+
+    Returns:
+        ``(P after S − 1 points, Φ_S (N, 15, 15), Q_d,S (N, 15, 15))``.
+    """
+    points = states.shape[1]
+    if kernels.HAVE_NUMBA and P.device.type == "cpu" and P.dtype == torch.float64:
+        p = P.detach().contiguous().numpy().copy()
+        phi_last, qd_last = propagate_lanes(
+            p, healthy.numpy(), states.contiguous().numpy(), accel.contiguous().numpy(),
+            np.asarray(intervals, dtype=np.float64), qc.numpy(), tau_g, tau_a)
+        return torch.from_numpy(p), torch.from_numpy(phi_last), torch.from_numpy(qd_last)
+    ok = healthy.reshape(-1, 1, 1)
+    phi = qd = P
+    for s in range(points):
+        F = error_dynamics(states[:, s], accel[:, s], gyro_corr_time=tau_g,
+                           accel_corr_time=tau_a)
+        phi, qd = discretize(F, continuous_noise(states[:, s], qc), intervals[s])
+        if s < points - 1:
+            fpf = torch.matmul(torch.matmul(phi, P), phi.transpose(1, 2))
+            P = torch.where(ok, 0.5 * (fpf + fpf.transpose(1, 2)) + qd, P)
+    return P, phi, qd

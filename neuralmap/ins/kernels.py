@@ -454,7 +454,7 @@ def _propagation_scratch():  # type: ignore[no-untyped-def]
 def _propagate_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_last, qd_last):  # type: ignore[no-untyped-def]
     """The covariance propagation run by run (the reference of the lane-vectorised
     :func:`~neuralmap.ins.covariance_kernels.propagate_lanes`, which gives the same
-    numbers and is what :func:`propagate_block` calls)."""
+    numbers and is what :func:`~neuralmap.ins.covariance_kernels.propagate_block` calls)."""
     n_runs, n_points = states.shape[0], states.shape[1]
     F, G, phi, qd, tmp, tmp2, idx, count, C, fn = _propagation_scratch()
     for r in range(n_runs):
@@ -471,56 +471,3 @@ def _propagate_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_la
                         v = tmp2[i, j] + qd[i, j]
                         P[r, i, j] = v
                         P[r, j, i] = v
-
-
-def propagate_block(
-    P: torch.Tensor,
-    healthy: torch.Tensor,
-    states: torch.Tensor,
-    accel: torch.Tensor,
-    intervals: list[float],
-    qc: torch.Tensor,
-    tau_g: float,
-    tau_a: float,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Error covariance over S propagation points; the last step is left to the filter.
-
-    Compiled: :func:`~neuralmap.ins.covariance_kernels.propagate_lanes` (8 runs per SIMD
-    lane group). For each point s: ``F`` and ``G Q_c Gᵀ`` of the solution there
-    (:func:`~neuralmap.ins.error_model.error_dynamics`,
-    :func:`~neuralmap.ins.error_model.continuous_noise`), ``Φ_s, Q_d,s``
-    (:func:`~neuralmap.ins.error_model.discretize` over the interval), and for
-    s < S: ``P ← ½(Φ P Φᵀ + (Φ P Φᵀ)ᵀ) + Q_d`` on healthy samples (the filter's predict).
-
-    Args:
-        P: ``(N, 15, 15)`` covariance at the first point's start.
-        healthy: ``(N,)`` bool; unhealthy samples keep their P.
-        states: ``(N, S, 10)`` solutions at the points.
-        accel: ``(N, S, 3)`` bias-corrected specific forces there.
-        intervals: S propagation intervals T (s).
-        qc: ``(12,)`` noise densities; tau_g, tau_a: bias correlation times (s).
-
-    Returns:
-        ``(P after S − 1 points, Φ_S (N, 15, 15), Q_d,S (N, 15, 15))``.
-    """
-    from neuralmap.ins.error_model import continuous_noise, discretize, error_dynamics
-
-    points = states.shape[1]
-    if HAVE_NUMBA and P.device.type == "cpu" and P.dtype == torch.float64:
-        from neuralmap.ins.covariance_kernels import propagate_lanes
-
-        p = P.detach().contiguous().numpy().copy()
-        phi_last, qd_last = propagate_lanes(
-            p, healthy.numpy(), states.contiguous().numpy(), accel.contiguous().numpy(),
-            np.asarray(intervals, dtype=np.float64), qc.numpy(), tau_g, tau_a)
-        return torch.from_numpy(p), torch.from_numpy(phi_last), torch.from_numpy(qd_last)
-    ok = healthy.reshape(-1, 1, 1)
-    phi = qd = P
-    for s in range(points):
-        F = error_dynamics(states[:, s], accel[:, s], gyro_corr_time=tau_g,
-                           accel_corr_time=tau_a)
-        phi, qd = discretize(F, continuous_noise(states[:, s], qc), intervals[s])
-        if s < points - 1:
-            fpf = torch.matmul(torch.matmul(phi, P), phi.transpose(1, 2))
-            P = torch.where(ok, 0.5 * (fpf + fpf.transpose(1, 2)) + qd, P)
-    return P, phi, qd

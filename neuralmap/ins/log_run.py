@@ -38,6 +38,7 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters import BatchedEKF
+from neuralmap.ins.covariance_kernels import propagate_block
 from neuralmap.ins.earth import position_offset_ned, radii
 from neuralmap.ins.epoch_alignment import split_at_epochs
 from neuralmap.ins.error_model import (
@@ -46,7 +47,6 @@ from neuralmap.ins.error_model import (
 from neuralmap.ins.error_state import correct, inject, total_attitude_error
 from neuralmap.ins.imu_model import ImuGrade
 from neuralmap.ins.increment_kernels import mechanize_increments, propagate_with_sigma
-from neuralmap.ins.kernels import propagate_block
 from neuralmap.ins.kfgins import GAP_FACTOR, GnssLog, ImuLog, NavLog
 from neuralmap.ins.loosely_coupled import LooselyCoupledConfig, initial_covariance
 from neuralmap.ins.measurement import antenna_velocity, check_lever_arm, gnss_measurement_model

@@ -27,13 +27,14 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters import BatchedEKF
 from neuralmap.filters.policies.compose import quality_members
 from neuralmap.filters.policy import FilterPolicy
+from neuralmap.ins.covariance_kernels import propagate_block
 from neuralmap.ins.error_model import (
     process_noise_density,
 )
 from neuralmap.ins.error_state import correct, inject, navigation_error, total_attitude_error
 from neuralmap.ins.gnss import GnssRecord, sanitize_quality
 from neuralmap.ins.imu_model import ImuErrorProcess, ImuGrade, imu_grade
-from neuralmap.ins.kernels import mechanize_block, propagate_block
+from neuralmap.ins.kernels import mechanize_block
 from neuralmap.ins.measurement import check_lever_arm, gnss_measurement_model
 from neuralmap.ins.trajectory import Trajectory, check_continuity
 

@@ -12,6 +12,7 @@ import torch
 
 import neuralmap.ins.kernels as kernels
 from neuralmap.filters import InnovationInflation
+from neuralmap.ins.covariance_kernels import propagate_block
 from neuralmap.ins.error_model import (
     continuous_noise,
     discretize,
@@ -149,7 +150,7 @@ def test_compiled_propagation_matches_the_torch_error_model() -> None:
     P0 = torch.tril(P0) + torch.tril(P0, -1).transpose(1, 2)
     healthy = torch.tensor([True, True, False, True])
     intervals = [0.1, 0.1, 0.05, 0.1, 0.1]
-    P, phi, qd = kernels.propagate_block(P0, healthy, states, f, intervals, qc,
+    P, phi, qd = propagate_block(P0, healthy, states, f, intervals, qc,
                                          grade.gyro_corr_time, grade.accel_corr_time)
     ref = P0
     for s in range(5):

@@ -82,9 +82,9 @@ def test_observed_scope_keeps_the_literal_update_and_inflates_less(H: np.ndarray
 
 
 def test_bad_scope_names_the_choices() -> None:
-    with pytest.raises(NeuralMapError, match="'scope' must be one of full, observed"):
+    with pytest.raises(NeuralMapError, match="'scope' must be one of auto, full, observed"):
         YangAdaptive(scope="measured")
-    with pytest.raises(NeuralMapError, match="'scope' must be one of full, observed"):
+    with pytest.raises(NeuralMapError, match="'scope' must be one of auto, full, observed"):
         InnovationInflation(scope="")
 
 
@@ -121,3 +121,14 @@ def test_float32_follows_float64_along_whole_trajectories(tiny_scenario, tiny_ti
         gap = (run32.err.double() - ref.err)[..., :2].norm(dim=-1).amax(dim=1)
         assert float(gap.quantile(0.9)) < 0.01, gap
         assert float(gap.max()) < 2.0, gap
+
+    # the default scope ("auto") is the papers' literal form in float64 and the observed
+    # one in float32: the same numbers, bit for bit, as naming the scope
+    for make, default in ((lambda scope: YangAdaptive(1.0, 3.0, scope=scope),
+                           YangAdaptive(1.0, 3.0)),
+                          (lambda scope: InnovationInflation(1.2, scope=scope),
+                           InnovationInflation(1.2))):
+        assert torch.equal(fly(default, torch.float64).err, fly(make("full"), torch.float64).err)
+        assert torch.equal(fly(default, torch.float32).err,
+                           fly(make("observed"), torch.float32).err)
+

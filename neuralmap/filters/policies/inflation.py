@@ -24,7 +24,7 @@ from __future__ import annotations
 import torch
 
 from neuralmap.filters.policies._common import check_positive, residual_statistic
-from neuralmap.filters.policies.observed import check_scope, observed_increase
+from neuralmap.filters.policies.observed import check_scope, observed_increase, resolve_scope
 from neuralmap.filters.policy import Adaptation, FilterPolicy, UpdateContext
 
 __all__ = ["InnovationInflation", "innovation_inflation_factor"]
@@ -49,17 +49,18 @@ class InnovationInflation(FilterPolicy):
 
     Args:
         c0: Threshold on λ (1–1.5 in SEEDS 003).
-        scope: ``"full"`` (default, SEEDS 003's ``α Φ P Φᵀ + Q``) or ``"observed"``: the
-            same gain and state update with only the measured directions inflated
+        scope: ``"full"`` (SEEDS 003's ``α Φ P Φᵀ + Q``), ``"observed"``: the same gain
+            and state update with only the measured directions inflated
             (:mod:`~neuralmap.filters.policies.observed`), which keeps ``P`` conditioned
-            along a whole trajectory, in float32 too.
+            along a whole trajectory, in float32 too; or ``"auto"`` (default): ``"full"``
+            in float64, ``"observed"`` in float32.
 
     Reports ``alpha`` ``(N,)`` and ``lambda`` ``(N,)``.
     """
 
     name = "inflation"
 
-    def __init__(self, c0: float = 1.2, scope: str = "full") -> None:
+    def __init__(self, c0: float = 1.2, scope: str = "auto") -> None:
         self.c0 = check_positive(c0, name="c0", where="InnovationInflation")
         self.scope = check_scope(scope, "InnovationInflation")
 
@@ -71,7 +72,7 @@ class InnovationInflation(FilterPolicy):
         Q = context.process_noise
         if not alpha.requires_grad and bool((alpha == 1).all()):
             return Adaptation(info=info)  # clean epoch: P⁻ unchanged
-        if self.scope == "observed":  # Δ = (α − 1) Φ P Φᵀ (or (α − 1) P⁻), seen through H
+        if resolve_scope(self.scope, context.P_prior.dtype) == "observed":  # Δ = (α − 1) Φ P Φᵀ (or (α − 1) P⁻), seen through H
             a = alpha.reshape(-1, 1, 1)
             spread = context.P_prior if Q is None else context.P_prior - Q
             return Adaptation(P_prior=observed_increase(context, (a - 1.0) * spread),

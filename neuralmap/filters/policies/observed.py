@@ -22,11 +22,22 @@ import torch
 
 from neuralmap.filters.policy import UpdateContext
 
-__all__ = ["SCOPES", "check_scope", "observed_increase"]
+__all__ = ["SCOPES", "check_scope", "observed_increase", "resolve_scope"]
 
 #: Where an adaptive factor on ``P⁻`` acts: ``"full"`` = every direction (the papers'
-#: literal form), ``"observed"`` = the measured directions only (:func:`observed_increase`).
-SCOPES = ("full", "observed")
+#: literal form), ``"observed"`` = the measured directions only (:func:`observed_increase`),
+#: ``"auto"`` = ``"full"`` in float64 and ``"observed"`` in lower precision
+#: (:func:`resolve_scope`).
+SCOPES = ("auto", "full", "observed")
+
+
+def resolve_scope(scope: str, dtype: torch.dtype) -> str:
+    """The scope an update in ``dtype`` uses: ``"auto"`` is the papers' literal ``"full"``
+    in float64 (every float64 result is that of the papers' form) and ``"observed"`` in
+    float32 and below, which cannot hold the literal form's growth along a trajectory."""
+    if scope != "auto":
+        return scope
+    return "full" if dtype == torch.float64 else "observed"
 
 
 def check_scope(scope: str, where: str) -> str:
@@ -36,7 +47,7 @@ def check_scope(scope: str, where: str) -> str:
     if scope not in SCOPES:
         raise NeuralMapError(f"{where}: 'scope' must be one of {', '.join(SCOPES)} "
                              f"(full = the paper's P⁻ scaling, observed = only the measured "
-                             f"directions), got {scope!r}.")
+                             f"directions, auto = full in float64 and observed in float32), got {scope!r}.")
     return scope
 
 

@@ -34,7 +34,7 @@ from neuralmap.filters.policies._common import (
     check_positive,
     residual_statistic,
 )
-from neuralmap.filters.policies.observed import check_scope, observed_increase
+from neuralmap.filters.policies.observed import check_scope, observed_increase, resolve_scope
 from neuralmap.filters.policy import Adaptation, FilterPolicy, UpdateContext
 
 __all__ = ["YangAdaptive", "yang_factor"]
@@ -107,10 +107,11 @@ class YangAdaptive(FilterPolicy):
         c1: Second breakpoint (3.0–8.5), > c0; ignored by the two-segment form.
         segments: 3 (default) or 2.
         floor: Smallest α (so ``1/α`` stays finite), default 1e-3.
-        scope: ``"full"`` (default, SEEDS 002's ``P⁻/α`` in every direction) or
-            ``"observed"``: the same gain and state update with only the measured
-            directions inflated (:mod:`~neuralmap.filters.policies.observed`), which keeps
-            ``P`` conditioned along a whole trajectory, in float32 too.
+        scope: ``"full"`` (SEEDS 002's ``P⁻/α`` in every direction), ``"observed"``: the
+            same gain and state update with only the measured directions inflated
+            (:mod:`~neuralmap.filters.policies.observed`), which keeps ``P`` conditioned
+            along a whole trajectory, in float32 too; or ``"auto"`` (default): ``"full"``
+            in float64, ``"observed"`` in float32.
 
     Reports ``alpha`` ``(N,)`` and ``delta`` ``(N,)``.
     """
@@ -123,7 +124,7 @@ class YangAdaptive(FilterPolicy):
         c1: float | None = 3.0,
         segments: int = 3,
         floor: float = ALPHA_FLOOR,
-        scope: str = "full",
+        scope: str = "auto",
     ) -> None:
         _check_yang(c0, c1, segments, floor, "YangAdaptive")
         self.scope = check_scope(scope, "YangAdaptive")
@@ -140,7 +141,7 @@ class YangAdaptive(FilterPolicy):
         info = {"alpha": alpha, "delta": delta}
         if not alpha.requires_grad and bool((alpha == 1).all()):
             return Adaptation(info=info)  # nothing to scale (clean epoch): skip the product
-        if self.scope == "observed":  # Δ = (1/α − 1) P⁻, seen through H only
+        if resolve_scope(self.scope, context.P_prior.dtype) == "observed":  # Δ = (1/α − 1) P⁻, seen through H only
             delta = context.P_prior * (1.0 / alpha - 1.0).reshape(-1, 1, 1)
             return Adaptation(P_prior=observed_increase(context, delta), info=info)
         return Adaptation(p_scale=1.0 / alpha, info=info)

@@ -154,12 +154,21 @@ def test_evaluate_end_to_end(
     assert started["R_shared_m2"] == pytest.approx(
         results["scenario"]["R_m2"] + table["variance_m2"][0], rel=1e-12)
     assert table["sigmas_m"][0] == 0.0
+    # the tracker flown again with the R a user has (altimeter + stated DEM accuracy²); its
+    # truth-tuned RMSE is the metrics' all-run last-half RMSE of the tracker's row
+    stated = results["tracker"]["stated_R"]
+    assert stated["R_m2"] == pytest.approx(
+        results["scenario"]["R_m2"] + results["scenario"]["dem_error_sigma_m"] ** 2, rel=1e-12)
+    assert stated["truth_tuned_rmse_last_half_m"] == pytest.approx(
+        results["methods"]["point_mass_tracker"]["rmse_pos_m"], rel=1e-6)
+    assert stated["rmse_last_half_m"] > 0
     claims = [c["claim"] for c in results["claims"] if "recommended EKF method" in c["claim"]]
     assert len(claims) == 1 and claims[0].startswith("point_mass_ekf (recommended EKF method)")
 
     report = (folder / "report.md").read_text()
     assert "![" in report and "error_vs_time.png" in report
     assert "Divergence rule" in report and "position error < 50 m" in report
+    assert "the R a user has against the truth-tuned R" in report
     assert " nan " not in report.lower()
 
     # the saved config parses back to the same options

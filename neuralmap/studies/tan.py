@@ -92,6 +92,10 @@ class TanStudyConfig(TanOptions, ClusterOptions):
             :mod:`neuralmap.nav.acquisition`; R = altimeter + the bilinear DEM's map table,
             :func:`~neuralmap.linearize.measured_noise.measure_linearization_noise`).
         tracker_cells: Lattice cells per axis of ``point_mass_tracker`` (cell = σ/3.1).
+        tracker_stated_r: Fly ``point_mass_tracker`` a second time with the R a user has
+            (the altimeter variance + the DEM's stated accuracy ``dem_error_sigma_m``², as
+            the :class:`~neuralmap.nav.navigator.Navigator` builds it, no truth terrain)
+            and report what is lost against the truth-tuned R.
         noise: R of the EKF methods: ``"measured"`` = the altimeter variance + each method's
             miss against the truth terrain as a function of the position σ, measured over the
             map and on pilot flights (:mod:`neuralmap.nav.noise_calibration`); ``"scenario"``
@@ -108,6 +112,7 @@ class TanStudyConfig(TanOptions, ClusterOptions):
     methods: list[str] = field(
         default_factory=lambda: [*DEFAULT_METHODS, PM_EKF_METHOD, TRACKER_METHOD])
     tracker_cells: int = 32
+    tracker_stated_r: bool = True
     noise: str = "measured"
     noise_pilot_runs: int = 400
     noise_iterations: int = 3
@@ -324,6 +329,17 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     )
     results["timing_s"]["total"] = time.perf_counter() - started
     outputs.add_text(report_text(results))
+    stated = (tracker_info or {}).get("stated_R")
+    if stated:
+        outputs.add_table(
+            "Point-mass tracker: the R a user has against the truth-tuned R",
+            ["R", "R [m²]", "RMSE pos, all runs, last half [m]", "lost runs"],
+            [["truth-tuned (altimeter + DEM error measured against the truth)",
+              f"{tracker_info['R_m2']:.1f}", f"{stated['truth_tuned_rmse_last_half_m']:.2f}",
+              tracker_info["runs_lost"]],
+             ["stated (altimeter + the DEM's stated accuracy, as the Navigator)",
+              f"{stated['R_m2']:.1f}", f"{stated['rmse_last_half_m']:.2f}",
+              stated["runs_lost"]]])
     for check in claims:
         outputs.add_claim(check.paper, check.claim, check.measured, check.verdict,
                           detail=check.detail)
@@ -356,31 +372,58 @@ def _node(table: dict[str, Any], sigma: float) -> int:
     return int(np.argmin(np.abs(np.asarray(table["sigmas_m"]) - sigma)))
 
 
+def _fly_tracker(config: Any, scenario: Any, truth: Any, terrain: Any, R: float,
+                 label: str) -> Any:
+    """The point-mass tracker over every run with measurement variance ``R`` (m²)."""
+    model = TanModel.from_scenario(scenario)
+    with stage_progress(label, truth.n_steps, "step", enabled=config.progress) as progress:
+        return run_tracker(truth, terrain, P0=model.filter_prior(),
+                           Q=model.filter_process_noise(), R=R, dt=scenario.dt,
+                           options=TrackerOptions(cells=config.tracker_cells),
+                           progress=progress)
+
+
+def _last_half_rmse(run: Any) -> float:
+    """Horizontal RMSE over every run and the last half of the flight, m."""
+    err = run.err[:, run.err.shape[1] // 2:, :2].double()
+    return float(err.square().sum(-1).mean().sqrt())
+
+
 def _run_tracker(config: Any, scenario: Any, truth: Any, dem: dict[str, Any],
                  runs: dict[str, Any]) -> dict[str, Any]:
     """Runs the point-mass tracker (when asked for) on the bilinear DEM, R = altimeter
-    variance + the DEM's measured error variance; adds its run to ``runs``."""
+    variance + the DEM's measured error variance; adds its run to ``runs``. With
+    ``tracker_stated_r`` it flies again with the R a user has (altimeter + the DEM's stated
+    accuracy², no truth terrain) and reports both last-half RMSEs."""
     if TRACKER_METHOD not in config.methods:
         return {}
-    model = TanModel.from_scenario(scenario)
     R = float(scenario.R_m2) + dem["mse_m2"]
-    with stage_progress(TRACKER_METHOD, truth.n_steps, "step",
-                        enabled=config.progress) as progress:
-        result = run_tracker(truth, dem["terrain"], P0=model.filter_prior(),
-                             Q=model.filter_process_noise(), R=R, dt=scenario.dt,
-                             options=TrackerOptions(cells=config.tracker_cells),
-                             progress=progress)
+    result = _fly_tracker(config, scenario, truth, dem["terrain"], R, TRACKER_METHOD)
     runs[TRACKER_METHOD] = result.run
     elapsed = max(result.run.elapsed_s, 1e-9)
     print(f"{TRACKER_METHOD}: {config.tracker_cells}² cells, R {R:.1f} m² (altimeter + DEM error "
           f"{dem['mse_m2']:.2f} m² measured) | {result.cell_updates / elapsed:.3g} cell-updates/s | "
           f"regrids/run {float(result.regrids.double().mean()):.1f}, widened "
           f"{int((result.widenings > 0).sum())}, lost {int(result.lost.sum())} runs", flush=True)
-    return {"cells": config.tracker_cells, "R_m2": R, "elapsed_s": result.run.elapsed_s,
+    info = {"cells": config.tracker_cells, "R_m2": R, "elapsed_s": result.run.elapsed_s,
             "cell_updates_per_s": result.cell_updates / elapsed,
             "regrids_per_run": float(result.regrids.double().mean()),
             "runs_widened": int((result.widenings > 0).sum()), "runs_lost": int(result.lost.sum()),
             "recoveries": int(result.recoveries.sum())}
+    if config.tracker_stated_r:
+        R_user = float(scenario.R_m2) + float(scenario.dem_error_sigma_m) ** 2
+        user = _fly_tracker(config, scenario, truth, dem["terrain"], R_user,
+                            f"{TRACKER_METHOD} (stated R)")
+        tuned, stated = _last_half_rmse(result.run), _last_half_rmse(user.run)
+        info["stated_R"] = {"R_m2": R_user, "rmse_last_half_m": stated,
+                            "truth_tuned_rmse_last_half_m": tuned,
+                            "loss_ratio": stated / tuned if tuned > 0 else None,
+                            "runs_lost": int(user.lost.sum())}
+        print(f"{TRACKER_METHOD} with the R a user has ({R_user:.1f} m²: altimeter + stated DEM "
+              f"accuracy {scenario.dem_error_sigma_m:g} m): last-half RMSE {stated:.2f} m against "
+              f"{tuned:.2f} m with the truth-tuned R ({stated / max(tuned, 1e-12):.3f}x)",
+              flush=True)
+    return info
 
 
 def _run_point_mass_ekf(config: Any, scenario: Any, truth: Any, tile: Any, truth_terrain: Any,

@@ -202,8 +202,14 @@ class BlockwiseTerrainNet(TerrainModel):
             block_nodes: Core block width in node intervals (one config serves any tile).
             overlap_nodes: Blending zone width across a border, in node intervals.
             num_blocks: ``(nbx, nby)``, overrides ``block_nodes``.
-            encoding, n_frequencies, frequency_scale, hidden, depth, activation, blend,
-                seed: See the class docstring.
+            encoding: See the class docstring.
+            n_frequencies: See the class docstring.
+            frequency_scale: See the class docstring.
+            hidden: See the class docstring.
+            depth: See the class docstring.
+            activation: See the class docstring.
+            blend: See the class docstring.
+            seed: See the class docstring.
 
         Returns:
             The network with per-block height statistics set from the tile.

@@ -20,8 +20,10 @@ class RobustAdaptive(Compose):
     """IGG-III equivalent weights followed by Yang's three-segment adaptive factor.
 
     Args:
-        k0, k1: IGG-III breakpoints (1.0–1.5, 2.5–8.0).
-        c0, c1: Adaptive-factor breakpoints (1.0–1.5, 3.0–8.5).
+        k0: First IGG-III breakpoint (1.0–1.5).
+        k1: Second IGG-III breakpoint (2.5–8.0).
+        c0: First adaptive-factor breakpoint (1.0–1.5).
+        c1: Second adaptive-factor breakpoint (3.0–8.5).
         segments: 3 (default) or 2 for the adaptive factor.
         floor: Smallest α.
 

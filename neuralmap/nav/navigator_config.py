@@ -32,6 +32,8 @@ from typing import Any
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.acquisition import AcquisitionConfig
+from neuralmap.nav.tracking import TrackerOptions
 
 __all__ = ["DEFAULT_CONFIG", "NavigatorConfig", "load_navigator_config", "navigator_methods"]
 
@@ -139,12 +141,12 @@ class TrackerSection:
             navigator's, ``integrity``; the tracker's own widening is off).
     """
 
-    cells: int = 32
-    span_sigma: float = 5.0
-    principal_axes: bool = True
-    dtype: str = "float32"
-    flatten_likelihood: bool = False
-    min_cell_blur: float = 1.5
+    cells: int = TrackerOptions.cells
+    span_sigma: float = TrackerOptions.span_sigma
+    principal_axes: bool = TrackerOptions.principal_axes
+    dtype: str = TrackerOptions.dtype
+    flatten_likelihood: bool = TrackerOptions.flatten_likelihood
+    min_cell_blur: float = TrackerOptions.min_cell_blur
 
 
 @dataclass
@@ -164,18 +166,19 @@ class AcquisitionSection:
     """
 
     above_sigma_m: float = 150.0
-    max_spacing_m: float = 50.0
-    max_cells: int = 256
-    span_sigma: float = 4.0
-    dtype: str = "float32"
-    handoff_sigma_m: float = 40.0
-    handoff_affinity: float = 0.9
-    handoff_hold: int = 3
-    min_acquire_steps: int = 5
-    flatten_likelihood: bool = True
-    reacquire_sigma_m: float = 200.0
-    outlier_prob: float = 0.0
-    outlier_width_m: float = 1000.0
+    # the grid's own options default to the acquisition grid's (one place for their values)
+    max_spacing_m: float = AcquisitionConfig.max_spacing_m
+    max_cells: int = AcquisitionConfig.max_cells
+    span_sigma: float = AcquisitionConfig.span_sigma
+    dtype: str = AcquisitionConfig.dtype
+    handoff_sigma_m: float = AcquisitionConfig.handoff_sigma_m
+    handoff_affinity: float = AcquisitionConfig.handoff_affinity
+    handoff_hold: int = AcquisitionConfig.handoff_hold
+    min_acquire_steps: int = AcquisitionConfig.min_acquire_steps
+    flatten_likelihood: bool = AcquisitionConfig.flatten_likelihood
+    reacquire_sigma_m: float = AcquisitionConfig.reacquire_sigma_m
+    outlier_prob: float = AcquisitionConfig.outlier_prob
+    outlier_width_m: float = AcquisitionConfig.outlier_width_m
 
 
 _SECTIONS: dict[str, type] = {

@@ -1,7 +1,7 @@
 """Run a study: ``python evaluate.py [--config configs/<study>.yaml] [--key value ...]``.
 
 The default study is the terrain-aided navigation Monte Carlo (``configs/tan.yaml``); the
-config's ``study:`` key picks another. Logic lives in :mod:`neuralmap.studies`.
+config's ``study:`` key picks another. Logic lives in `neuralmap.studies`.
 """
 
 import sys

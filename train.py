@@ -2,7 +2,7 @@
 
 ``map`` (default) fits a neural map to a DEM tile or a mosaic of tiles, ``noise`` learns
 the TAN filter's Q and R from flights, ``region`` fits a region-scale sharded map; see
-:mod:`neuralmap.training.cli`.
+`neuralmap.training.cli`.
 """
 
 from neuralmap.training.cli import main

@@ -3,7 +3,7 @@
 Measures in one run, on the scenario's tile (default: jacksboro), and prints ratios:
 
 (a) the 5-state TAN filter step (predict + linearise + update,
-    :func:`neuralmap.nav.tan.tan_filter_step` on :class:`neuralmap.filters.ekf.BatchedEKF`)
+    `neuralmap.nav.tan.tan_filter_step` on `neuralmap.filters.ekf.BatchedEKF`)
     with the bilinear grid (first-order Taylor), float32 and float64, N = 100 000;
 (b) the same step with the neural map and autograd linearisation (the newest trained
     ``runs/*/version_*/neural_map.pt`` of the tile when present, else an untrained
@@ -15,12 +15,12 @@ Measures in one run, on the scenario's tile (default: jacksboro), and prints rat
     (``GridTerrain.height_and_slope``) and scipy ``RegularGridInterpolator`` (cubic, slope
     from its spline derivatives ``nu=(1, 0)``, ``(0, 1)``);
 (f) height + slope queries of latent-grid neural maps
-    (:class:`neuralmap.terrain.latent.LatentTerrainMap.height_and_slope`, float32, one
+    (`neuralmap.terrain.latent.LatentTerrainMap.height_and_slope`, float32, one
     thread, no grid evaluated first) against the torch bicubic grid in the same run,
     interleaved repeats, ratio = latent / bicubic throughput (target ≥ 1.0x); linear
     synthesis (hidden 0) and the 8-unit MLP; ``--latent_only`` runs just this section;
 (e) the float32 bilinear TAN step of (a) with every robust/adaptive update policy
-    (:mod:`neuralmap.filters.policies`), each with its cost ratio to the plain step
+    (`neuralmap.filters.policies`), each with its cost ratio to the plain step
     measured in the same run (targets: weight/factor policies ≤ 1.5×, the variational
     filter ≤ 10× at 3 iterations).
 
@@ -172,7 +172,7 @@ def bench_tan_step(
 
 def policy_factories() -> dict[str, Callable[[], Any]]:
     """The policies of benchmark (e), by report name (fresh objects: per-sample state), all
-    from the policy registry (:func:`neuralmap.filters.policies.make_policy`) with its
+    from the policy registry (`neuralmap.filters.policies.make_policy`) with its
     defaults: the same filters the studies run."""
     from neuralmap.filters.policies import make_policy
 
@@ -270,7 +270,7 @@ def filterpy_tan(
 ) -> tuple[float, np.ndarray]:
     """FilterPy EKF in a Python loop with scipy interpolation; returns (rate, final states).
 
-    The measurement model matches :func:`neuralmap.nav.tan.tan_filter_step`:
+    The measurement model matches `neuralmap.nav.tan.tan_filter_step`:
     ``z = −h_radar``, ``h(δX) = −(h_ins − δh) + h_map(p_ins − δX[:2])`` so that the
     innovation ``z − h(δX̂⁻) = (ĥ − h_map(p̂)) − h_radar`` and the Jacobian is
     ``H = [−h_x, −h_y, 1, 0, 0]`` (SEEDS 004). The slope is the central difference of the
@@ -331,7 +331,7 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
     """Final states of the batched float64 torch filter on the first ``n_runs`` runs.
 
     Uses the bilinear Taylor linearizer with zero linearisation variance so that the
-    problem equals :func:`filterpy_tan`'s exactly (a cross-check of the comparison).
+    problem equals `filterpy_tan`'s exactly (a cross-check of the comparison).
     """
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.linearize.factory import make_linearizer

@@ -3,9 +3,9 @@
 Measures in one run and prints IMU records per second (records of the log / wall time,
 whatever the run count) of
 
-(a) :func:`neuralmap.ins.log_run.run_on_log` (block form: mechanisation of the IMU
+(a) `neuralmap.ins.log_run.run_on_log` (block form: mechanisation of the IMU
     increments and covariance propagation of a whole stretch between GNSS epochs at once,
-    compiled loops where numba is installed, :mod:`neuralmap.ins.increment_kernels`);
+    compiled loops where numba is installed, `neuralmap.ins.increment_kernels`);
 (b) the record-by-record form it replaced (one torch operation set per IMU record: the
     implementation of commit ``ecdd133``, loaded from git into a temporary module), on
     the first part of the same log (it is slow);

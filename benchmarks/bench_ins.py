@@ -2,7 +2,7 @@
 
 Measures in one run and prints ratios:
 
-(a) :func:`neuralmap.ins.loosely_coupled.run_loosely_coupled` (block form: IMU samples,
+(a) `neuralmap.ins.loosely_coupled.run_loosely_coupled` (block form: IMU samples,
     mechanisation and covariance propagation of a whole stretch between GNSS epochs at
     once; compiled loops where numba is installed) over N runs at once: strapdown at the
     IMU rate, covariance propagation every ``propagate_every`` samples and at each GNSS
@@ -387,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def propagation_ratio(n: int, points: int = 20, repeats: int = 5) -> tuple[float, float] | None:
     """Best-of-``repeats`` times (s) of one block's covariance propagation for n runs:
-    the lane kernel (:func:`~neuralmap.ins.covariance_kernels.propagate_lanes`) and the
+    the lane kernel (`propagate_lanes`) and the
     per-run loop it replaced (``kernels._propagate_nb``), on the same inputs (their
     outputs are checked equal); None without numba."""
     from neuralmap.ins import covariance_kernels, kernels

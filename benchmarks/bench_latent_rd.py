@@ -2,22 +2,22 @@
 
 For each tile (jacksboro; matplotlib's real ``topobathy.npz`` sample DEM; the synthetic
 region generator's terrain) and each rate weight ``lambda``, a latent-grid map is fitted
-(:func:`neuralmap.terrain.latent.encode.fit_latent_map`) and its bitstream encoded; the
+(`neuralmap.terrain.latent.encode.fit_latent_map`) and its bitstream encoded; the
 file size is what is counted. JPEG 2000 in the same run:
 
 * ``jpeg2k (PSNR sweep)``: imagecodecs JPEG 2000 (irreversible wavelet) on heights
   quantised to 16 bits (5 cm step, or coarser when the span needs it), over a sweep of
   target PSNRs: the RMSE-optimised use of the codec, the strongest JPEG 2000 baseline;
-* ``jpeg2k (max error)``: :func:`neuralmap.terrain.codecs.compress_grid` (the toolkit's
+* ``jpeg2k (max error)``: `neuralmap.terrain.codecs.compress_grid` (the toolkit's
   error-bounded JPEG 2000, as the map-size study uses it), over a sweep of bounds.
 
-Each stream is charged :data:`neuralmap.terrain.codecs.HEADER_BYTES`. Distortion is the
+Each stream is charged `neuralmap.terrain.codecs.HEADER_BYTES`. Distortion is the
 RMSE at the tile's nodes; the BD-rate (Bjøntegaard) of the latent map against each JPEG
 2000 curve is the mean log-rate difference at equal log-RMSE over the overlap of the
 curves within 0.5-5 m (cubic fits; fewer points, lower degree). Both are also set against
 the Gaussian rate-distortion bound of the tile's smoothed spectrum (reverse water-filling,
-:func:`gaussian_rd`): how much room a linear transform coder has left. Between the nodes, every
-map is compared with the subgrid truth terrain (:func:`neuralmap.nav.truth_terrain.true_terrain`,
+`gaussian_rd`): how much room a linear transform coder has left. Between the nodes, every
+map is compared with the subgrid truth terrain (`neuralmap.nav.truth_terrain.true_terrain`,
 bicubic DEM on a 4x finer grid plus fractal detail continuing the tile's spectrum) at
 random points: the latent map itself, bicubic of the DEM, and bicubic of the latent map's
 own node values.
@@ -98,7 +98,7 @@ def jpeg2k_psnr_sweep(tile: DemTile, levels: list[float]) -> list[dict[str, Any]
 
 
 def jpeg2k_bounded_sweep(tile: DemTile, bounds: list[float]) -> list[dict[str, Any]]:
-    """:func:`compress_grid` JPEG 2000 at max-error bounds."""
+    """`compress_grid` JPEG 2000 at max-error bounds."""
     out = []
     for bound in bounds:
         grid = compress_grid(tile, codec="jpeg2k", max_error=bound)
@@ -135,7 +135,7 @@ def bd_rate(test: list[tuple[float, float]], ref: list[tuple[float, float]],
 
 def gaussian_rd(tile: DemTile, rmses: list[float]) -> list[dict[str, Any]]:
     """Gaussian rate-distortion bound of the tile at node RMSEs
-    (:func:`neuralmap.studies.rate_distortion.gaussian_rd_bytes`: reverse water-filling on
+    (`neuralmap.studies.rate_distortion.gaussian_rd_bytes`: reverse water-filling on
     the tile's smoothed log-frequency x orientation DCT spectrum).
 
     It is the least rate of a coder that knows only this spectrum (a stationary Gaussian

@@ -4,12 +4,12 @@ Measures in one run, on the jacksboro tile, one CPU thread (``torch.set_num_thre
 run it with ``OMP_NUM_THREADS=1``), the default method (the point-mass tracker, 32² cells,
 the shipped ``configs/navigator.yaml``):
 
-(a) one vehicle, :meth:`Navigator.step` latency (median and 99th percentile over the
+(a) one vehicle, `Navigator.step` latency (median and 99th percentile over the
     epochs after a warm-up), on the bilinear DEM grid, on a latent map
-    (:class:`~neuralmap.terrain.latent.map.LatentTerrainMap`, fitted here with few steps:
+    (`LatentTerrainMap`, fitted here with few steps:
     its quality does not change the cost) and on that latent map baked onto a grid
-    (:func:`neuralmap.terrain.bake.bake_to_grid`, the cheap win for a neural map);
-(b) 1000 vehicles batched through :meth:`Navigator.replay` on the grid: vehicle-epochs/s;
+    (`neuralmap.terrain.bake.bake_to_grid`, the cheap win for a neural map);
+(b) 1000 vehicles batched through `Navigator.replay` on the grid: vehicle-epochs/s;
 (c) beside them, a single-vehicle NumPy/scipy loop of the same filter (a 32² point-mass
     lattice that follows the posterior, axis-aligned: re-centred and re-sized on the
     posterior's mean and σ every epoch, Gaussian prediction by separable convolution,
@@ -47,7 +47,7 @@ def percentile(values: list[float], q: float) -> float:
 
 
 def step_latency(terrain, truth, steps: int, warmup: int = 10) -> dict[str, float]:
-    """Per-epoch latency of one vehicle's :meth:`Navigator.step`, ms."""
+    """Per-epoch latency of one vehicle's `Navigator.step`, ms."""
     nav = Navigator(terrain, CONFIG, n_vehicles=1)
     ins, radar, t = truth.ins_pos[:1], truth.radar[:1], truth.t
     times = []
@@ -61,7 +61,7 @@ def step_latency(terrain, truth, steps: int, warmup: int = 10) -> dict[str, floa
 
 
 def batched_rate(terrain, truth, n: int, steps: int) -> float:
-    """Vehicle-epochs/s of :meth:`Navigator.replay` over ``n`` vehicles."""
+    """Vehicle-epochs/s of `Navigator.replay` over ``n`` vehicles."""
     nav = Navigator(terrain, CONFIG, n_vehicles=n)
     k = min(steps, truth.t.shape[0])
     start = time.perf_counter()

@@ -3,14 +3,14 @@
 Measures in one run, on the jacksboro tile, grid-point updates per second (one predict +
 one altimeter update of one grid cell counts as one), and prints the ratio:
 
-(a) :class:`neuralmap.filters.point_mass.PointMassFilter` over N runs at once (default
+(a) `neuralmap.filters.point_mass.PointMassFilter` over N runs at once (default
     N = 1000, G = 64 cells per axis; float32 adaptive, float32 fixed grid, float64
     adaptive), likelihood on the bilinear DEM through
-    :func:`neuralmap.nav.acquisition.lattice_bilinear`;
-(a') :class:`neuralmap.filters.point_mass_tracker.PointMassTracker` (the whole-flight
+    `neuralmap.nav.acquisition.lattice_bilinear`;
+(a') `neuralmap.filters.point_mass_tracker.PointMassTracker` (the whole-flight
     tracker: the lattice follows the posterior, moment-exact prediction and regrid) on the
     same model (a scalar Kalman part per cell: the altitude error), likelihood on
-    :class:`~neuralmap.terrain.grid.GridTerrain` (bilinear) at its rotated cells;
+    `GridTerrain` (bilinear) at its rotated cells;
 (b) Stone Soup's ``PointMassPredictor`` (eigen-aligned re-grid + FFT convolution) with a
     NumPy Bayes update, one run at a time (when ``stonesoup`` is installed; its row is
     reported, the ratio column stays against (c));

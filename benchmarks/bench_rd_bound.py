@@ -4,13 +4,13 @@ Upper: the Gaussian R(D) of the tile's spectrum. Among sources of a given covari
 Gaussian is the hardest to code, so this is an upper bound on the rate-distortion function of
 terrain, not a floor: a codec can sit below it. Lower: an estimate of the Shannon lower bound
 ``h̄ − ½ log2(2πeD)`` per node, with the entropy rate ``h̄`` estimated from the innovations of
-a causal linear predictor (:func:`neuralmap.studies.rate_distortion.shannon_lower_bound_bytes`;
+a causal linear predictor (`neuralmap.studies.rate_distortion.shannon_lower_bound_bytes`;
 an estimate from above of the true bound). Where the two differ, the difference is the room a
 codec that models more than the spectrum could take.
 
 For each tile (jacksboro; matplotlib's ``topobathy.npz``; the synthetic region generator's
 terrain) and each codec point, the bytes the codec stores are set beside
-:func:`neuralmap.studies.rate_distortion.gaussian_rd_bytes` at the same node RMSE: the
+`neuralmap.studies.rate_distortion.gaussian_rd_bytes` at the same node RMSE: the
 rate of a Gaussian field with the tile's own smoothed (log-frequency x orientation)
 spectrum, and the "oracle" rate with every DCT coefficient's power known. A ratio near 1
 against the smoothed bound means a linear transform coder has little left to take on that
@@ -18,7 +18,7 @@ tile; a target of 0.7x the codec's bytes then needs structure beyond the spectru
 (non-stationarity, shapes), which the oracle column brackets generously.
 
 Codecs (same run): JPEG 2000 over a PSNR sweep on 16-bit heights (the RMSE-optimised use),
-and the toolkit's error-bounded codecs (:func:`neuralmap.terrain.codecs.compress_grid`:
+and the toolkit's error-bounded codecs (`neuralmap.terrain.codecs.compress_grid`:
 JPEG 2000, SZ3, LERC, JPEG-LS) over a sweep of max-error bounds. Node RMSE 0.3-5 m.
 
 Usage:

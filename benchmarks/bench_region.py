@@ -2,7 +2,7 @@
 
 Every measurement runs in a fresh child process (so peak RSS is its own):
 
-* **Training** (:func:`neuralmap.training.region.fit_region`): synthetic regions with the
+* **Training** (`neuralmap.training.region.fit_region`): synthetic regions with the
   jacksboro spectrum of 138 k (372 × 372), 1 M (1000 × 1000) and 4.6 M (1270 × 3610,
   SEEDS 004's map) nodes at 100 m, memory-mapped; the same number of shards (``--shards``,
   8 × 8 blocks of 24 node intervals each) trained for ``--steps`` steps on 1 and 2
@@ -10,7 +10,7 @@ Every measurement runs in a fresh child process (so peak RSS is its own):
   2-process/1-process ratio, the peak RSS of the largest rank, and the projected time of
   a whole map (every block, ``--full_steps`` steps of 256 points: the trainer's defaults)
   for the paper's region and an SRTM 1″ tile (3601 × 3601 at 30 m).
-* **Monte Carlo** (:func:`neuralmap.nav.chunked.run_monte_carlo_chunked`): the jacksboro
+* **Monte Carlo** (`neuralmap.nav.chunked.run_monte_carlo_chunked`): the jacksboro
   scenario (200 steps), bilinear method, at ``--mc_runs`` runs; runs/s and the peak RSS
   of the chunked run itself (the peak is reset after the setup through
   ``/proc/self/clear_refs``, so the truth-terrain build is not counted; its own peak is

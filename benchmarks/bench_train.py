@@ -1,6 +1,6 @@
 """Training benchmark: the default config and the SEEDS 004 paper preset on one tile.
 
-Runs ``train.py``'s :func:`neuralmap.training.cli.main` twice in this process (default
+Runs ``train.py``'s `neuralmap.training.cli.main` twice in this process (default
 ``configs/train.yaml``, then ``configs/paper_bp.yaml`` on top of it) and prints a markdown
 table: config · parameters · bytes vs the raw float32 grid · RMSE · max |error| ·
 slope RMSE (all over every valid node) · train time · points/s (training points processed

@@ -2,13 +2,13 @@
 
 A Monte Carlo study cuts its work into independent tasks (the chunked TAN Monte Carlo: chunks
 of whole seed blocks; the TAN and learned studies: one filter per method; the GNSS/INS study:
-groups of variants). :func:`open_cluster` gives a :class:`Dispatcher` that runs them one after
+groups of variants). `open_cluster` gives a `Dispatcher` that runs them one after
 the other in this process (``--cluster none``, the default of the small studies) or deals
 them to a Dask cluster:
 
-* ``local`` / ``local:N``: a :class:`distributed.LocalCluster` of N worker processes of one
+* ``local`` / ``local:N``: a `distributed.LocalCluster` of N worker processes of one
   thread each, started here and closed at the end (``local`` = the cores this process may
-  use, :func:`default_workers`);
+  use, `default_workers`);
 * ``tcp://HOST:8786`` (any Dask scheduler address): joins a running scheduler (``dask
   scheduler`` and ``dask worker`` by hand, or a dask-jobqueue cluster on SLURM); the
   workers need the same neuralmap and torch installed.
@@ -19,7 +19,7 @@ the order they finish in, and a task computes exactly what it computes in this p
 (each task sets its own torch threads), so the results are bit-identical to one process
 on the same machine. Progress comes from the cluster: each finished task is reported as it
 completes (``as_completed``), and the waiting loop calls an idle callback so that progress
-lines keep their heartbeat (:mod:`neuralmap.progress`). The dashboard address is printed.
+lines keep their heartbeat (`neuralmap.progress`). The dashboard address is printed.
 
 Dask is optional: ``pip install 'neuralmap[dask]'``.
 """
@@ -85,12 +85,12 @@ def parse_cluster(value: Any, *, option: str = "--cluster") -> ClusterSpec:
 
     Args:
         value: ``None``/``"none"``/``"process"`` (this process), ``"local"``, ``"local:N"``
-            or a scheduler address (``tcp://HOST:8786``); a :class:`ClusterSpec` is returned
+            or a scheduler address (``tcp://HOST:8786``); a `ClusterSpec` is returned
             as is.
         option: The option's name in messages.
 
     Returns:
-        The :class:`ClusterSpec`.
+        The `ClusterSpec`.
 
     Raises:
         NeuralMapError: Anything else, saying what is accepted.
@@ -124,7 +124,7 @@ def parse_cluster(value: Any, *, option: str = "--cluster") -> ClusterSpec:
 
 
 def require_distributed(what: str = "--cluster") -> Any:
-    """Imports :mod:`distributed`; a clear error naming the extra when it is missing.
+    """Imports `distributed`; a clear error naming the extra when it is missing.
 
     Raises:
         NeuralMapError: Dask distributed is not installed.
@@ -143,7 +143,7 @@ class Dispatcher:
     """Runs ``fn(shared, job)`` for every job, in this process or on a Dask client.
 
     Args:
-        client: A :class:`distributed.Client`, or None for this process.
+        client: A `distributed.Client`, or None for this process.
         description: What it is, for the log.
 
     Attributes:
@@ -181,7 +181,7 @@ class Dispatcher:
             shared: What every task reads (scattered to every worker once).
             on_done: Called as ``on_done(index, result)`` when a task finishes (in the order
                 they finish on a cluster).
-            on_idle: Called about every :data:`POLL_S` s while waiting for a cluster (a
+            on_idle: Called about every `POLL_S` s while waiting for a cluster (a
                 progress bar's ``update(0)`` keeps its heartbeat lines going).
             name: Prefix of the Dask task keys (shown on the dashboard).
 
@@ -236,11 +236,11 @@ def open_cluster(
     dashboard_address: str | None = ":8787",
     log: Callable[[str], None] | None = print,
 ) -> Iterator[Dispatcher]:
-    """The :class:`Dispatcher` of a ``--cluster`` value, open for the ``with`` block.
+    """The `Dispatcher` of a ``--cluster`` value, open for the ``with`` block.
 
     Args:
-        cluster: A ``--cluster`` value (:func:`parse_cluster`), a :class:`ClusterSpec`, or
-            an open :class:`distributed.Client` (used as is and left open).
+        cluster: A ``--cluster`` value (`parse_cluster`), a `ClusterSpec`, or
+            an open `distributed.Client` (used as is and left open).
         dashboard_address: Where a LocalCluster serves its dashboard (``":8787"``: that
             port, or a free one when taken; None = no dashboard, as in the tests).
         log: Where the cluster and dashboard lines go (None = silent).

@@ -38,7 +38,7 @@ def interrupt_exits(message: str = MESSAGE) -> Iterator[None]:
 
 
 def evaluate(args: list[str] | None = None) -> int:
-    """Imports the evaluate CLI (:func:`neuralmap.studies.cli.main`) and runs it.
+    """Imports the evaluate CLI (`neuralmap.studies.cli.main`) and runs it.
 
     Returns:
         Its exit code; 130 when interrupted while importing (a SIGINT there ends the process

@@ -1,11 +1,11 @@
 """Output files written whole or not at all: atomic writes, strict JSON, version folders.
 
 Every writer goes through a temporary file in the destination folder and
-:func:`os.replace`, so a reader (or a crash) never sees a half-written file. Files get the
+`os.replace`, so a reader (or a crash) never sees a half-written file. Files get the
 permission bits a plain ``open`` would give under the current umask (``tempfile`` alone
 would leave them owner-only). Run folders are built under a hidden temporary name and
 published as the next free ``version_<N>`` (or in place of an earlier output:
-:func:`replacing_dir`); the number is reserved with an atomic
+`replacing_dir`); the number is reserved with an atomic
 ``mkdir`` so two concurrent runs can never take the same folder.
 """
 
@@ -83,12 +83,12 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], None
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
-    """Writes bytes atomically (see :func:`atomic_write`)."""
+    """Writes bytes atomically (see `atomic_write`)."""
     return atomic_write(path, lambda handle: handle.write(data))
 
 
 def atomic_write_text(path: str | os.PathLike[str], text: str) -> Path:
-    """Writes UTF-8 text atomically (see :func:`atomic_write`)."""
+    """Writes UTF-8 text atomically (see `atomic_write`)."""
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
@@ -124,13 +124,13 @@ def to_jsonable(value: Any) -> Any:
 
 
 def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
-    """Writes ``obj`` as strict, indented JSON (see :func:`to_jsonable`) atomically."""
+    """Writes ``obj`` as strict, indented JSON (see `to_jsonable`) atomically."""
     text = json.dumps(to_jsonable(obj), indent=2, allow_nan=False, ensure_ascii=False)
     return atomic_write_text(path, text + "\n")
 
 
 def atomic_write_torch(path: str | os.PathLike[str], obj: Any) -> Path:
-    """Saves ``obj`` with :func:`torch.save` atomically."""
+    """Saves ``obj`` with `torch.save` atomically."""
     import torch
 
     buffer = _io.BytesIO()
@@ -264,7 +264,7 @@ def remove_stale_staging(root: str | os.PathLike[str]) -> list[Path]:
 
 def make_staging_dir(root: str | os.PathLike[str]) -> Path:
     """A new hidden staging folder ``root/.tmp-version_<pid>_<random>`` (``root`` created),
-    after removing the stale ones of dead processes (:func:`remove_stale_staging`)."""
+    after removing the stale ones of dead processes (`remove_stale_staging`)."""
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     remove_stale_staging(root)

@@ -2,7 +2,7 @@
 
 On a terminal (``sys.stdout.isatty()``) progress is a tqdm bar. Redirected to a file
 (``python evaluate.py > log``, ``nohup``, CI) a bar's carriage-return updates turn into
-megabytes of unreadable text, so :func:`progress_bar` returns a :class:`ProgressLines`
+megabytes of unreadable text, so `progress_bar` returns a `ProgressLines`
 instead: the same small tqdm interface, printing one plain line per stage (when the
 description changes and at the end) with the rate and the time left, and a heartbeat line
 at most every ``interval_s`` seconds inside a long stage.
@@ -91,7 +91,7 @@ class ProgressLines:
     Supports the part of tqdm's interface the toolkit uses: ``update(n)``,
     ``set_description(desc)``, ``close()``, ``n``, ``total`` and use as a context manager.
     A line is printed when the description changes (the stage that ended), at
-    :meth:`close` (the last stage and the total) and at most every ``interval_s`` seconds
+    `close` (the last stage and the total) and at most every ``interval_s`` seconds
     within a stage. Rate and time left are over the whole bar.
 
     Args:
@@ -174,10 +174,10 @@ def stage_progress(desc: str, total: float, unit: str, *, enabled: bool = True
     """A bar (or log lines) for one stage, as a callback of the fraction of it done.
 
     Library loops take ``progress: Callable[[float], None] | None`` and call it with the
-    share of their work each step finishes (:func:`neuralmap.nav.acquisition.
-    run_acquisition`, :func:`neuralmap.nav.tracking.run_tracker`, the PCRB, the noise
+    share of their work each step finishes (`neuralmap.nav.acquisition.
+    run_acquisition`, `neuralmap.nav.tracking.run_tracker`, the PCRB, the noise
     derivation); a study wraps each stage in this: the bar counts ``total`` units of
-    ``unit`` (steps, runs), prints a heartbeat line at least every :data:`HEARTBEAT_S`
+    ``unit`` (steps, runs), prints a heartbeat line at least every `HEARTBEAT_S`
     seconds while the stage runs when stdout is not a terminal, and its last line when
     the stage ends.
 
@@ -201,7 +201,7 @@ def stage_progress(desc: str, total: float, unit: str, *, enabled: bool = True
 
 
 def progress_bar(total: float | None = None, desc: str = "", unit: str = "it") -> Any:
-    """A tqdm bar on a terminal, :class:`ProgressLines` when stdout is not one.
+    """A tqdm bar on a terminal, `ProgressLines` when stdout is not one.
 
     Args:
         total: Units in all.

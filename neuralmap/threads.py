@@ -6,7 +6,7 @@ Measured on the shared 2-core machine: one ``cholesky_ex`` of a 15×15 matrix ta
 one thread and up to 8 ms on two; ``neuralmap-gins`` on a 30 k-record log took 20 s with two
 threads against 10 s with one. A factorisation of small matrices gains nothing from a
 second thread (torch loops over the batch serially and LAPACK does not split a 15×15
-factorisation), so :func:`one_thread` runs such calls on one thread whatever the process
+factorisation), so `one_thread` runs such calls on one thread whatever the process
 setting; the stages' defaults (``threads: 1`` in the study configs, ``--threads 1`` of the
 command-line tools) come from the measurements in the README.
 """
@@ -20,7 +20,7 @@ import torch
 
 __all__ = ["SMALL_MATRIX_MAX", "one_thread", "set_threads"]
 
-#: Matrices up to this size are factorised on one thread (:func:`one_thread`).
+#: Matrices up to this size are factorised on one thread (`one_thread`).
 SMALL_MATRIX_MAX = 64
 
 

@@ -61,7 +61,7 @@ def geographic_reference(lon0: float, lat0: float) -> GeoReference:
         lat0: Centre latitude, degrees (sets the metres-per-degree factors, WGS-84).
 
     Returns:
-        The :class:`GeoReference` with ``x0 = y0 = 0``.
+        The `GeoReference` with ``x0 = y0 = 0``.
     """
     m_lon, m_lat = metres_per_degree(lat0)
     return GeoReference(
@@ -97,7 +97,7 @@ def geographic_grid(
 
     Returns:
         ``(spacing_m, origin_m, geo)``: ``(dx, dy)`` in metres, ``(x0, y0)``, and the
-        :class:`GeoReference` whose ``to_metric`` maps degrees into this tile frame.
+        `GeoReference` whose ``to_metric`` maps degrees into this tile frame.
 
     Raises:
         NeuralMapError: On non-finite or non-positive degree spacing or a grid that leaves
@@ -173,8 +173,8 @@ def decide_units(
 
     Evidence, together: the grid can be lon/lat degrees only when every node lies within
     longitude ``[-180, 360]`` and latitude ``[-90, 90]`` and the cell is at most
-    :data:`MAX_DEGREE_CELL` (1°); a metric grid is implausible when its cell is below
-    :data:`MIN_METRE_CELL` (1 cm). So:
+    `MAX_DEGREE_CELL` (1°); a metric grid is implausible when its cell is below
+    `MIN_METRE_CELL` (1 cm). So:
 
     * not possible as degrees → metres (e.g. UTM eastings, or 30 m cells), unless the cell
       would then be sub-centimetre too: neither reading fits, refused;

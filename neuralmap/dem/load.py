@@ -1,5 +1,5 @@
-"""The one way a DEM enters the toolkit: :func:`load_tile`, a sample tile by name
-(:mod:`neuralmap.dem.samples`) or a file by extension (:mod:`neuralmap.dem.readers`),
+"""The one way a DEM enters the toolkit: `load_tile`, a sample tile by name
+(`neuralmap.dem.samples`) or a file by extension (`neuralmap.dem.readers`),
 screened for no-data values and implausible heights.
 
 It sits above both (samples build the jacksboro tile with a reader), so neither imports the
@@ -58,14 +58,14 @@ def load_tile(
 
     Heights are screened after reading: values equal to ``nodata`` (compared at float32
     precision, as grids are stored) become voids, and heights outside
-    :data:`~neuralmap.dem.readers.PLAUSIBLE_HEIGHT_M` (−12 000 … +9 000 m, and ±inf) are refused
+    `PLAUSIBLE_HEIGHT_M` (−12 000 … +9 000 m, and ±inf) are refused
     (``height_check="refuse"``, the default: the message counts them and names the fix),
     voided and counted (``"void"``: ``meta["n_implausible"]``), or kept (``"off"``).
 
     Args:
-        name_or_path: A sample name (:data:`~neuralmap.dem.readers.SAMPLE_NAMES`, case-insensitive; ``"synthetic"``
+        name_or_path: A sample name (`SAMPLE_NAMES`, case-insensitive; ``"synthetic"``
             also as ``"synthetic:N"`` / ``"synthetic:NYxNX"``) or a path with one of
-            :data:`~neuralmap.dem.readers.SUPPORTED_EXTENSIONS` (case-insensitive).
+            `SUPPORTED_EXTENSIONS` (case-insensitive).
         spacing: ``(dx, dy)`` or one value, metres. Required for generic ``.npy``/``.npz``
             grids, optional for ``"synthetic"``; refused for sources that carry their own
             georeferencing (the two could disagree).
@@ -76,13 +76,13 @@ def load_tile(
         geographic: Older spelling of ``units``: True = ``"degrees"``, False = ``"metres"``.
         units: For ``.asc`` and GeoTIFF without a CRS: ``"metres"`` or ``"degrees"``;
             None = decide from the ``.prj`` sidecar, else from the corner and cell-size
-            ranges (:func:`neuralmap.dem.geo.decide_units`, which refuses ambiguous grids).
+            ranges (`neuralmap.dem.geo.decide_units`, which refuses ambiguous grids).
             The decision and its reason are in ``meta["units"]``/``meta["units_reason"]``.
         nodata: Extra no-data value(s) for any format (e.g. ``-32768`` for an int16
             ``.npy`` with SRTM voids), on top of the file's own.
         height_check: ``"refuse"``, ``"void"`` or ``"off"`` for implausible heights.
         **options: For ``"synthetic"`` only: ``shape``, ``seed``, ``relief``, ``hurst`` of
-            :func:`neuralmap.dem.synthetic_tile`.
+            `neuralmap.dem.synthetic_tile`.
 
     Returns:
         The tile: heights ``(ny, nx)`` float64 metres (row 0 south, NaN = void), metric

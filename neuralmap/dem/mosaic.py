@@ -1,6 +1,6 @@
 """DEM mosaics: several adjacent tiles stitched into one grid in one metric frame.
 
-:func:`load_mosaic` reads every file with :func:`neuralmap.dem.load_tile`, recovers each
+`load_mosaic` reads every file with `neuralmap.dem.load_tile`, recovers each
 tile's native grid (lon/lat degrees for SRTM ``.hgt`` and geographic ``.asc``/GeoTIFF, the
 projected metres of a metric file), checks that the tiles share units, spacing and datum
 (CRS) and lie on one common grid, and places them into one array. Shared nodes (the edge
@@ -9,11 +9,11 @@ where both are valid; a void in one tile is filled from the other. The tiles mus
 one connected group (each touches or overlaps another).
 
 Projection. A geographic mosaic is one regular lon/lat grid; it is mapped to metres by the
-equirectangular projection of :mod:`neuralmap.dem.geo` about the **mosaic's** centre (one
+equirectangular projection of `neuralmap.dem.geo` about the **mosaic's** centre (one
 frame for the whole area, WGS-84 radii of curvature at the centre latitude ``φ0``). Its
 east-west scale is exact on the centre parallel and off by ``cos φ / cos φ0 − 1`` at
 latitude ``φ`` (north-south scale by ``M(φ)/M(φ0) − 1``); the positions of the corners are
-off by ``Δλ·(m_λ(φ0) − m_λ(φ))`` metres east-west. :func:`projection_distortion` computes
+off by ``Δλ·(m_λ(φ0) − m_λ(φ))`` metres east-west. `projection_distortion` computes
 these figures; they are stored in ``tile.meta["projection"]`` (e.g. a 2° × 1° mosaic at
 36° N: 0.64 % east-west scale error at the northern and southern edges, 570 m at the
 corners). Metric mosaics keep the files' own projected frame (no distortion added).
@@ -161,7 +161,7 @@ def plan_mosaic(
 
     Args:
         sources: Glob pattern, path, or list of paths/patterns.
-        **load_options: Passed to :func:`load_tile` (``units``, ``nodata``,
+        **load_options: Passed to `load_tile` (``units``, ``nodata``,
             ``height_check``).
 
     Raises:
@@ -356,14 +356,14 @@ def load_mosaic(
         sources: A glob (``"tiles/N36W08*.hgt"``), a path, or a list of paths/patterns.
         name: Tile name (default ``mosaic_<first file stem>_<n>``).
         tolerance_m: Largest allowed disagreement of shared/overlapping nodes, metres.
-        **load_options: For :func:`load_tile` (``units``, ``nodata``, ``height_check``).
+        **load_options: For `load_tile` (``units``, ``nodata``, ``height_check``).
 
     Returns:
         The mosaic (row 0 south, NaN voids); ``meta["projection"]`` describes the metric
         frame and its distortion over the area, ``meta["offsets"]`` where each file went.
 
     Raises:
-        NeuralMapError: See :func:`plan_mosaic`; overlapping tiles that disagree.
+        NeuralMapError: See `plan_mosaic`; overlapping tiles that disagree.
     """
     plan = plan_mosaic(sources, **load_options)
     need = 2 * 8 * plan.shape[0] * plan.shape[1]  # float64 heights and the tile's copy
@@ -393,10 +393,10 @@ def write_mosaic(
     The heights go straight to the file (row 0 south, NaN voids), one tile in memory at a
     time, so the mosaic may be larger than RAM; it is refused when it would not fit on the
     disk. The returned dict (also written next to it as ``<out>.json``) holds the spacing
-    and the georeference for :class:`neuralmap.training.region.RegionData`.
+    and the georeference for `neuralmap.training.region.RegionData`.
 
     Raises:
-        NeuralMapError: As :func:`load_mosaic`; not enough disk space for the file.
+        NeuralMapError: As `load_mosaic`; not enough disk space for the file.
     """
     import json
 

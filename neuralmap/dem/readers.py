@@ -1,9 +1,9 @@
-"""DEM file readers, each returning a :class:`DemTile`; :func:`neuralmap.dem.load.load_tile`
-picks one by extension (or a sample tile of :mod:`neuralmap.dem.samples` by name).
+"""DEM file readers, each returning a `DemTile`; `neuralmap.dem.load.load_tile`
+picks one by extension (or a sample tile of `neuralmap.dem.samples` by name).
 
 Every reader returns heights in DemTile order (row 0 = south, column 0 = west), voids as NaN,
 and a metric grid spacing. Geographic (lon/lat) sources are projected to metres with the
-equirectangular map of :mod:`neuralmap.dem.geo` (WGS-84 radii of curvature at the tile's
+equirectangular map of `neuralmap.dem.geo` (WGS-84 radii of curvature at the tile's
 centre latitude), kept on the tile as ``tile.geo``. Node ``[0, 0]`` sits at ``origin``
 (default ``(0, 0)``) for every source: metric ``.asc``/GeoTIFF files keep their absolute
 coordinates in ``tile.projected`` only (float32 near a 4e6 m northing rounds to 0.25–0.5 m).
@@ -12,7 +12,7 @@ Supported sources:
 
 ========================  =================================================================
 ``"jacksboro"``           matplotlib's sample ``jacksboro_fault_dem.npz`` (344 × 403, 3″).
-``"synthetic"``           :func:`neuralmap.dem.synthetic_tile` defaults (128 × 128, 30 m);
+``"synthetic"``           `neuralmap.dem.synthetic_tile` defaults (128 × 128, 30 m);
                           ``"synthetic:256"`` or ``"synthetic:200x300"`` pick the shape.
 ``.npz`` (matplotlib)     keys ``elevation, dx, dy, xmin, xmax, ymin, ymax`` in degrees;
                           first row north (image order).
@@ -46,9 +46,9 @@ from neuralmap.dem.geo import (
 from neuralmap.dem.tile import DemTile, ProjectedReference, broadcast_pair
 from neuralmap.exceptions import NeuralMapError
 
-#: Built-in tile names accepted by :func:`load_tile` (see :mod:`neuralmap.dem.samples`).
+#: Built-in tile names accepted by `load_tile` (see `neuralmap.dem.samples`).
 SAMPLE_NAMES = ("jacksboro", "topobathy", "synthetic")
-#: File extensions accepted by :func:`load_tile` (case-insensitive).
+#: File extensions accepted by `load_tile` (case-insensitive).
 SUPPORTED_EXTENSIONS = (".npz", ".npy", ".hgt", ".asc", ".tif", ".tiff")
 #: Keys of a matplotlib-style geographic .npz (``jacksboro_fault_dem.npz``).
 MATPLOTLIB_NPZ_KEYS = ("elevation", "dx", "dy", "xmin", "xmax", "ymin", "ymax")
@@ -65,7 +65,7 @@ _SPACING_HINT = (
 #: Heights (metres) outside this range are not Earth terrain: the deepest ocean trench is
 #: about -10 935 m (Challenger Deep), the highest summit 8 849 m (Everest).
 PLAUSIBLE_HEIGHT_M = (-12_000.0, 9_000.0)
-#: What :func:`load_tile` does with heights outside :data:`PLAUSIBLE_HEIGHT_M`.
+#: What `load_tile` does with heights outside `PLAUSIBLE_HEIGHT_M`.
 HEIGHT_CHECKS = ("refuse", "void", "off")
 
 
@@ -112,8 +112,8 @@ def screen_heights(
 
     Args:
         tile: The tile as read (``meta["n_nonfinite"]`` counts ±inf cells the reader saw).
-        nodata: Extra no-data values (see :func:`nodata_mask`).
-        height_check: ``"refuse"``, ``"void"`` or ``"off"`` (see :func:`load_tile`).
+        nodata: Extra no-data values (see `nodata_mask`).
+        height_check: ``"refuse"``, ``"void"`` or ``"off"`` (see `load_tile`).
 
     Returns:
         The tile, or a copy with the new voids and ``meta`` counts
@@ -584,11 +584,11 @@ def read_asc(
     ``yllcorner``|``yllcenter``, ``cellsize`` (or ``dx`` and ``dy``), optional
     ``NODATA_value``. Data rows follow, the first row north. With ``*llcorner`` the values
     are cell centres, so the south-west node lies half a cell inside the corner. Cells equal
-    to ``NODATA_value`` at float32 precision are voids (:func:`nodata_mask`).
+    to ``NODATA_value`` at float32 precision are voids (`nodata_mask`).
 
     Units of the coordinates, in order of evidence: ``units`` from the caller; a ``.prj``
     sidecar (``PROJCS`` = metres, ``GEOGCS`` only = degrees); otherwise the corner and
-    cell-size ranges together (:func:`neuralmap.dem.geo.decide_units`), which refuse a grid
+    cell-size ranges together (`neuralmap.dem.geo.decide_units`), which refuse a grid
     that fits both readings. ``meta["units"]`` and ``meta["units_reason"]`` say which and
     why. Heights are taken as metres.
 
@@ -753,8 +753,8 @@ def read_geotiff(
 
     Pixels are areas (GDAL convention): node centres lie half a pixel inside the bounds.
     The CRS decides degrees vs metres (``crs.is_geographic``); without a CRS, ``units`` or
-    the value ranges (:func:`neuralmap.dem.geo.decide_units`) decide. The band's no-data
-    value and mask become NaN. The frame is tile-local as for :func:`read_asc` (absolute
+    the value ranges (`neuralmap.dem.geo.decide_units`) decide. The band's no-data
+    value and mask become NaN. The frame is tile-local as for `read_asc` (absolute
     coordinates of a metric file in ``tile.projected``).
 
     Raises:

@@ -4,10 +4,10 @@ SEEDS 004's map is 361 km × 127 km at 100 m (3610 × 1270 nodes, about 4.6 M). 
 is a Gaussian random field with the jacksboro sample's measured power spectrum: a power law
 ``P(k) = A k^(−β)`` (two-sided 2-D PSD, m⁴, ``k`` in cycles/m) with ``A`` and ``β`` fitted to
 jacksboro's periodogram near its Nyquist band (``neuralmap.nav.truth_terrain.spectral_slope``
-gives :data:`JACKSBORO_SPECTRUM`). The power law cannot hold down to ``k = 0`` (its variance
+gives `JACKSBORO_SPECTRUM`). The power law cannot hold down to ``k = 0`` (its variance
 diverges), so it is held flat below a corner wavenumber ``k_c`` chosen in closed form so
-that the field's height standard deviation equals jacksboro's (:data:`JACKSBORO_STD_M`):
-``σ² = 2π A k_c^(2−β) (1/(β−2) + 1/2)``. Heights are lifted by :data:`REGION_BASE_HEIGHT`.
+that the field's height standard deviation equals jacksboro's (`JACKSBORO_STD_M`):
+``σ² = 2π A k_c^(2−β) (1/(β−2) + 1/2)``. Heights are lifted by `REGION_BASE_HEIGHT`.
 
 The field is synthesised on a grid padded by a quarter (fast FFT lengths) and cropped, so
 it is not periodic across the region's edges; it is written row-block by row-block into an

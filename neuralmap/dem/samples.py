@@ -54,11 +54,11 @@ def load_sample(
     rows. Sea nodes (heights below 0, down to −1437 m) are set to 0 m: a radar altimeter
     over water measures the sea surface, not the sea floor, so that is the terrain a
     navigation map holds (``meta["n_sea"]`` counts them; about 44 % of the tile).
-    ``"synthetic"``: :func:`neuralmap.dem.synthetic_tile` with its defaults
+    ``"synthetic"``: `neuralmap.dem.synthetic_tile` with its defaults
     (seed 0); ``"synthetic:N"`` / ``"synthetic:NYxNX"`` set the shape.
 
     Args:
-        sample: Sample name (see :data:`neuralmap.dem.readers.SAMPLE_NAMES`).
+        sample: Sample name (see `neuralmap.dem.readers.SAMPLE_NAMES`).
         spacing: Only for ``synthetic``: grid spacing in metres.
         origin: Metric coordinates of node ``[0, 0]`` (default ``(0, 0)``).
         name: Tile name (default: ``"jacksboro"`` / ``"synthetic"``).
@@ -115,7 +115,7 @@ def load_sample(
 
 
 def _matplotlib_sample(filename: str, sample: str) -> dict[str, np.ndarray]:
-    """The arrays of one of matplotlib's sample ``.npz`` files (see :func:`jacksboro_arrays`)."""
+    """The arrays of one of matplotlib's sample ``.npz`` files (see `jacksboro_arrays`)."""
     try:
         from matplotlib import cbook
     except ImportError as exc:  # pragma: no cover - matplotlib is a runtime dependency

@@ -88,8 +88,8 @@ def synthetic_tile(
 ) -> DemTile:
     """Seeded fractal terrain of any size, for tests and scale runs.
 
-    Heights are the :func:`fractal_surface` of the given Hurst exponent scaled to
-    ``relief`` metres peak-to-peak and lifted by :data:`SYNTHETIC_BASE_HEIGHT` (500 m), so
+    Heights are the `fractal_surface` of the given Hurst exponent scaled to
+    ``relief`` metres peak-to-peak and lifted by `SYNTHETIC_BASE_HEIGHT` (500 m), so
     they span ``[500, 500 + relief]`` m. Node ``[0, 0]`` is at the metric origin ``(0, 0)``.
     A 1000 × 1000 tile takes well under a second.
 

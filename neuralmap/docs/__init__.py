@@ -3,7 +3,7 @@
 A study run writes ``summary.md`` (its headline table and claims) beside its report;
 ``python -m neuralmap.docs update RUN_DIR...`` copies it into ``docs/results/<study>.md``
 with a run stamp (the config file and its hash, seed, commit, date), and
-:func:`~neuralmap.docs.stamp.check_page` tells whether a page's stamp still matches the
+`check_page` tells whether a page's stamp still matches the
 repository's config file.
 """
 

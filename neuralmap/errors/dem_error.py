@@ -28,7 +28,7 @@ def add_dem_error(
 
     The true terrain ``tile`` is left unchanged; the returned map is what a DEM maker would
     deliver: ``h_d = h_t + m_d`` with ``m_d`` AR(p) along every grid row and column
-    (:func:`neuralmap.errors.ar_error_field`). The coefficients are per grid step, so the
+    (`neuralmap.errors.ar_error_field`). The coefficients are per grid step, so the
     correlation length scales with the tile's spacing (the paper's grid: 100 m). Void nodes
     stay void.
 
@@ -43,7 +43,7 @@ def add_dem_error(
         seed: Seed of the error field.
 
     Returns:
-        A new :class:`DemTile` (same grid, name ``"<name>+dem_error"``); ``meta["dem_error"]``
+        A new `DemTile` (same grid, name ``"<name>+dem_error"``); ``meta["dem_error"]``
         records the error model and seed.
     """
     if correlation_length_m is not None:

@@ -106,13 +106,13 @@ class OrderRow:
 
 @dataclass(frozen=True)
 class ErrorModelIdentification:
-    """Result of :func:`identify_error_model`.
+    """Result of `identify_error_model`.
 
     Attributes:
         n: Sequence length.
         mean: Sample mean.
         std: Sample standard deviation (divide by n).
-        rows: The table, one :class:`OrderRow` per order.
+        rows: The table, one `OrderRow` per order.
         chosen: The selected model.
         chosen_reason: How it was selected.
         acf: ``(nlags + 1,)`` sample autocorrelation.
@@ -206,7 +206,7 @@ class ErrorModelIdentification:
 
 
 def minimum_length(max_ar_order: int, max_ma_order: int) -> int:
-    """Shortest sequence :func:`identify_error_model` accepts.
+    """Shortest sequence `identify_error_model` accepts.
 
     Ten samples per coefficient of the largest model plus one, and at least 50 (Box and
     Jenkins' rule of thumb; also 20 run-test segments of ≥ 2 samples).
@@ -241,7 +241,7 @@ def identify_error_model(
             table itself needs only NumPy / SciPy.
 
     Returns:
-        The :class:`ErrorModelIdentification` (table, chosen model, tests).
+        The `ErrorModelIdentification` (table, chosen model, tests).
     """
     max_ma = max_order if max_ma_order is None else int(max_ma_order)
     if max_order < 1 or max_ma < 0:

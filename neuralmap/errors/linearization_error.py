@@ -10,7 +10,7 @@ The paper splits it into ``m2 = h(p̂) − f(p̂)`` (eq. 11, at the estimate) an
 true position ``m1``. The toolkit's linearisation methods return the map look-up at the
 estimate as ``f(p̂)`` (SEEDS 000 eq. 5) and the plane only for the slope, so ``m2`` here is the
 look-up's interpolation error and the region's size acts through the slope term;
-:func:`linearization_error` gives ``m2`` or, with the true positions, ``e_lin``. Sampled once
+`linearization_error` gives ``m2`` or, with the true positions, ``e_lin``. Sampled once
 per filter period along Monte Carlo flights they form the sequences whose standard deviation
 the paper tabulates (Table 2) and whose models it identifies (fixed regions: stationary
 AR(1)/AR(2); adaptive region: non-stationary, shrinking).
@@ -48,7 +48,7 @@ def linearization_error(
         linearizer: A linearisation method (``forward(xy (M, 2), pos_cov (M, 2, 2)) ->
             Linearization``: ``height`` = ``f(p̂)``, ``slope`` = ``∇f``).
         true_terrain: The reference surface ``h`` (``forward(xy (..., 2)) -> heights``),
-            e.g. a bicubic :class:`~neuralmap.terrain.GridTerrain` of the DEM (to isolate
+            e.g. a bicubic `GridTerrain` of the DEM (to isolate
             the linearisation from the DEM-making error) or of the truth.
         xy: ``(..., 2)`` horizontal estimates ``p̂``, m (e.g. ``(N, K, 2)`` per run and step).
         pos_cov: ``(..., 2, 2)`` horizontal covariance at each estimate (the adaptive

@@ -9,7 +9,7 @@ covariance generating function ``z^q Σ_{|j|≤q} c_|j| z^j`` and keeping the ro
 unit circle (the invertible solution). For ARMA(1, 1) this gives the paper's equations
 ``φ = ρ_2 / ρ_1`` and ``ρ_w θ² + θ + ρ_w = 0`` with ``ρ_w = c_1 / c_0``. An MA part has no
 invertible moment solution when its generating function has roots on the unit circle (for
-MA(1): ``|ρ_1| > 1/2``); then :class:`MomentSolutionError` is raised.
+MA(1): ``|ρ_1| > 1/2``); then `MomentSolutionError` is raised.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ def arma_moments(autocovariance: np.ndarray, p: int, q: int) -> ArmaModel:
         q: MA order ≥ 0.
 
     Returns:
-        The stationary, invertible :class:`ArmaModel`; ``sigma2`` is the moment estimate of
+        The stationary, invertible `ArmaModel`; ``sigma2`` is the moment estimate of
         the innovation variance.
 
     Raises:

@@ -80,7 +80,7 @@ def repeat_survey(
         seed: Seed of the NumPy generator.
 
     Returns:
-        The :class:`RepeatSurvey`.
+        The `RepeatSurvey`.
     """
     if n_nodes < 2 or n_passes < 2:
         raise NeuralMapError(
@@ -137,7 +137,7 @@ def survey_recovery(
         Plain dict: ``true_model``, ``ar1_phi_mean`` / ``ar1_phi_std``, ``ar2_phi_mean`` /
         ``ar2_phi_std``, ``arma11_mean`` / ``arma11_std`` (``[φ, θ]`` of ARMA(1,1)),
         ``sample_std_mean``, ``chosen_counts`` (order name → count),
-        ``first`` (the :class:`ErrorModelIdentification` of survey 0, as a dict) and
+        ``first`` (the `ErrorModelIdentification` of survey 0, as a dict) and
         ``first_result`` (the object itself).
     """
     survey = repeat_survey(

@@ -54,7 +54,7 @@ def runs_test(values: Any, *, alpha: float = 0.05, where: str = "runs_test") -> 
         where: Caller, for messages.
 
     Returns:
-        The :class:`RunsResult`.
+        The `RunsResult`.
     """
     from scipy.stats import norm
 

@@ -32,7 +32,7 @@ def ar1_coefficient(correlation_length_m: float, spacing_m: float) -> float:
 
     ``φ = exp(−d / L)``: the AR(1) sequence sampled every ``d`` metres has correlation
     ``φ^k = exp(−k d / L)``. The paper's φ = 0.5315 on its 100 m grid is ``L ≈ 158 m``
-    (:func:`correlation_length`); use this to carry it to a grid of another spacing.
+    (`correlation_length`); use this to carry it to a grid of another spacing.
 
     Args:
         correlation_length_m: ``L`` > 0, m.

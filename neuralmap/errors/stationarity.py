@@ -138,7 +138,7 @@ def adf_test(sequence: Any, *, alpha: float = 0.05) -> AdfResult:
         alpha: Significance level.
 
     Returns:
-        The :class:`AdfResult`.
+        The `AdfResult`.
     """
     x = as_sequence(sequence, where="adf_test", min_length=20, why="the ADF regression")
     require_statsmodels("adf_test")
@@ -164,7 +164,7 @@ def check_stationarity(
         parametric: Also run the ADF test (needs statsmodels).
 
     Returns:
-        The :class:`StationarityResult`.
+        The `StationarityResult`.
     """
     mean_runs, square_runs = run_stationarity_test(sequence, n_segments=n_segments, alpha=alpha)
     adf = adf_test(sequence, alpha=alpha) if parametric else None

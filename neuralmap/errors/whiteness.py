@@ -48,7 +48,7 @@ def ljung_box(
         alpha: Significance level.
 
     Returns:
-        The :class:`WhitenessResult`.
+        The `WhitenessResult`.
     """
     if lags <= model_df:
         raise NeuralMapError(

@@ -10,9 +10,9 @@ Everything goes through files and the two command-line tools, as a user's own da
    (``terrain.asc`` + ``terrain.prj``, WGS-84 degrees). Its heights are taken as
    ellipsoidal, so the geoid undulation of this world is 0 (given explicitly below).
 2. **Drive and flight**: a level trajectory at constant ellipsoidal height above the terrain
-   (:func:`neuralmap.ins.trajectory.generate`: a take-off-like acceleration, straight legs,
-   turns), a tactical-MEMS IMU (:class:`~neuralmap.ins.imu_model.ImuErrorProcess`) and
-   1 Hz GNSS with an outage (:func:`~neuralmap.ins.gnss.simulate_gnss`), written in the
+   (`neuralmap.ins.trajectory.generate`: a take-off-like acceleration, straight legs,
+   turns), a tactical-MEMS IMU (`ImuErrorProcess`) and
+   1 Hz GNSS with an outage (`simulate_gnss`), written in the
    KF-GINS formats (``imu.txt``, ``gnss.txt``, the reference ``truth.nav``,
    ``kf-gins.yaml``).
 3. **GNSS/INS**: ``neuralmap-gins kf-gins.yaml`` runs the 15-state loosely coupled filter
@@ -26,7 +26,7 @@ Everything goes through files and the two command-line tools, as a user's own da
    starts at the outage with the GNSS/INS σ of that epoch (``nav.yaml``, from the σ file)
    and bounds the drift with the terrain.
 
-:func:`run_example` returns the errors at the end of the outage (GNSS/INS coasting and
+`run_example` returns the errors at the end of the outage (GNSS/INS coasting and
 TAN) and the output folder.
 """
 
@@ -126,7 +126,7 @@ def run_example(out_dir: str | Path, *, size: str = "tiny", seed: int = 0,
 
     Args:
         out_dir: Folder for the logs and both tools' outputs (created).
-        size: ``"tiny"`` or ``"full"`` (:data:`SIZES`).
+        size: ``"tiny"`` or ``"full"`` (`SIZES`).
         seed: Seed of the terrain, the IMU, the GNSS and the altimeter noise.
         altimeter_sigma_m: Radar-altimeter noise σ, m.
 

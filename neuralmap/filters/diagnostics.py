@@ -9,11 +9,11 @@ import torch
 
 @dataclass
 class UpdateDiagnostics:
-    """What one :meth:`BatchedEKF.update` computed, per sample.
+    """What one `BatchedEKF.update` computed, per sample.
 
     Values are reported for every sample, also for those whose update was not applied
     (masked out or unhealthy): there they are whatever the computation gave (possibly NaN)
-    and must be read together with :attr:`applied`.
+    and must be read together with `applied`.
 
     Attributes:
         innovation: ``(N, m)`` residual ``z - h(x⁻)`` as passed by the caller.

@@ -19,7 +19,7 @@ never over samples): a few dozen elementwise kernels on cache-resident vectors i
 batched small-matrix kernels, which on CPU are dominated by per-matrix overhead and by
 memory traffic of ``(N, n, n)`` temporaries. Only the upper triangle is computed and then
 mirrored, so ``P`` is exactly symmetric by construction. The public attributes
-:attr:`BatchedEKF.x` ``(N, n)`` and :attr:`BatchedEKF.P` ``(N, n, n)`` are views of that
+`BatchedEKF.x` ``(N, n)`` and `BatchedEKF.P` ``(N, n, n)`` are views of that
 storage (batch first, as everywhere in the project). The stored tensors are never
 modified in place, so a view taken before a step stays a valid snapshot; all operations
 are out-of-place and differentiable (autograd flows through a whole filter run).
@@ -310,7 +310,7 @@ class BatchedEKF:
             candidates: ``(N,)`` samples meant to change (None = all).
             extra_ok: ``(N,)`` further validity (e.g. ``S`` positive definite).
             certified: Positive definiteness (and finiteness) of every candidate ``P`` is
-                already proven (see :meth:`_certified_pd`); skip the Cholesky test.
+                already proven (see `_certified_pd`); skip the Cholesky test.
             stacked: The full ``(n, n, N)`` candidate covariances when the caller has
                 already stacked ``p_up`` (saves one copy).
 
@@ -412,7 +412,7 @@ class BatchedEKF:
         ``P⁻`` is computed on its upper triangle and mirrored (exactly symmetric; for a
         dense shared ``F`` the Kronecker rows are symmetrised, for per-sample ``F`` the
         product is symmetrised as ``(A + Aᵀ)/2``) by
-        :func:`neuralmap.filters.kalman.predict_upper`. Unhealthy samples are not touched; a
+        `neuralmap.filters.kalman.predict_upper`. Unhealthy samples are not touched; a
         sample whose ``P⁻`` is not finite and positive definite is flagged and keeps its
         previous ``x``, ``P``.
 
@@ -420,7 +420,7 @@ class BatchedEKF:
             F: ``(n, n)`` shared or ``(N, n, n)`` per-sample transition matrix.
             Q: ``(n, n)`` shared or ``(N, n, n)`` per-sample process-noise covariance
                 (symmetric positive semi-definite).
-            policy: Optional :class:`~neuralmap.filters.policy.FilterPolicy` whose
+            policy: Optional `FilterPolicy` whose
                 ``process_noise`` hook may return an adapted per-sample ``Q`` (Sage-Husa).
             trusted_noise: A per-sample ``Q`` comes from a model that makes it finite and
                 exactly symmetric (e.g. the INS error model's ``Q_d``): only its shape is
@@ -558,7 +558,7 @@ class BatchedEKF:
         ``P⁺ = (I − KH) P⁻ (I − KH)ᵀ + K R Kᵀ`` (symmetric); ``NIS = rᵀ S⁻¹ r``;
         ``ℓ = −½ (m ln 2π + ln det S + NIS)``. Scalar measurements (m = 1) with n ≤ 8 take
         a fast path of elementwise kernels; vector measurements use ``cholesky_ex`` /
-        ``cholesky_solve`` on ``(N, m, m)`` (:mod:`neuralmap.filters.kalman`).
+        ``cholesky_solve`` on ``(N, m, m)`` (`neuralmap.filters.kalman`).
 
         Masked samples are sanitised before any arithmetic (residual and H set to 0, R to
         1), so a NaN in a skipped sample's inputs cannot reach its outputs or the gradients
@@ -575,7 +575,7 @@ class BatchedEKF:
                 (of unmasked samples) are errors.
             mask: ``(N,)`` bool, False = skip this sample (no measurement, off the map);
                 its ``x``, ``P`` and health are left unchanged whatever its inputs hold.
-            policy: Optional :class:`~neuralmap.filters.policy.FilterPolicy` (robust or
+            policy: Optional `FilterPolicy` (robust or
                 adaptive update); see that module for the protocol. The ``Q`` of the last
                 predict reaches the policy (``context.process_noise``) on the first update
                 after that predict only: a second update without a predict between sees
@@ -583,7 +583,7 @@ class BatchedEKF:
                 (inflation then scales the whole ``P``; Sage-Husa skips its Q estimate).
 
         Returns:
-            :class:`UpdateDiagnostics` (innovation, S, NIS, gain, health, applied, prior
+            `UpdateDiagnostics` (innovation, S, NIS, gain, health, applied, prior
             x and P, log-likelihood, what the policy did).
 
         Raises:
@@ -683,7 +683,7 @@ class BatchedEKF:
         mask: torch.Tensor | None,
         policy: FilterPolicy,
     ) -> UpdateDiagnostics:
-        """Update driven by a policy (see :mod:`neuralmap.filters.policy`)."""
+        """Update driven by a policy (see `neuralmap.filters.policy`)."""
         if r.shape[1] == 1 and self._small:
             return self._update_policy_scalar(r, H, R, mask, policy)
         return self._update_policy_dense(r, H, R, mask, policy)
@@ -752,7 +752,7 @@ class BatchedEKF:
 
         The same protocol and the same equations as the dense path: the context's
         ``H P⁻ Hᵀ`` is ``Σ_j h_j (P⁻ hᵀ)_j`` on length-N vectors, and every pass is
-        :func:`~neuralmap.filters.kalman.update_scalar_upper` (the expanded Joseph form)
+        `update_scalar_upper` (the expanded Joseph form)
         on the adapted ``P⁻`` (``p_scale·P⁻`` or the replacement), ``R`` and the kept
         measurement (a rejected one: ``r = 0``, ``h = 0``, ``R = 1``, not applied). Only
         rounding differs from the dense ``(N, m, m)`` kernels.

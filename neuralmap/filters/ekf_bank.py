@@ -8,7 +8,7 @@ by the likelihood of its innovation,
     log w_k ← log w_k − ½ (log 2π S_k + ν_k² / S_k),      then normalised per run,
 
 (scalar measurements; ``ν_k`` the innovation, ``S_k`` its variance). All ``N · K``
-components live in one :class:`~neuralmap.filters.ekf.BatchedEKF` (component ``k`` of run
+components live in one `BatchedEKF` (component ``k`` of run
 ``n`` is sample ``n · K + k``), so any linearisation a caller uses with the EKF works with
 the bank. Components whose weight falls below ``prune_threshold × max`` are pruned (weight
 0, no further updates); components closer than ``merge_distance`` (squared Mahalanobis
@@ -108,7 +108,7 @@ class GaussianSumEKF:
         dtype: Filter dtype (default: that of ``means``).
 
     Attributes:
-        ekf: The underlying :class:`BatchedEKF` over ``N · K`` samples.
+        ekf: The underlying `BatchedEKF` over ``N · K`` samples.
         log_weights: ``(N, K)`` normalised log weights (−inf = pruned).
         recoveries: ``(N,)`` count of updates where every component's likelihood vanished.
     """

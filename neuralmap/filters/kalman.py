@@ -3,9 +3,9 @@
 Every function here is pure (no state, no in-place change of its inputs) and works on a
 batch of N independent filters stored *batch-last*: the state ``x`` as ``(n, N)`` and the
 covariance ``P`` as ``(n, n, N)``, so that each entry ``P[i, j]`` is a contiguous length-N
-vector. For small states (n ≤ :data:`SMALL_STATE_MAX`) the kernels are written entry by
+vector. For small states (n ≤ `SMALL_STATE_MAX`) the kernels are written entry by
 entry on those vectors (a loop over *state indices*, never over samples); larger states use
-batched matrix kernels. :class:`neuralmap.filters.ekf.BatchedEKF` is a thin stateful layer
+batched matrix kernels. `neuralmap.filters.ekf.BatchedEKF` is a thin stateful layer
 over these kernels (validation, health flags, policies).
 
 Equations (FilterPy, Joseph form):
@@ -64,9 +64,9 @@ class TransitionPlan:
 
     ``(F P Fᵀ)_il = Σ_{j≤k} c_{il,jk} P_jk`` with ``c = F_ij F_lk + F_ik F_lj`` for ``j < k``
     and ``F_ij F_lj`` for ``j = k`` (P symmetric). A sparse ``F`` (as the TAN Φ) has few
-    nonzero ``c`` and is applied entry by entry (:attr:`terms`); a dense one through one
+    nonzero ``c`` and is applied entry by entry (`terms`); a dense one through one
     matrix product ``vec(F P Fᵀ) = (F ⊗ F) vec(P)`` on the upper-triangle rows
-    (:attr:`m_tri`, rows of ``(i, l)`` and ``(l, i)`` averaged: the symmetrisation).
+    (`m_tri`, rows of ``(i, l)`` and ``(l, i)`` averaged: the symmetrisation).
 
     Attributes:
         F: ``(n, n)`` shared, or ``(N, n, n)`` per-sample (batch first) transition matrix.
@@ -84,7 +84,7 @@ class TransitionPlan:
 
 
 def transition_plan(F: torch.Tensor) -> TransitionPlan:
-    """Builds the propagation plan of a transition matrix (see :class:`TransitionPlan`).
+    """Builds the propagation plan of a transition matrix (see `TransitionPlan`).
 
     Args:
         F: ``(n, n)`` shared or ``(N, n, n)`` per-sample transition matrix.
@@ -125,7 +125,7 @@ def predict_upper(
     Args:
         xt: ``(n, N)`` states.
         pt: ``(n, n, N)`` symmetric covariances.
-        plan: :func:`transition_plan` of F.
+        plan: `transition_plan` of F.
         Q: ``(n, n)`` shared or ``(N, n, n)`` per-sample (batch first) process noise.
 
     Returns:
@@ -211,7 +211,7 @@ def update_scalar_upper(
 
 
 class DenseUpdate(NamedTuple):
-    """Result of :func:`update_dense` (batch first)."""
+    """Result of `update_dense` (batch first)."""
 
     x: torch.Tensor  # (N, n)
     P: torch.Tensor  # (N, n, n)
@@ -280,7 +280,7 @@ def gaussian_log_likelihood(nis: torch.Tensor, log_det_S: torch.Tensor, m: int) 
 
 
 class KalmanUpdate(NamedTuple):
-    """Result of :func:`kalman_update` (batch last, like its inputs).
+    """Result of `kalman_update` (batch last, like its inputs).
 
     Attributes:
         x: ``(n, N)`` updated states.
@@ -342,7 +342,7 @@ def kalman_update(
         R: ``(m, m)`` shared or ``(m, m, N)`` per-sample noise covariances.
 
     Returns:
-        :class:`KalmanUpdate`.
+        `KalmanUpdate`.
     """
     n, batch = x.shape
     m = residual.shape[0]

@@ -28,7 +28,7 @@ Update per cell (a scalar Kalman filter on ``a``): ``ν = y − g − m``, ``S =
 likelihood of the Rao-Blackwellised point-mass filter. Weights are updated in the log
 domain and renormalised by their maximum; a run whose likelihood is zero (or not finite)
 in every cell keeps its prior weights, and that recovery is counted in
-:attr:`PointMassFilter.recoveries` — never NaN.
+`PointMassFilter.recoveries` — never NaN.
 
 Prediction ``s_{k+1} = s_k + u_k + w_k``, ``w_k ~ N(0, diag(q_x, q_y))``: the grid centre is
 moved by the known shift ``u`` (no interpolation) and the masses are convolved with the
@@ -65,7 +65,7 @@ __all__ = ["PointMassConfig", "PointMassFilter", "PointMassUpdate", "convolve_ax
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
-#: Per-run state tensors (what :meth:`PointMassFilter.take` and ``extend`` carry).
+#: Per-run state tensors (what `PointMassFilter.take` and ``extend`` carry).
 _STATE = ("weights", "scalar_mean", "scalar_var", "centre", "spacing", "recoveries", "regrids",
           "_pending")
 
@@ -83,7 +83,7 @@ FFT_MIN_HALF_LEN = 4
 
 @dataclass
 class PointMassConfig:
-    """Grid options of :class:`PointMassFilter` (sound defaults for terrain navigation).
+    """Grid options of `PointMassFilter` (sound defaults for terrain navigation).
 
     Attributes:
         cells: Grid cells per axis ``G`` (≥ 8).
@@ -122,7 +122,7 @@ class PointMassConfig:
     outlier_width: float = 1000.0
 
     def validate(self) -> PointMassConfig:
-        """Checks ranges; raises :class:`NeuralMapError` naming the bad option."""
+        """Checks ranges; raises `NeuralMapError` naming the bad option."""
 
         def bad(key: str, need: str) -> NeuralMapError:
             return NeuralMapError(
@@ -153,7 +153,7 @@ class PointMassConfig:
 
 @dataclass
 class PointMassUpdate:
-    """Per-run results of one :meth:`PointMassFilter.update`.
+    """Per-run results of one `PointMassFilter.update`.
 
     Attributes:
         log_likelihood: ``(N,)`` log predictive density of the measurement
@@ -244,7 +244,7 @@ class PointMassFilter:
         cov: ``(2, 2)`` or ``(N, 2, 2)`` prior covariance (symmetric positive definite).
         scalar_mean: Prior mean of the scalar part, float or ``(N,)``.
         scalar_var: Prior variance of the scalar part (> 0), float or ``(N,)``.
-        config: Grid options (:class:`PointMassConfig`).
+        config: Grid options (`PointMassConfig`).
         dtype: float32 or float64 (default float64).
 
     Attributes:
@@ -453,7 +453,7 @@ class PointMassFilter:
 
     def cov(self) -> torch.Tensor:
         """``(N, 2, 2)`` posterior covariance ``Σ w (s − s̄)(s − s̄)ᵀ`` plus the process
-        noise not yet applied to the grid (see :data:`DIFFUSE_MIN_CELLS`); symmetric."""
+        noise not yet applied to the grid (see `DIFFUSE_MIN_CELLS`); symmetric."""
         return self._grid_cov() + torch.diag_embed(self._pending)
 
     def _grid_cov(self) -> torch.Tensor:
@@ -606,7 +606,7 @@ class PointMassFilter:
         Args:
             measurement: ``(N,)`` measurement ``y``.
             predicted: ``(N, G, G)`` ``g`` at every cell, or a callable taking the cell
-                coordinates ``(N, G, G, 2)`` (:meth:`points`) and returning it. Non-finite
+                coordinates ``(N, G, G, 2)`` (`points`) and returning it. Non-finite
                 cells get zero likelihood.
             R: Measurement noise variance (> 0), float or ``(N,)``.
             mask: ``(N,)`` bool, runs to update (None = all).
@@ -617,7 +617,7 @@ class PointMassFilter:
                 scalar Kalman part keeps the run's ``S = v + R``.
 
         Returns:
-            :class:`PointMassUpdate`.
+            `PointMassUpdate`.
         """
         n, g = self.n_runs, self.cells
         y = _as_batch(measurement, (n,), "measurement", self.dtype, self.device)

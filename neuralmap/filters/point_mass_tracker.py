@@ -19,18 +19,18 @@ Model::
     y_k     = g(s_k) + c·z_k + e_k,      e_k ~ N(0, R)
 
 with ``g`` given per cell by the caller (a callable on the cell coordinates, e.g. a
-:class:`~neuralmap.terrain.base.TerrainModel` lookup — a grid or a neural map).
+`TerrainModel` lookup — a grid or a neural map).
 
 **Update** (per cell, a Kalman update of ``z``): ``ν = y − g − c·μ``, ``S = cᵀPc + R`` (the
 same in every cell), ``log w += −½ ν²/S``, ``μ += K ν``, ``P ← P − K S Kᵀ`` with
 ``K = P c / S``. A run whose likelihood vanishes in every cell keeps its prior masses
-(counted in :attr:`PointMassTracker.recoveries`; never NaN).
+(counted in `PointMassTracker.recoveries`; never NaN).
 
 **Prediction** (exact in its first two moments). The shift ``E μ_cell`` of each cell is
 split by weighted least squares into an affine part ``D̄ + B (s − s̄)`` and a residual δ;
 the affine part moves the lattice itself (``A ← (I + B) A``, no interpolation), the
 residual and the transition noise ``E P Eᵀ + Q_s + Cov_w(δ)`` are convolved into the
-masses (separable kernels along the lattice axes, :func:`~neuralmap.filters.point_mass.
+masses (separable kernels along the lattice axes, `
 gaussian_kernels`), and the per-cell ``z`` is carried by convolving ``w · (Fμ − L s)``
 with ``L = F P Eᵀ Σ_η⁻¹`` (the Gaussian conditional of ``z'`` on ``s'``). The exact
 predicted moments of the whole state — ``s̄ + D̄ + u``, ``Cov(s + E z) + Q_s``, ``F z̄``,
@@ -39,7 +39,7 @@ correction (below), so the part of the kernel the separable convolution leaves o
 (its cross-axis covariance) and the residual-as-noise approximation change only the
 shape beyond the covariance, never the mean or covariance.
 
-**Grid following the posterior** (:meth:`PointMassTracker.regrid`): after each update a
+**Grid following the posterior** (`PointMassTracker.regrid`): after each update a
 run moves to a new lattice centred on its mean, with cell steps ``span_sigma · σ_k / h``
 along each axis ``k`` (the principal axes of its covariance when ``principal_axes``,
 else x and y) — i.e. the spacing is ``1 / spacing_per_sigma`` of σ — when its mean left
@@ -49,7 +49,7 @@ resampled bilinearly (density interpolation), then the moment correction restore
 pre-regrid moments. Guard against collapse: the half-width is never below
 ``span_sigma · sqrt(σ² + q)`` (q: the next step's process noise) nor ``min_half_width``.
 
-**Moment correction** (:meth:`PointMassTracker.match_moments`): the lattice is moved by
+**Moment correction** (`PointMassTracker.match_moments`): the lattice is moved by
 the affine map ``s ↦ m_t + T (s − m)`` with ``T = C^{-1/2}(C^{1/2} C_t C^{1/2})^{1/2}C^{-1/2}``
 (the symmetric map closest to the identity taking covariance C to C_t), which gives the
 masses mean ``m_t`` and covariance ``C_t`` exactly (an affine image of a discrete
@@ -68,7 +68,7 @@ truth wherever the grid lost it (a track that locked onto a wrong terrain match
 kilometres away). A run widened more than ``max_widenings`` times, or whose covariance
 stops being finite, is flagged ``lost`` (counted and reported; its estimate is held,
 never NaN). A tracker started mid-flight gets the open-loop prior of the original prior
-from :meth:`PointMassTracker.set_open_loop`.
+from `PointMassTracker.set_open_loop`.
 """
 
 from __future__ import annotations
@@ -103,7 +103,7 @@ _LOG_R_FLOOR = -60.0
 
 @dataclass
 class TrackerConfig:
-    """Options of :class:`PointMassTracker`.
+    """Options of `PointMassTracker`.
 
     Attributes:
         cells: Lattice cells per axis ``G`` (≥ 8).
@@ -144,7 +144,7 @@ class TrackerConfig:
     max_widenings: int = 4
 
     def validate(self) -> TrackerConfig:
-        """Checks ranges; raises :class:`NeuralMapError` naming the bad option."""
+        """Checks ranges; raises `NeuralMapError` naming the bad option."""
 
         def bad(key: str, need: str) -> NeuralMapError:
             return NeuralMapError(f"TrackerConfig: '{key}' must be {need}, got {getattr(self, key)!r}.")
@@ -179,7 +179,7 @@ class TrackerConfig:
 
 @dataclass
 class TrackerUpdate:
-    """Per-run results of one :meth:`PointMassTracker.update`.
+    """Per-run results of one `PointMassTracker.update`.
 
     Attributes:
         nis: ``(N,)`` NIS of the mixture's predictive measurement ``(y − ŷ)² / S_y``.
@@ -262,7 +262,7 @@ class PointMassTracker:
         E: ``(2, nz)`` effect of ``z`` on the next ``s`` (e.g. ``T`` on the velocities).
         F: ``(nz, nz)`` transition of ``z``.
         c: ``(nz,)`` measurement row of ``z``.
-        config: :class:`TrackerConfig`.
+        config: `TrackerConfig`.
         dtype: float32 or float64 (default float64).
 
     Attributes:
@@ -497,7 +497,7 @@ class PointMassTracker:
 
     # ------------------------------------------------------------------ moments
     def _lattice_moments(self, w: torch.Tensor, mu: torch.Tensor) -> _Moments:
-        """:class:`_Moments` of ``(w, mu)``, reused while both tensors are the same objects
+        """`_Moments` of ``(w, mu)``, reused while both tensors are the same objects
         at the same version (an in-place change bumps the version): a step asks for the
         moments of one state up to six times."""
         cached = self._moments_cache
@@ -674,7 +674,7 @@ class PointMassTracker:
             regrid: Move runs whose posterior no longer fits their lattice.
 
         Returns:
-            :class:`TrackerUpdate`.
+            `TrackerUpdate`.
         """
         n, g, kw = self.n_runs, self.cells, {"dtype": self.dtype, "device": self.device}
         y = torch.as_tensor(measurement, **kw).expand(n)
@@ -862,7 +862,7 @@ class PointMassTracker:
 
     def _guard(self, healthy: torch.Tensor) -> None:
         """Runs whose moments stopped being finite (``healthy (N,)`` False) are lost: reset
-        to a wide Gaussian around the origin, flagged in :attr:`lost`, never NaN."""
+        to a wide Gaussian around the origin, flagged in `lost`, never NaN."""
         bad = ~healthy & ~self.lost
         if bool(bad.any()):
             d = 2 + self.nz

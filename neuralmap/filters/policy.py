@@ -12,9 +12,9 @@ numbers, without Python loops over samples. It may
 * adapt the process noise at the time update,
 
 and it reports what it did per sample (weights, factors, adapted variances) in
-:attr:`UpdateDiagnostics.policy_info <neuralmap.filters.diagnostics.UpdateDiagnostics>`.
+`UpdateDiagnostics.policy_info`.
 
-How :meth:`BatchedEKF.update <neuralmap.filters.ekf.BatchedEKF.update>` drives a policy::
+How `BatchedEKF.update` drives a policy::
 
     adaptation = policy.adapt(context)                 # before the first pass
     for _ in range(policy.iterations):
@@ -23,7 +23,7 @@ How :meth:`BatchedEKF.update <neuralmap.filters.ekf.BatchedEKF.update>` drives a
         if adaptation is None: break                   # converged / not iterative
     policy.commit(context, last adaptation, posterior, applied)
 
-and :meth:`BatchedEKF.predict <neuralmap.filters.ekf.BatchedEKF.predict>` calls
+and `BatchedEKF.predict` calls
 ``policy.process_noise(F=..., Q=..., P=...)`` (None = keep ``Q``).
 
 Shapes (batch first): ``N`` samples, ``n`` states, ``m`` measurement components.
@@ -53,7 +53,7 @@ class UpdateContext:
         process_noise: ``(N, n, n)`` Q of the last predict (None before any predict).
         step: Number of updates the filter has made before this one (0 for the first).
         keep: ``(N, m)`` bool, components already rejected by an earlier policy of a
-            composition (:class:`~neuralmap.filters.policies.Compose`); None = all kept.
+            composition (`Compose`); None = all kept.
             The filter itself never sets it; a policy that sums over components should
             skip the rejected ones.
     """
@@ -127,9 +127,9 @@ class Posterior:
 class FilterPolicy:
     """Base class of update/predict policies: every hook defaults to "change nothing".
 
-    Subclasses override :meth:`adapt` (and, as needed, :meth:`refine`, :meth:`commit`,
-    :meth:`process_noise`, :meth:`reset`). A policy holding per-sample state sizes it on
-    the first call (or in :meth:`reset`) and must keep the state of samples that are not
+    Subclasses override `adapt` (and, as needed, `refine`, `commit`,
+    `process_noise`, `reset`). A policy holding per-sample state sizes it on
+    the first call (or in `reset`) and must keep the state of samples that are not
     updated (``context.mask`` False) unchanged.
 
     Attributes:

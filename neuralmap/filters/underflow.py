@@ -9,10 +9,10 @@ slower than of a moderate one (6.5 M float32 elements: 5 ms at −80, 15 ms at �
 after a few updates nearly every cell's log-mass is far below its peak. These helpers
 take the fast path for every element:
 
-* :func:`exp_or_zero` is ``exp(x)`` for ``x ≥`` :data:`EXP_FLOOR` (−80 in float32, −700
+* `exp_or_zero` is ``exp(x)`` for ``x ≥`` `EXP_FLOOR` (−80 in float32, −700
   in float64; bit-identical there) and exactly 0 below: masses below ``1.8e-35`` of the
   peak in float32 (``1e-304`` in float64) are dropped;
-* :func:`log_or_neg_inf` is ``log(w)`` for ``w > 0`` (bit-identical) and ``-inf`` for
+* `log_or_neg_inf` is ``log(w)`` for ``w > 0`` (bit-identical) and ``-inf`` for
   ``w ≤ 0``.
 """
 
@@ -24,12 +24,12 @@ import torch
 
 __all__ = ["EXP_FLOOR", "exp_or_zero", "log_or_neg_inf"]
 
-#: Smallest argument :func:`exp_or_zero` exponentiates, per dtype (the fast path's range).
+#: Smallest argument `exp_or_zero` exponentiates, per dtype (the fast path's range).
 EXP_FLOOR = {torch.float32: -80.0, torch.float64: -700.0}
 
 
 def exp_or_zero(x: torch.Tensor, *, out_of_place: bool = True) -> torch.Tensor:
-    """``exp(x)`` with arguments below :data:`EXP_FLOOR` mapped to exactly 0.
+    """``exp(x)`` with arguments below `EXP_FLOOR` mapped to exactly 0.
 
     Args:
         x: Any shape, float32 or float64 (NaN stays NaN).

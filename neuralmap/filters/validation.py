@@ -1,11 +1,11 @@
 """Input checks for the batched filters: shapes, symmetry, (semi-)definiteness, variances.
 
-Every check raises :class:`~neuralmap.exceptions.NeuralMapError` with a message that says
+Every check raises `NeuralMapError` with a message that says
 which argument is wrong, the expected and the received shape or value, the first offending
 sample of a batch, and how to fix it. The checks are meant for user-supplied matrices
 (``P0``, ``Q``, ``R``, a shared ``F``); per-sample problems that arise while filtering
 (a NaN residual, a covariance that loses definiteness) are not errors but health flags of
-:class:`~neuralmap.filters.ekf.BatchedEKF`.
+`BatchedEKF`.
 """
 
 from __future__ import annotations
@@ -151,7 +151,7 @@ def check_covariance(
     ``M + δI`` with ``δ = sqrt(eps) · max(diag M)``, which still rejects any eigenvalue
     clearly below zero. A diagonal matrix needs no factorisation (its variances are its
     eigenvalues); small matrices are factorised on one torch thread
-    (:func:`neuralmap.threads.one_thread`).
+    (`neuralmap.threads.one_thread`).
 
     Args:
         m: ``(n, n)`` or ``(B, n, n)`` floating tensor.

@@ -1,19 +1,19 @@
 """Compiled covariance propagation of the 15-state ψ-angle model, vectorised over runs.
 
-The propagation point of :func:`propagate_block` (error model,
+The propagation point of `propagate_block` (error model,
 ``Φ = I + FT + (FT)²/2``, ``Q_d = ½ (Φ G Q_c Gᵀ Φᵀ + G Q_c Gᵀ) T`` and
-``P ← Φ P Φᵀ + Q_d``; :mod:`neuralmap.ins.error_model`, SEEDS 003 eqs. 1–2) computed for
-a group of :data:`LANES` = 8 runs at once: every matrix is stored ``(15, 15, 8)`` with the
+``P ← Φ P Φᵀ + Q_d``; `neuralmap.ins.error_model`, SEEDS 003 eqs. 1–2) computed for
+a group of `LANES` = 8 runs at once: every matrix is stored ``(15, 15, 8)`` with the
 runs (lanes) innermost, each multiply-add of the matrix products works on the 8 lanes at
 once (kept in registers; numba's SLP vectoriser, switched on while these kernels compile,
 turns it into vector instructions), and the index bookkeeping is paid once per group
 instead of once per run. A last, partial group repeats its last run in the spare lanes
 (their results are dropped).
 
-Only the structural nonzeros of ``F`` and ``Φ`` enter the products (:data:`F_PATTERN`,
-:data:`PHI_PATTERN`, from the block structure of the error equations); every element is
+Only the structural nonzeros of ``F`` and ``Φ`` enter the products (`F_PATTERN`,
+`PHI_PATTERN`, from the block structure of the error equations); every element is
 summed over the same terms in the same ascending order as the per-run loop
-(:func:`~neuralmap.ins.kernels._propagate_nb`, which skips the numerical zeros of
+(`_propagate_nb`, which skips the numerical zeros of
 ``Φ``). The terms one of them has and the other lacks are products with an exact zero,
 ``±0.0``, and adding ``±0.0`` leaves a sum unchanged, so the numbers are the same (at
 most the sign of an exact zero differs; a test checks equality on random inputs and the
@@ -269,7 +269,7 @@ def propagate_lanes(
     tau_g: float,
     tau_a: float,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Covariance over S propagation points for N runs, :data:`LANES` runs at a time.
+    """Covariance over S propagation points for N runs, `LANES` runs at a time.
 
     Args:
         P: ``(N, 15, 15)`` float64 covariances at the first point's start; overwritten with
@@ -305,11 +305,11 @@ def propagate_block(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Error covariance over S propagation points; the last step is left to the filter.
 
-    Compiled: :func:`propagate_lanes` (8 runs per SIMD
+    Compiled: `propagate_lanes` (8 runs per SIMD
     lane group). For each point s: ``F`` and ``G Q_c Gᵀ`` of the solution there
-    (:func:`~neuralmap.ins.error_model.error_dynamics`,
-    :func:`~neuralmap.ins.error_model.continuous_noise`), ``Φ_s, Q_d,s``
-    (:func:`~neuralmap.ins.error_model.discretize` over the interval), and for
+    (`error_dynamics`,
+    `continuous_noise`), ``Φ_s, Q_d,s``
+    (`discretize` over the interval), and for
     s < S: ``P ← ½(Φ P Φᵀ + (Φ P Φᵀ)ᵀ) + Q_d`` on healthy samples (the filter's predict).
 
     Args:

@@ -5,7 +5,7 @@ record: at 200 Hz the nearest record is up to 2.5 ms away, 5 cm at 20 m/s. KF-GI
 IMU interval ``(t_{k−1}, t_k]`` that holds ``t_g`` into ``(t_{k−1}, t_g]`` and
 ``(t_g, t_k]``, each with its share of the increments (``Δθ·f`` and ``Δθ·(1 − f)``,
 ``f = (t_g − t_{k−1}) / (t_k − t_{k−1})``: the same constant rate over both parts),
-mechanises to ``t_g``, updates there and mechanises on to ``t_k``. :func:`split_at_epochs`
+mechanises to ``t_g``, updates there and mechanises on to ``t_k``. `split_at_epochs`
 builds that time line once for a whole log: the IMU records plus one inserted record per
 GNSS epoch that is not on a record (within ``align_s``), every interval's increment shared
 out by time. An interval without an epoch keeps its increment exactly (``f = 1``).
@@ -59,7 +59,7 @@ def split_at_epochs(time: np.ndarray, dtheta: np.ndarray, dvel: np.ndarray,
         align_s: An epoch within this of a record updates at the record.
 
     Returns:
-        :class:`EpochTimeline`; epochs before the first or after the last record (beyond
+        `EpochTimeline`; epochs before the first or after the last record (beyond
         ``align_s``) are left out.
 
     Raises:

@@ -1,6 +1,6 @@
 """The 15-state ψ-angle error model: continuous F, discrete Φ and Q (SEEDS 003).
 
-Error state ``δx = [δr, δv, ψ, δb_g, δb_a]`` (see :mod:`neuralmap.ins.error_state`). The
+Error state ``δx = [δr, δv, ψ, δb_g, δb_a]`` (see `neuralmap.ins.error_state`). The
 ψ-angle (attitude drift) error equations of paper 003 (eqs. 1–2; Benson 1975, Titterton &
 Weston ch. 12) with Gauss–Markov sensor biases::
 

@@ -14,7 +14,7 @@ The 15-state error vector is ``δx = [δr, δv, ψ, δb_g, δb_a]`` with every e
 
 The ψ-angle form decouples the attitude error from the position error (its equations
 carry no ``δω_in`` terms), which is the attitude-drift model of paper 003. Feedback
-(:func:`correct`) subtracts an estimated error from the computed solution.
+(`correct`) subtracts an estimated error from the computed solution.
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def total_attitude_error(true: torch.Tensor, computed: torch.Tensor) -> torch.Te
 
 def inject(true: torch.Tensor, error: torch.Tensor) -> torch.Tensor:
     """Computed states that carry a given error ``[δr, δv, ψ]`` ``(N, 9)`` (inverse of
-    :func:`navigation_error` to first order in position, exact in attitude)."""
+    `navigation_error` to first order in position, exact in attitude)."""
     lat, h = true[:, 0], true[:, 2]
     rm, rn = radii(lat)
     dr, dv, psi = error[:, :3], error[:, 3:6], error[:, 6:9]

@@ -6,7 +6,7 @@
     neuralmap-gins kf-gins.yaml --truthpath truth.nav # + errors against a reference
     neuralmap-gins kf-gins.yaml --n_runs 50 --output_every 200   # + 49 runs with noise draws
 
-The config is KF-GINS's own ``kf-gins.yaml`` (:func:`neuralmap.ins.kfgins.read_config`).
+The config is KF-GINS's own ``kf-gins.yaml`` (`neuralmap.ins.kfgins.read_config`).
 Written to ``outputpath``: ``KF_GINS_Navresult.nav``, ``KF_GINS_IMU_ERR.txt`` and
 ``KF_GINS_STD.txt`` of run 0 (KF-GINS's names and columns), and with a reference
 ``comparison.json`` (position, velocity and attitude errors of every run). Bad input

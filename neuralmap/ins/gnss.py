@@ -12,8 +12,8 @@ and its own standard deviations σ_r, σ_v (NED). Urban effects are scheduled al
 * **multipath jumps**: a position offset of metres (random direction per run) during an
   interval, not reflected in the reported σ.
 
-Quality indicators given by a user may contain NaN: :func:`sanitize_quality` treats them
-(documented and counted) and :func:`check_epochs` rejects epochs out of order.
+Quality indicators given by a user may contain NaN: `sanitize_quality` treats them
+(documented and counted) and `check_epochs` rejects epochs out of order.
 """
 
 from __future__ import annotations
@@ -112,7 +112,7 @@ class GnssRecord:
     """Simulated GNSS solutions of N runs.
 
     Attributes:
-        quality: The shared :class:`GnssQuality`.
+        quality: The shared `GnssQuality`.
         position: ``(N, K, 3)`` antenna [lat, lon, h] (rad, rad, m); NaN in outages.
         velocity: ``(N, K, 3)`` antenna NED velocity (m/s); NaN in outages.
         lever_arm: ``(3,)`` IMU-to-antenna vector (m, body frame).
@@ -159,7 +159,7 @@ def simulate_gnss(
         sigma_vel, sigma_vel_degraded: Reported NED velocity σ (m/s), open sky / degraded.
 
     Returns:
-        The :class:`GnssRecord`.
+        The `GnssRecord`.
 
     Raises:
         NeuralMapError: Bad lever arm, or an interval that is not a positive multiple of
@@ -258,7 +258,7 @@ def sanitize_quality(quality: GnssQuality) -> tuple[GnssQuality, dict[str, int]]
         ``(sanitised quality, counts)``.
 
     Raises:
-        NeuralMapError: Epochs out of order (see :func:`check_epochs`).
+        NeuralMapError: Epochs out of order (see `check_epochs`).
     """
     check_epochs(quality.time, where="sanitize_quality")
     counts: dict[str, int] = {}

@@ -12,7 +12,7 @@ error. The white noises are those of instantaneous rate samples: ARW (rad/√s) 
 (m/s/√s) are the square roots of the two-sided power spectral densities, so a sample has
 the standard deviation ``ARW/√Δt``.
 
-The record is generated one sample at a time (:meth:`ImuErrorProcess.measure`) so that a
+The record is generated one sample at a time (`ImuErrorProcess.measure`) so that a
 1527 s, 200 Hz drive over N = 1000 runs never holds the ``(N, K, 6)`` record in memory.
 """
 
@@ -156,7 +156,7 @@ class ImuErrorProcess:
     """N independent IMUs of one grade, corrupting a true IMU record sample by sample.
 
     Args:
-        grade: Grade name or :class:`ImuGrade`.
+        grade: Grade name or `ImuGrade`.
         n_runs: Number of runs N.
         dt: IMU interval (s).
         generator: Torch random generator (seeded by the caller for reproducibility), on
@@ -240,14 +240,14 @@ class ImuErrorProcess:
     def measure_block(
         self, gyro: torch.Tensor, accel: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """L consecutive samples at once: the same numbers as L calls of :meth:`measure`.
+        """L consecutive samples at once: the same numbers as L calls of `measure`.
 
         The random draws come from the generator in the same order (noise, then bias
         drive, per sample); torch fills normal draws in blocks of 16 values, so one call
         for the whole block gives the same numbers exactly when a sample's 6 N draws are a
         whole number of blocks (N a multiple of 8); otherwise each sample's draws are made
         separately into one buffer. The bias walk runs as a compiled loop where numba is
-        installed (:func:`~neuralmap.ins.kernels.gauss_markov_block`).
+        installed (`gauss_markov_block`).
 
         Args:
             gyro: ``(L, 3)`` true angular rates (rad/s).

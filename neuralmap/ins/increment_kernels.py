@@ -2,10 +2,10 @@
 
 A logged IMU gives one increment per interval, entered as the constant rate
 ``Δθ_k / Δt_k`` over ``(t_{k−1}, t_k]`` (intervals may differ). The mechanisation step is
-the one of :mod:`neuralmap.ins.kernels` (``_step`` with equal rates at both ends, i.e.
-:func:`~neuralmap.ins.mechanization.strapdown_step` ``(y, w, f, w, f, Δt_k)``), looped over
+the one of `neuralmap.ins.kernels` (``_step`` with equal rates at both ends, i.e.
+`strapdown_step` ``(y, w, f, w, f, Δt_k)``), looped over
 the block of intervals between two GNSS epochs; the covariance propagation is that of
-:func:`~neuralmap.ins.covariance_kernels.propagate_block` (same error model, discretisation and
+`propagate_block` (same error model, discretisation and
 ``Φ P Φᵀ``), which also returns the σ after every propagation point, since a log solution
 is written at every IMU record. Without numba (extra ``fast``) the same interfaces run
 the torch functions step by step.
@@ -124,7 +124,7 @@ def propagate_with_sigma(
 
     For each point s: ``F``, ``G Q_c Gᵀ`` of the solution there, ``Φ_s, Q_d,s`` over the
     interval and ``P ← Φ P Φᵀ + Q_d`` (symmetric) on healthy samples, as
-    :func:`~neuralmap.ins.covariance_kernels.propagate_block` (which leaves the last point to the
+    `propagate_block` (which leaves the last point to the
     filter's predict; here every point is applied).
 
     Args:

@@ -1,6 +1,6 @@
 """Compiled loops of the GNSS/INS hot path: strapdown over a block of IMU samples, bias walk.
 
-The batched torch mechanisation (:func:`~neuralmap.ins.mechanization.strapdown_step`)
+The batched torch mechanisation (`strapdown_step`)
 costs about a hundred small tensor operations per IMU step, so at 200 Hz over a few
 hundred runs the time goes into per-operation overhead, not arithmetic. Between two
 GNSS epochs nothing but the IMU samples enters the mechanisation, so the whole block of
@@ -9,7 +9,7 @@ samples is integrated in one call here: a loop over runs and samples compiled by
 block interface runs the torch step sample by sample (bit-identical to the per-step
 filter).
 
-The arithmetic is :func:`~neuralmap.ins.mechanization.strapdown_step` operation by
+The arithmetic is `strapdown_step` operation by
 operation (same expression order, no fused multiply-add, no fast-math); only ``sin``,
 ``cos`` come from the C library instead of torch's vectorised ones, so results agree with
 the torch step to a few units in the last place per step (the tests check 1e-12 relative
@@ -359,7 +359,7 @@ def _nonzeros(A, idx, count):  # type: ignore[no-untyped-def]
 def _sandwich(A, B, out, tmp, idx, count):  # type: ignore[no-untyped-def]
     """out = A B Aᵀ (15×15) for a symmetric B: ``A (A B)ᵀ`` on the lower triangle, mirrored.
 
-    ``idx``/``count``: the nonzeros of A's rows (:func:`_nonzeros`). Both products run
+    ``idx``/``count``: the nonzeros of A's rows (`_nonzeros`). Both products run
     row by row (``out[i, :] += a · W[k, :]``, contiguous inner loops that vectorise), the
     second on ``W = (A B)ᵀ`` (``tmp`` transposed in place): each element is summed over
     the same k in the same ascending order as a dot product, so the numbers are those of
@@ -453,8 +453,8 @@ def _propagation_scratch():  # type: ignore[no-untyped-def]
 @_njit
 def _propagate_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_last, qd_last):  # type: ignore[no-untyped-def]
     """The covariance propagation run by run (the reference of the lane-vectorised
-    :func:`~neuralmap.ins.covariance_kernels.propagate_lanes`, which gives the same
-    numbers and is what :func:`~neuralmap.ins.covariance_kernels.propagate_block` calls)."""
+    `propagate_lanes`, which gives the same
+    numbers and is what `propagate_block` calls)."""
     n_runs, n_points = states.shape[0], states.shape[1]
     F, G, phi, qd, tmp, tmp2, idx, count, C, fn = _propagation_scratch()
     for r in range(n_runs):

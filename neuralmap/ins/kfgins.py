@@ -23,7 +23,7 @@ The toolkit's filter has no scale-factor states (15 states, SEEDS 003): the IMU 
 carries zero scale factors and the σ file NaN for their σ. The log classes keep the files'
 units (degrees); files are written with 17 significant digits, so writing and reading
 back gives the same float64 values; writes are
-atomic (:mod:`neuralmap.io`). Bad input (a wrong column count, a non-number, time that does
+atomic (`neuralmap.io`). Bad input (a wrong column count, a non-number, time that does
 not increase, a gap in the IMU record, a non-positive σ) is refused with the file, line and
 fix.
 """
@@ -222,12 +222,12 @@ def read_imu(path: str | Path, *, rate_hz: float | None = None, columns: int = 7
              max_gap: float | None = None) -> ImuLog:
     """Reads a KF-GINS IMU increment file.
 
-    A logging gap (an interval longer than :data:`GAP_FACTOR` nominal intervals) is refused
+    A logging gap (an interval longer than `GAP_FACTOR` nominal intervals) is refused
     unless ``max_gap`` accepts it: the filter then propagates across it as one interval of
     its true length (the increment of the record after the gap kept as it is, spread over
     the gap; gravity and transport rate over the true length: what KF-GINS does silently),
     and counts it
-    (:func:`neuralmap.ins.log_run.run_on_log`). The INS error grows over a gap with no
+    (`neuralmap.ins.log_run.run_on_log`). The INS error grows over a gap with no
     IMU data; ``max_gap`` is the longest the user accepts.
 
     Args:
@@ -238,7 +238,7 @@ def read_imu(path: str | Path, *, rate_hz: float | None = None, columns: int = 7
         max_gap: Longest accepted interval (s); None = no gap accepted.
 
     Returns:
-        The :class:`ImuLog`.
+        The `ImuLog`.
 
     Raises:
         NeuralMapError: Wrong column count, a non-number, time that does not increase, a
@@ -355,12 +355,12 @@ def _write_table(path: str | Path, table: np.ndarray) -> Path:
 
 
 def write_imu(path: str | Path, log: ImuLog) -> Path:
-    """Writes an :class:`ImuLog` as a KF-GINS IMU file (7 columns)."""
+    """Writes an `ImuLog` as a KF-GINS IMU file (7 columns)."""
     return _write_table(path, np.column_stack([log.time, log.dtheta, log.dvel]))
 
 
 def write_gnss(path: str | Path, log: GnssLog) -> Path:
-    """Writes a :class:`GnssLog` as a KF-GINS GNSS file (13 columns when it has velocity)."""
+    """Writes a `GnssLog` as a KF-GINS GNSS file (13 columns when it has velocity)."""
     head = [log.time, log.position]
     if log.velocity is None:
         table = np.column_stack([*head, log.sigma_pos])
@@ -371,7 +371,7 @@ def write_gnss(path: str | Path, log: GnssLog) -> Path:
 
 
 def write_nav(path: str | Path, log: NavLog) -> Path:
-    """Writes a :class:`NavLog` as a KF-GINS navigation result (11 columns)."""
+    """Writes a `NavLog` as a KF-GINS navigation result (11 columns)."""
     table = np.column_stack([log.week, log.time, log.position, log.velocity, log.euler])
     return _write_table(path, table)
 
@@ -464,7 +464,7 @@ class KfGinsConfig:
     source: Path
 
     def imu_grade(self) -> ImuGrade:
-        """The noise model as an :class:`~neuralmap.ins.imu_model.ImuGrade`.
+        """The noise model as an `ImuGrade`.
 
         The filter's initial bias variance is turn-on² + instability², so the turn-on σ is
         set to ``√(init_bias_std² − bias_std²)`` (0 when the initial σ is not larger).
@@ -602,14 +602,14 @@ def simulated_logs(traj: Trajectory, gnss: GnssRecord, *, imu: ImuErrorProcess |
 
     The IMU increments are the trapezoid of the sampled rates over each interval,
     ``Δθ_k = (ω̃_{k−1} + ω̃_k) Δt / 2`` (the mechanisation's linear-in-time inputs), of the
-    measured rates when ``imu`` (an :class:`~neuralmap.ins.imu_model.ImuErrorProcess`,
+    measured rates when ``imu`` (an `ImuErrorProcess`,
     advanced in place) is given, else of the true ones. The first record repeats the
     first interval's increment. GNSS epochs without a solution (outages) are left out, as
     a receiver log has no line for them.
 
     Args:
-        traj: :class:`~neuralmap.ins.trajectory.Trajectory`.
-        gnss: :class:`~neuralmap.ins.gnss.GnssRecord` of the same drive.
+        traj: `Trajectory`.
+        gnss: `GnssRecord` of the same drive.
         imu: Optional IMU error process.
         run: The run of ``imu`` and ``gnss`` to export.
         week: GNSS week written in the reference.

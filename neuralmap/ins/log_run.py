@@ -1,21 +1,21 @@
 """The 15-state loosely coupled filter on a recorded GNSS/INS log (KF-GINS formats).
 
-The simulator-driven filter (:func:`neuralmap.ins.loosely_coupled.run_loosely_coupled`)
+The simulator-driven filter (`neuralmap.ins.loosely_coupled.run_loosely_coupled`)
 corrupts a true IMU record; a log carries measured increments and no truth. This driver
-runs the same filter — the same mechanisation (:func:`~neuralmap.ins.mechanization.
-strapdown_step`), error model (:func:`~neuralmap.ins.error_model.error_dynamics`,
-:func:`~neuralmap.ins.error_model.discretize`), lever-arm measurement model
-(:func:`~neuralmap.ins.measurement.gnss_measurement_model`), closed-loop feedback
-(:func:`~neuralmap.ins.error_state.correct`) and :class:`~neuralmap.filters.BatchedEKF` —
-on an :class:`~neuralmap.ins.kfgins.ImuLog` and a :class:`~neuralmap.ins.kfgins.GnssLog`
+runs the same filter — the same mechanisation (`
+strapdown_step`), error model (`error_dynamics`,
+`discretize`), lever-arm measurement model
+(`gnss_measurement_model`), closed-loop feedback
+(`correct`) and `BatchedEKF` —
+on an `ImuLog` and a `GnssLog`
 (SEEDS 003), and records the solution itself.
 
 An increment ``Δθ_k`` over ``(t_{k−1}, t_k]`` enters the mechanisation as the constant rate
 ``Δθ_k / Δt_k`` over that interval (the increment is kept exactly), over its true interval
-also across a logging gap (:func:`~neuralmap.ins.kfgins.read_imu`'s ``max_gap``; gaps are
-counted in :attr:`LogSolution.counts`). A GNSS epoch updates at its own time: the IMU
+also across a logging gap (`read_imu`'s ``max_gap``; gaps are
+counted in `LogSolution.counts`). A GNSS epoch updates at its own time: the IMU
 interval that holds it is split there, each part with its share of the increment, as
-KF-GINS does (:mod:`neuralmap.ins.epoch_alignment`); the solution is recorded at the IMU
+KF-GINS does (`neuralmap.ins.epoch_alignment`); the solution is recorded at the IMU
 records only. Run 0 processes the log as recorded from the configured
 initial state; with ``n_runs > 1`` the other runs draw an initial error from ``P0``, white
 IMU noise at the configured ARW/VRW and GNSS noise at the reported σ (a Monte Carlo of the
@@ -24,7 +24,7 @@ spread the noise model implies), all batched.
 The log is processed in blocks between GNSS epochs: the mechanisation of all the block's
 increments and the covariance propagation over its propagation points (every
 ``propagate_every`` records from the block start and at the epoch) run in compiled loops
-(:mod:`neuralmap.ins.increment_kernels`), giving the numbers of a record-by-record loop
+(`neuralmap.ins.increment_kernels`), giving the numbers of a record-by-record loop
 (the tests check them against stored ones to 1e-9 relative).
 """
 
@@ -81,7 +81,7 @@ class LogSolution:
     counts: dict[str, int] = field(default_factory=dict)
 
     def nav_log(self, run: int = 0) -> NavLog:
-        """One run as a :class:`~neuralmap.ins.kfgins.NavLog` (week 0)."""
+        """One run as a `NavLog` (week 0)."""
         s = self.states[run].detach().cpu().double()
         euler = euler_from_dcm(dcm_from_quat(s[:, 6:10]))
         return NavLog(week=np.zeros(s.shape[0]), time=self.time.cpu().double().numpy(),
@@ -129,7 +129,7 @@ def run_on_log(
         use_velocity: Update with the GNSS velocity too; None = when the log has one.
 
     Returns:
-        :class:`LogSolution`.
+        `LogSolution`.
 
     Raises:
         NeuralMapError: Fewer than two IMU records in [start, end], a bad run count or

@@ -7,7 +7,7 @@ epoch; a GNSS epoch updates the 15-state error with the 6 lever-arm position and
 differences (predicted − measured); the estimated errors are fed back into the solution
 and the bias estimates (closed loop) and the error state is reset to zero.
 
-All N runs advance together on :class:`~neuralmap.filters.BatchedEKF` (per-sample
+All N runs advance together on `BatchedEKF` (per-sample
 ``(N, 15, 15)`` Φ, ``Q_d`` and ``(N, 6, 15)`` H). Runs do not interact: an epoch without
 a solution (outage, NaN quality σ, a NaN measurement of one run) is skipped for the runs
 concerned through the update mask and counted.
@@ -183,11 +183,11 @@ def initial_covariance(config: LooselyCoupledConfig, *, dtype: torch.dtype) -> t
 
 @dataclass
 class LooselyCoupledVariant:
-    """One filter of a lockstep run (:func:`run_loosely_coupled_variants`).
+    """One filter of a lockstep run (`run_loosely_coupled_variants`).
 
     Attributes:
         config: Filter settings.
-        policy: Optional update policy (see :func:`run_loosely_coupled`).
+        policy: Optional update policy (see `run_loosely_coupled`).
         measurement_noise: Optional ``(epoch index, base R) -> R`` hook.
     """
 
@@ -378,12 +378,12 @@ def run_loosely_coupled(
             epoch's indicators before each update as a mapping of ``(N,)`` tensors:
             ``pdop``, ``fix_ratio``, ``satellites`` and ``sigma_m`` (the reported horizontal
             position σ, RMS of north and east), after NaN treatment
-            (:func:`~neuralmap.ins.gnss.sanitize_quality`).
+            (`sanitize_quality`).
         progress: Optional callback, called with the number of IMU samples advanced after
             each stretch between GNSS epochs (e.g. a progress bar's ``update``).
 
     Returns:
-        :class:`LooselyCoupledResult`.
+        `LooselyCoupledResult`.
 
     Raises:
         NeuralMapError: Bad config, run counts that differ, GNSS epochs out of order, a
@@ -409,22 +409,22 @@ def run_loosely_coupled_variants(
     """Several filters over the same runs in lockstep: the IMU samples of each stretch
     between GNSS epochs are drawn once and fed to every filter.
 
-    Each filter gets exactly the numbers :func:`run_loosely_coupled` would give it on a
+    Each filter gets exactly the numbers `run_loosely_coupled` would give it on a
     generator in the same state (the initial-error draw, then the IMU samples, are the same
     for every variant), at the cost of one IMU simulation for all of them.
 
     Args:
-        traj, imu, gnss, generator: As in :func:`run_loosely_coupled`.
+        traj, imu, gnss, generator: As in `run_loosely_coupled`.
         variants: Name to filter (settings and policy); policies must be distinct objects.
         progress: Optional callback, called with (IMU samples advanced) × (filters) after
             each stretch.
 
     Returns:
-        Name to :class:`LooselyCoupledResult` (``elapsed_s``: that filter's own time,
+        Name to `LooselyCoupledResult` (``elapsed_s``: that filter's own time,
         without the shared IMU simulation).
 
     Raises:
-        NeuralMapError: As :func:`run_loosely_coupled`; no variants; a policy shared by two.
+        NeuralMapError: As `run_loosely_coupled`; no variants; a policy shared by two.
     """
     if not variants:
         raise NeuralMapError("run_loosely_coupled_variants: pass at least one variant.")

@@ -9,7 +9,7 @@ phase centre). Its position and velocity follow from the INS solution::
 The innovation is the INS-predicted minus the GNSS-measured antenna position (NED metres
 about the measurement) and velocity, ``δz = [r̂_ant − r̃_ant, v̂_ant − ṽ_ant]`` (m = 6).
 To first order in the ψ-angle error state (``φ = ψ + T δr``, see
-:mod:`neuralmap.ins.error_state`) its Jacobian is::
+`neuralmap.ins.error_state`) its Jacobian is::
 
     H_r = [I + [(Ĉl)×] T, 0, [(Ĉl)×], 0, 0]
     H_v = [([v×] + ([a×] − [ω_in×][(Ĉl)×]) T), I, [a×] − [ω_in×][(Ĉl)×], Ĉ [l×], 0]

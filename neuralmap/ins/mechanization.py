@@ -10,13 +10,13 @@ Titterton & Weston ch. 3)::
 The IMU delivers instantaneous angular rate ``ω_ib^b`` (rad/s) and specific force ``f^b``
 (m/s²) at its sample epochs; between two samples both are taken as linear in time.
 
-:func:`strapdown_step` is the production algorithm (the increment form used by KF-GINS
+`strapdown_step` is the production algorithm (the increment form used by KF-GINS
 and PSINS, written for sampled rates): body rotation vector with the coning term
 ``φ = Δθ + (ω_k × ω_{k+1}) Δt²/12``; body velocity increment with the rotation and
 sculling terms exact to second order for linear inputs; navigation-frame rotation
 ``ζ = ω_inⁿ Δt``; ``q_{k+1} = q(−ζ) ⊗ q_k ⊗ q(φ)``; velocity
 ``v_{k+1} = v_k + (I − ½[ζ×]) C_b^n Δv_b + (gⁿ − (2ω_ie + ω_en) × v_mid) Δt``; position by
-the trapezoid of the velocities. :func:`strapdown_step_rk4` integrates the continuous
+the trapezoid of the velocities. `strapdown_step_rk4` integrates the continuous
 equations above with classical RK4 (a slower reference for tests).
 """
 
@@ -50,7 +50,7 @@ def navigation_derivative(
     """Time derivative of the packed navigation state.
 
     Args:
-        y: ``(N, 10)`` packed state (see :class:`~neuralmap.ins.state.NavState`).
+        y: ``(N, 10)`` packed state (see `NavState`).
         gyro: ``(N, 3)`` or ``(3,)`` angular rate ``ω_ib^b`` (rad/s).
         accel: ``(N, 3)`` or ``(3,)`` specific force ``f^b`` (m/s²).
 

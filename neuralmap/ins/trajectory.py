@@ -1,6 +1,6 @@
 """Land-vehicle reference trajectories with exact IMU outputs.
 
-A drive is a list of :class:`Segment` s (hold, speed change, turn, or both at once) on a
+A drive is a list of `Segment` s (hold, speed change, turn, or both at once) on a
 level road at constant ellipsoidal height, roll = pitch = 0. Inside a segment the
 longitudinal acceleration and the yaw rate follow raised-cosine pulses,
 ``a(τ) = (Δv/T)(1 − cos 2πτ/T)`` and ``ψ̇(τ) = (Δψ/T)(1 − cos 2πτ/T)``, so speed, heading,
@@ -14,7 +14,7 @@ the mechanisation of eqs. 1–2 inverted)::
 
 with ``vⁿ = v [cos ψ, sin ψ, 0]`` and ``v̇ⁿ = a [cos ψ, sin ψ, 0] + v ψ̇ [−sin ψ, cos ψ, 0]``;
 latitude and longitude are integrated from the analytic velocity with RK4 (exact to
-rounding at IMU rates). :func:`urban_drive` gives a default resembling paper 003's urban
+rounding at IMU rates). `urban_drive` gives a default resembling paper 003's urban
 test drive (1527 s, 8.7 km, stops, 90° turns, speed changes).
 """
 
@@ -140,7 +140,7 @@ def generate(
         dtype: Floating dtype (float64 recommended).
 
     Returns:
-        The :class:`Trajectory` (CPU tensors).
+        The `Trajectory` (CPU tensors).
 
     Raises:
         NeuralMapError: No segments, a non-positive duration or ``dt``, or a speed that
@@ -247,7 +247,7 @@ def urban_drive(
         distance: Travelled distance (m) (paper: about 8.7 km).
         blocks: Number of city blocks.
         dt: IMU interval (s).
-        **kwargs: Passed to :func:`generate` (start position, heading, dtype).
+        **kwargs: Passed to `generate` (start position, heading, dtype).
 
     Raises:
         NeuralMapError: The duration/distance pair needs a cruise time ≤ 0 or a cruise speed

@@ -9,7 +9,7 @@ torch optimiser can move ``θ`` freely and the filter never sees an indefinite Q
   symmetric positive-definite matrix is reached exactly once.
 
 Both are built from an initial matrix, which must itself be symmetric positive definite:
-an indefinite (or semi-definite, NaN, non-symmetric) start raises :class:`NeuralMapError`
+an indefinite (or semi-definite, NaN, non-symmetric) start raises `NeuralMapError`
 naming the matrix and the fix.
 """
 
@@ -28,7 +28,7 @@ __all__ = [
     "make_covariance",
 ]
 
-#: Parametrisation names accepted by :func:`make_covariance`.
+#: Parametrisation names accepted by `make_covariance`.
 COVARIANCE_KINDS = ("log_diagonal", "log_cholesky")
 
 
@@ -144,7 +144,7 @@ class LogCholeskyCovariance(nn.Module):
 
 
 def make_covariance(kind: str, initial: torch.Tensor | list[float] | float) -> nn.Module:
-    """A learnable covariance by parametrisation name (:data:`COVARIANCE_KINDS`).
+    """A learnable covariance by parametrisation name (`COVARIANCE_KINDS`).
 
     Raises:
         NeuralMapError: Unknown kind, or a start that is not positive definite.

@@ -101,14 +101,14 @@ def em_noise(z: np.ndarray, H: np.ndarray, *, F: np.ndarray, Q0: np.ndarray, R0:
     """EM estimate of Q and R (see the module docstring).
 
     Args:
-        z, H, F, x0, P0: As in :func:`kalman_smoother`.
+        z, H, F, x0, P0: As in `kalman_smoother`.
         Q0, R0: Start values.
         diagonal_q: Constrain Q to be diagonal.
         max_iter: Iteration limit.
         tol: Stop when the largest relative change of a Q entry or R is below this.
 
     Returns:
-        :class:`EmResult`.
+        `EmResult`.
     """
     Q = np.array(Q0, dtype=np.float64)
     R = float(R0)

@@ -6,17 +6,17 @@ Columns (names exact, any order; extra columns are ignored):
 ``flight``  optional flight id (integer or text); rows of one flight are contiguous
 ``time``    time of the epoch, s; strictly increasing within a flight, constant step
 ``ins_x``   INS east position in the map frame (metres east of the tile's south-west
-            node, the frame of :class:`~neuralmap.dem.tile.DemTile` extents), m
+            node, the frame of `DemTile` extents), m
 ``ins_y``   INS north position, m
 ``ins_h``   INS altitude (same datum as the map heights), m
 ``radar``   radar-altimeter clearance, m; empty / ``nan`` = no measurement (skipped and
-            counted: :attr:`FlightBatch.n_missing`)
+            counted: `FlightBatch.n_missing`)
 ==========  =====================================================================
 
 The first row of every flight is the filter's prior epoch (no update). A CSV has one header
 line; an NPZ holds one 1-D array per column, all of the same length. Without a ``flight``
 column the whole file is one flight. Flights of different lengths are padded and masked
-(:class:`~neuralmap.learning.flights.FlightBatch`).
+(`FlightBatch`).
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ def _read_columns(path: Path) -> dict[str, np.ndarray]:
 
 def read_flight_log(path: str | os.PathLike[str], *, dtype: torch.dtype = torch.float64
                     ) -> FlightBatch:
-    """Reads a flight log (see the module docstring) into a :class:`FlightBatch`.
+    """Reads a flight log (see the module docstring) into a `FlightBatch`.
 
     Raises:
         NeuralMapError: Missing file or columns (named, with the columns found), a CSV that

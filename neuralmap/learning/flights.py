@@ -1,8 +1,8 @@
 """A batch of flights for learning: INS track and radar-altimeter clearance, padded and masked.
 
-Flights of different lengths are padded to the longest one; :attr:`FlightBatch.valid`
+Flights of different lengths are padded to the longest one; `FlightBatch.valid`
 marks the real samples. NaN altimeter samples (loss of lock, dropped records) are kept as
-NaN in :attr:`radar` and counted (:attr:`FlightBatch.n_missing`); the learning filters skip
+NaN in `radar` and counted (`FlightBatch.n_missing`); the learning filters skip
 their update (predict only), exactly like a padded step, so they neither contribute to the
 likelihood nor put NaN into a gradient.
 """
@@ -105,7 +105,7 @@ class FlightBatch:
 
     @classmethod
     def from_truth(cls, truth: Any) -> FlightBatch:
-        """The flights of a simulated :class:`~neuralmap.nav.simulator.Truth` (all full length)."""
+        """The flights of a simulated `Truth` (all full length)."""
         valid = torch.ones(truth.radar.shape, dtype=torch.bool, device=truth.radar.device)
         return cls(float(truth.scenario.dt), truth.ins_pos, truth.radar, valid,
                    truth.ins_error, truth.pos)

@@ -3,7 +3,7 @@
 The prediction-error decomposition: for a (linearised) Gaussian state-space model the
 log-likelihood of the measurements is the sum over updates of the innovation log-density
 ``ℓ_k = −½ (ln 2π + ln S_k + r_k² / S_k)`` (Schweppe 1965; Shumway & Stoffer 2017, eq.
-6.62), which the functional Kalman core (:mod:`neuralmap.filters.kalman`) returns with
+6.62), which the functional Kalman core (`neuralmap.filters.kalman`) returns with
 every update. Everything here is pure torch on batch-last storage, so gradients reach Q,
 R (and, through the linearizer, the map) with ``loss.backward()``.
 
@@ -14,7 +14,7 @@ replaced by harmless values before it is computed, so a NaN reading or an off-ma
 linearisation never reaches a gradient.
 
 Truncated back-propagation through time: each pass runs steps ``start … stop − 1`` from a
-:class:`FilterState` and returns the state after them; :meth:`FilterState.detach` cuts the
+`FilterState` and returns the state after them; `FilterState.detach` cuts the
 graph between windows.
 
 TAN linearisation: the map height enters the residual as
@@ -147,7 +147,7 @@ def linear_log_likelihood(z: torch.Tensor, H: torch.Tensor, *, F: torch.Tensor,
         valid: ``(N, K+1)`` bool (default all True).
 
     Returns:
-        :class:`LikelihoodPass` (``nees`` None).
+        `LikelihoodPass` (``nees`` None).
     """
     n_flights, k1 = z.shape
     valid = torch.ones_like(z, dtype=torch.bool) if valid is None else valid
@@ -190,7 +190,7 @@ def tan_log_likelihood(
 ) -> LikelihoodPass:
     """Innovation log-likelihood of TAN flights through the 5-state EKF (SEEDS 004).
 
-    The step is :func:`neuralmap.nav.tan.tan_filter_step`'s (predict, linearise at
+    The step is `neuralmap.nav.tan.tan_filter_step`'s (predict, linearise at
     ``p̂ = p_ins − δX̂⁻[:2]``, residual ``(h_ins − δĥ⁻) − h_map(p̂) − h_radar``, update
     with ``R + lin.variance``), written on the pure functional core so that it is
     differentiable in Q, R and the map.
@@ -208,7 +208,7 @@ def tan_log_likelihood(
         extent: Map extent; None = the linearizer's (no check when it has none).
 
     Returns:
-        :class:`LikelihoodPass`.
+        `LikelihoodPass`.
     """
     from neuralmap.nav.tan import linearizer_extent
 

@@ -3,8 +3,8 @@
 The refined map is ``h'(p) = h(p) + c(p)``, ``c`` the bilinear interpolation of offsets on
 a regular grid (``spacing_m``) over the map's extent, initialised at 0. Its height and
 slope are analytic (no autograd through the base map), so a linearizer of the base map
-(neural map or grid, without a graph) plus :class:`CorrectedLinearizer` gives the refined
-map's linearisation, differentiable in the offsets. :class:`BiasedTerrain` builds a map
+(neural map or grid, without a graph) plus `CorrectedLinearizer` gives the refined
+map's linearisation, differentiable in the offsets. `BiasedTerrain` builds a map
 with a known systematic error for demonstrations and tests.
 """
 

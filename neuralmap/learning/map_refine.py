@@ -1,9 +1,9 @@
 """Map refinement from flights: fit the map correction to altimeter residuals, filter in the loop.
 
 Maximises ``Σ_flights Σ_k ℓ_k(c) − Σ_nodes c²/(2 σ_prior²)`` over the correction offsets
-``c`` (:class:`~neuralmap.learning.map_correction.MapCorrection`): ``ℓ_k`` is the innovation
+``c`` (`MapCorrection`): ``ℓ_k`` is the innovation
 log-likelihood of the TAN filter flying the corrected map
-(:func:`~neuralmap.learning.likelihood.tan_log_likelihood`, Q and R fixed), so the filter's
+(`tan_log_likelihood`, Q and R fixed), so the filter's
 own position estimate decides where each residual lands on the map. The prior keeps the
 refined map at the original DEM fit where the flights do not inform it (unflown areas do
 not drift: their offsets only feel the prior). Long flights use truncated BPTT windows.
@@ -26,7 +26,7 @@ __all__ = ["RefineResult", "refine_map"]
 
 @dataclass
 class RefineResult:
-    """What :func:`refine_map` returns.
+    """What `refine_map` returns.
 
     Attributes:
         correction: The fitted offsets.

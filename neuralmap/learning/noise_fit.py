@@ -1,8 +1,8 @@
 """Maximum-likelihood noise learning through the TAN filter (gradient ascent, TBPTT).
 
 ``θ* = argmax Σ_flights Σ_k ℓ_k(θ)`` over the parameters of Q and R
-(:class:`~neuralmap.learning.noise_model.NoiseModel`), with ``ℓ_k`` the innovation
-log-likelihood of :func:`~neuralmap.learning.likelihood.tan_log_likelihood`. Long flights
+(`NoiseModel`), with ``ℓ_k`` the innovation
+log-likelihood of `tan_log_likelihood`. Long flights
 use truncated back-propagation through time: the flights are cut into windows of
 ``tbptt_steps`` steps, one optimiser step per window, the filter state carried (detached)
 from one window to the next. The loss is the negative log-likelihood per applied update,
@@ -105,7 +105,7 @@ def fit_noise(
         callback: Called as ``callback(epoch, record)`` after each epoch's evaluation.
 
     Returns:
-        :class:`NoiseFitResult` (history has ``epochs + 1`` records: the start and every
+        `NoiseFitResult` (history has ``epochs + 1`` records: the start and every
         epoch).
 
     Raises:

@@ -19,7 +19,7 @@ class NoiseModel(nn.Module):
     Args:
         Q0: ``(n, n)`` or ``(n,)`` positive-definite start of Q.
         R0: Start of R (> 0), m².
-        q_kind: ``"log_diagonal"`` or ``"log_cholesky"`` (:mod:`neuralmap.learning.covariance`).
+        q_kind: ``"log_diagonal"`` or ``"log_cholesky"`` (`neuralmap.learning.covariance`).
 
     Raises:
         NeuralMapError: A start that is not positive definite, or an unknown kind.

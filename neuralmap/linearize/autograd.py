@@ -15,7 +15,7 @@ from neuralmap.terrain.base import TerrainModel
 class AutogradLinearizer(Linearizer):
     """Height from the terrain model, slope by reverse-mode autograd.
 
-    A :class:`~neuralmap.terrain.base.TerrainModel` evaluates every point independently,
+    A `TerrainModel` evaluates every point independently,
     so the gradient of the *summed* heights with respect to ``xy`` is the per-point slope:
     one forward and one backward pass for the whole batch (faster than
     ``torch.func.vmap(jacrev(...))``, same numbers). For the BP net this equals the analytic
@@ -40,14 +40,14 @@ class AutogradLinearizer(Linearizer):
             analogue of the plane-fit residual over Ω_adp, SEEDS 000). Computed with the
             3 x 3 Gauss-Hermite rule (nodes 0, ±sqrt(3); weights 2/3, 1/6 per axis; exact
             for a quadratic terrain): 8 extra height evaluations per point, no gradients.
-            Needs ``pos_cov``. Nodes outside a :class:`TerrainModel`'s extent are not used
+            Needs ``pos_cov``. Nodes outside a `TerrainModel`'s extent are not used
             (mirrored or dropped with renormalised weights) and a covariance that is not
             positive definite gets an eigen-clamped square root; see
-            :mod:`neuralmap.linearize.region_variance`. What was done per sample is kept in
-            :attr:`region_report` after each call.
+            `neuralmap.linearize.region_variance`. What was done per sample is kept in
+            `region_report` after each call.
 
     Attributes:
-        region_report: The :class:`RegionReport` of the last region-variance evaluation
+        region_report: The `RegionReport` of the last region-variance evaluation
             (``None`` before the first one).
 
     Raises:
@@ -89,7 +89,7 @@ class AutogradLinearizer(Linearizer):
             pos_cov: ``(N, 2, 2)`` horizontal covariance; used when ``region_variance``.
 
         Returns:
-            :class:`Linearization`: height ``(N,)``, slope ``(N, 2)``, variance ``(N,)``,
+            `Linearization`: height ``(N,)``, slope ``(N, 2)``, variance ``(N,)``,
             in ``xy``'s dtype.
 
         Raises:

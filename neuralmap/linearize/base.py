@@ -36,6 +36,6 @@ class Linearizer(nn.Module):
                 covariance-adaptive methods; ignored by the others.
 
         Returns:
-            :class:`Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
+            `Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
         """
         raise NotImplementedError

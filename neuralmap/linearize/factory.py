@@ -58,7 +58,7 @@ METHODS: dict[str, MethodInfo] = {
         "least-squares plane over Omega_adp (sigma from the position covariance)"),
 }
 
-#: Every name :func:`make_linearizer` accepts.
+#: Every name `make_linearizer` accepts.
 LINEARIZER_NAMES: tuple[str, ...] = tuple(METHODS)
 
 #: Methods that need a neural (or any given) terrain model rather than the DEM grid.
@@ -99,7 +99,7 @@ def make_linearizer(
 ) -> Linearizer:
     """Builds a linearisation method by name.
 
-    Names (:data:`LINEARIZER_NAMES`): ``"neural"`` (AutogradLinearizer on ``terrain``),
+    Names (`LINEARIZER_NAMES`): ``"neural"`` (AutogradLinearizer on ``terrain``),
     ``"bilinear"`` (TaylorLinearizer), ``"bicubic"`` (AutogradLinearizer on a bicubic
     GridTerrain), ``"nine_point"``, ``"mean_point"`` (adaptive region), ``"lsq_max"``,
     ``"lsq_mean"``, ``"lsq_min"`` (PlaneFitLinearizer with sigma 400 / 240 / 80 m),
@@ -117,7 +117,7 @@ def make_linearizer(
             ``n_samples``, ``max_sigma``, ``variance`` (Taylor).
 
     Returns:
-        The :class:`Linearizer`.
+        The `Linearizer`.
 
     Raises:
         NeuralMapError: Unknown name (the message lists the valid ones), a missing tile or

@@ -9,14 +9,14 @@ where ``t`` is the true terrain and ``h``, ``slope`` are what the method returns
 ``p̂`` (SEEDS 000: ``m_k = −m1 − m2 − m_d − m_r``: ``e`` holds the DEM/map error ``m_d``
 and the linearisation error ``m2`` together). Its second moment ``v(σ) = E[e²]`` over the
 map and over ``d ~ N(0, σ² I)`` is measured here by Monte Carlo against the truth terrain
-(:func:`measure_linearization_noise`): at ``σ = 0`` it is the map's mean squared error,
+(`measure_linearization_noise`): at ``σ = 0`` it is the map's mean squared error,
 and it grows with ``σ`` as the tangent plane misses the terrain over the position
 uncertainty (the slope variance over the current covariance). In flight the errors
 ``d`` are not ``N(0, P)`` while the filter converges (a few runs lag behind their own
-covariance); :mod:`neuralmap.nav.noise_calibration` re-measures ``v(σ)`` on pilot flights
+covariance); `neuralmap.nav.noise_calibration` re-measures ``v(σ)`` on pilot flights
 and replaces the table's ``variance_m2`` where it has enough samples.
 
-:class:`MeasuredNoiseLinearizer` wraps any method and returns, instead of the method's own
+`MeasuredNoiseLinearizer` wraps any method and returns, instead of the method's own
 variance, the table's variance at the filter's current ``σ = sqrt(tr P_xy / 2)``
 (piecewise linear in σ, constant beyond the table's ends).
 """
@@ -61,7 +61,7 @@ class NoiseTable:
         map_mean_m: ``(K,)`` ``E[e]`` over the map, m.
         variance_m2: ``(K,)`` offset ``a(σ)`` of the R term the filter gets, m²:
             ``map_mse_m2``, or the in-flight value where ``flight_samples`` is large enough
-            (:func:`neuralmap.nav.noise_calibration.calibrate_noise`).
+            (`neuralmap.nav.noise_calibration.calibrate_noise`).
         scale: ``(K,)`` weight ``b(σ)`` of the method's own variance ``u`` (its local
             roughness measure: cell twist, plane-fit residual, region miss): the R term is
             ``a(σ) + b(σ) u``, fitted by least squares of ``e²`` on ``u`` (zeros: ``a`` alone).
@@ -212,13 +212,13 @@ def measure_linearization_noise(
         draws: Draws of ``d`` per point (>= 1).
         seed: Seed of points and draws.
         local: Fit ``e² ≈ a + b u`` on the method's own variance ``u``
-            (:func:`fit_offset_scale`, per point ``e²`` averaged over the draws); False:
+            (`fit_offset_scale`, per point ``e²`` averaged over the draws); False:
             ``a = E[e²]``, ``b = 0``.
         progress: Called with the share of the work done as each σ node ends
-            (:func:`neuralmap.progress.stage_progress`); None = silent.
+            (`neuralmap.progress.stage_progress`); None = silent.
 
     Returns:
-        :class:`NoiseTable` (``variance_m2`` = ``a``, ``scale`` = ``b``).
+        `NoiseTable` (``variance_m2`` = ``a``, ``scale`` = ``b``).
 
     Raises:
         NeuralMapError: Bad sigmas, counts or an extent too small for them.
@@ -262,12 +262,12 @@ class MeasuredNoiseLinearizer(Linearizer):
     ``a(σ) + b(σ) u`` (``a = table.variance_m2``, ``b = table.scale``, ``u`` the wrapped
     method's own variance at the point; ``b = 0`` unless the table was fitted ``local``) with ``σ = sqrt(tr(pos_cov) / 2)`` (the mean per-axis
     variance of the horizontal covariance), piecewise linear in σ and constant beyond the
-    table (:func:`interpolate_table`); without ``pos_cov`` the σ = 0 value (the map error).
+    table (`interpolate_table`); without ``pos_cov`` the σ = 0 value (the map error).
     It replaces the method's own variance (which the table already contains, measured).
 
     Args:
         inner: The wrapped linearisation method.
-        table: Its :class:`NoiseTable` (:func:`measure_linearization_noise`).
+        table: Its `NoiseTable` (`measure_linearization_noise`).
     """
 
     table_sigmas: torch.Tensor
@@ -306,7 +306,7 @@ class MeasuredNoiseLinearizer(Linearizer):
             pos_cov: ``(N, 2, 2)`` horizontal position covariance (m²) or None.
 
         Returns:
-            :class:`Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
+            `Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
         """
         xy = check_points(xy, "MeasuredNoiseLinearizer")
         lin = self.inner(xy, pos_cov)

@@ -62,7 +62,7 @@ class NinePointLinearizer(Linearizer):
             pos_cov: Ignored.
 
         Returns:
-            :class:`Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
+            `Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
         """
         xy = check_points(xy, "NinePointLinearizer")
         grid = self.grid

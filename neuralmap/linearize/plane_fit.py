@@ -18,7 +18,7 @@ class PlaneFitLinearizer(RegionPlaneLinearizer):
     ``(X^T X)^-1 X^T h`` with a precomputed ``(3, n^2)`` matrix: one matmul per batch.
     Variance = residual variance ``sum(r^2) / (n^2 - 3)``.
 
-    See :class:`~neuralmap.linearize.region.RegionPlaneLinearizer` for the arguments
+    See `RegionPlaneLinearizer` for the arguments
     (``tile``, ``sigma``, ``n_samples``, ``min_sigma``, ``max_sigma``, ``dtype``).
     """
 

@@ -51,7 +51,7 @@ def sample_pattern(n: int) -> torch.Tensor:
 class RegionPlaneLinearizer(Linearizer):
     """Base class: a plane fitted by a linear rule to samples of the region around ``xy``.
 
-    Subclasses provide :meth:`make_solver` (the rule). The height is the bilinear DEM
+    Subclasses provide `make_solver` (the rule). The height is the bilinear DEM
     height at the estimate (the map look-up ``h_d(x^, y^)`` of SEEDS 000 eq. 4); the plane
     gives the slope; the variance is the plane-fit residual variance
     ``sum(r^2) / (n^2 - 3)`` over the samples. Samples and height come from the bilinear
@@ -192,7 +192,7 @@ class RegionPlaneLinearizer(Linearizer):
                 ``sigma="adaptive"``, ignored otherwise.
 
         Returns:
-            :class:`Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
+            `Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
         """
         xy = check_points(xy, type(self).__name__)
         dt = xy.dtype

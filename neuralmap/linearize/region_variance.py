@@ -32,7 +32,7 @@ from typing import NamedTuple
 
 import torch
 
-#: How the square root of a position covariance was taken (:attr:`RegionReport.root`).
+#: How the square root of a position covariance was taken (`RegionReport.root`).
 ROOT_CHOLESKY = 0
 ROOT_EIGEN_CLAMPED = 1
 ROOT_NONE = 2
@@ -55,8 +55,8 @@ class RegionReport(NamedTuple):
             the variance is then zero).
         nodes_used: ``(N,)`` number of the 8 off-centre nodes on the map with a finite
             height.
-        root: ``(N,)`` int8 :data:`ROOT_CHOLESKY`, :data:`ROOT_EIGEN_CLAMPED` (singular or
-            indefinite covariance) or :data:`ROOT_NONE` (non-finite covariance, variance 0).
+        root: ``(N,)`` int8 `ROOT_CHOLESKY`, `ROOT_EIGEN_CLAMPED` (singular or
+            indefinite covariance) or `ROOT_NONE` (non-finite covariance, variance 0).
     """
 
     coverage: torch.Tensor
@@ -75,8 +75,8 @@ def covariance_root(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         cov: ``(N, d, d)`` covariances.
 
     Returns:
-        ``(root (N, d, d), status (N,) int8)``, status one of :data:`ROOT_CHOLESKY`,
-        :data:`ROOT_EIGEN_CLAMPED`, :data:`ROOT_NONE`.
+        ``(root (N, d, d), status (N,) int8)``, status one of `ROOT_CHOLESKY`,
+        `ROOT_EIGEN_CLAMPED`, `ROOT_NONE`.
     """
     sym = 0.5 * (cov + cov.transpose(-1, -2))
     finite = torch.isfinite(sym).all(-1).all(-1)

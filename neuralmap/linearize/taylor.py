@@ -63,7 +63,7 @@ class TaylorLinearizer(Linearizer):
             pos_cov: Ignored.
 
         Returns:
-            :class:`Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
+            `Linearization` with shapes ``(N,)``, ``(N, 2)``, ``(N,)``.
         """
         xy = check_points(xy, "TaylorLinearizer")
         parts = self.grid.bilinear_parts(xy)

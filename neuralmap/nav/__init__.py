@@ -1,7 +1,7 @@
 """Terrain-aided navigation: scenarios, truth simulator, 5-state TAN EKF, Monte Carlo, metrics.
 
 Names are imported lazily from their submodules (``from neuralmap.nav import simulate``
-works; importing :mod:`neuralmap.nav` itself loads nothing heavy), so a submodule whose
+works; importing `neuralmap.nav` itself loads nothing heavy), so a submodule whose
 dependencies are missing does not break the others.
 """
 

@@ -2,12 +2,12 @@
 
 An EKF linearises the map at one hypothesis; once the initial horizontal uncertainty spans
 several terrain correlation lengths it locks onto the wrong one. This module runs the
-grid-based Bayes filter (:class:`~neuralmap.filters.point_mass.PointMassFilter`, the
+grid-based Bayes filter (`PointMassFilter`, the
 point-mass filter of Bergman, Ljung and Gustafsson; horizontal error on the grid, altitude
 error Rao-Blackwellised per cell) or the EKF bank
-(:class:`~neuralmap.filters.ekf_bank.GaussianSumEKF`) over all Monte Carlo runs at once,
+(`GaussianSumEKF`) over all Monte Carlo runs at once,
 and hands each run to the 5-state TAN EKF (``point_mass_ekf``) or to the whole-flight
-point-mass tracker (``point_mass_tracker``, :mod:`neuralmap.nav.tracker_handoff`) once its
+point-mass tracker (``point_mass_tracker``, `neuralmap.nav.tracker_handoff`) once its
 posterior is unimodal and small. Grid cells whose position lies off the map get zero
 likelihood (``map_support``).
 
@@ -26,18 +26,18 @@ Gaussian conditional on the position posterior ``N(μ, Σ)``: ``B = P_pv / P_pp`
 exact for a linear-Gaussian position measurement at the hand-off time, an approximation
 otherwise (stated in the study report).
 
-Hand-off test (:func:`handoff_ready`): the grid posterior is **unimodal** — the
+Hand-off test (`handoff_ready`): the grid posterior is **unimodal** — the
 Bhattacharyya coefficient between it and its Gaussian fit is ≥ ``handoff_affinity`` — and
 **small** — the largest standard deviation ``sqrt(λ_max(Σ))`` ≤ ``handoff_sigma_m`` — for
 ``handoff_hold`` consecutive steps, and at least ``min_acquire_steps`` have passed.
 
-Fall-back (:func:`lost_lock`): a tracking run whose mean NIS over the last
+Fall-back (`lost_lock`): a tracking run whose mean NIS over the last
 ``fallback_window`` updates exceeds ``χ²_{p}(W) / W`` (``p = fallback_prob``) has lost
 lock; its grid is re-initialised around the EKF estimate with the EKF's horizontal
 covariance inflated to at least ``reacquire_sigma_m`` per axis.
 
-Coupling to the TAN model is kept to :func:`tan_inputs` (truth/scenario → tensors) and the
-call of :func:`neuralmap.nav.tan.tan_filter_step`.
+Coupling to the TAN model is kept to `tan_inputs` (truth/scenario → tensors) and the
+call of `neuralmap.nav.tan.tan_filter_step`.
 """
 
 from __future__ import annotations
@@ -80,13 +80,13 @@ __all__ = [
 #: ``ekf`` (the TAN EKF alone), ``bank`` (EKF bank), ``point_mass`` (grid all the way),
 #: ``point_mass_ekf`` (grid, hand-off to the EKF, fall-back on lost lock),
 #: ``point_mass_tracker`` (grid, hand-off to the Rao-Blackwellised tracker whose lattice
-#: follows the posterior, :mod:`neuralmap.nav.tracker_handoff`; fall-back as for the EKF).
+#: follows the posterior, `neuralmap.nav.tracker_handoff`; fall-back as for the EKF).
 ACQUISITION_METHODS = ("ekf", "bank", "point_mass", "point_mass_ekf", "point_mass_tracker")
 
 
 @dataclass
 class AcquisitionConfig:
-    """Options of :func:`run_acquisition` (defaults fit the jacksboro scenario).
+    """Options of `run_acquisition` (defaults fit the jacksboro scenario).
 
     Attributes:
         cells: Point-mass grid cells per axis; None = from the prior: the fewest cells
@@ -113,7 +113,7 @@ class AcquisitionConfig:
             σ0 = 1 km, 100 runs: without it a posterior that collapsed early onto a wrong
             mode cut the truth off its grid in 5 runs; a fixed grid diverged in none).
         flatten_likelihood: Add the map's height spread over each cell
-            (:func:`cell_height_variance`) to the likelihood's variance, so a coarse grid
+            (`cell_height_variance`) to the likelihood's variance, so a coarse grid
             cannot step over a likelihood peak narrower than a cell.
         fallback_window: NIS window W of the lost-lock test (0 disables fall-back).
         fallback_prob: Probability of the χ² threshold of the mean NIS.
@@ -125,7 +125,7 @@ class AcquisitionConfig:
             runs: 6 estimates left the map for 1–4 steps while acquiring, each counted
             diverged though all converged to < 15 m).
         tracker_cells: Lattice cells per axis of the tracker that ``point_mass_tracker``
-            hands off to (:mod:`neuralmap.nav.tracker_handoff`).
+            hands off to (`neuralmap.nav.tracker_handoff`).
         bank_per_axis: EKF-bank components per axis (K = per_axis²).
         bank_span_sigma: Half-width of the bank's lattice, prior σ.
         bank_prune: Relative weight under which a bank component is pruned.
@@ -159,7 +159,7 @@ class AcquisitionConfig:
     bank_merge: float = 1.0
 
     def validate(self) -> AcquisitionConfig:
-        """Checks ranges; raises :class:`NeuralMapError` naming the bad option."""
+        """Checks ranges; raises `NeuralMapError` naming the bad option."""
         if self.dtype not in ("float32", "float64"):
             raise NeuralMapError(
                 f"AcquisitionConfig: dtype must be 'float32' or 'float64', got {self.dtype!r}."
@@ -201,7 +201,7 @@ class AcquisitionConfig:
         return int(min(max(math.ceil(need), 32), self.max_cells))
 
     def point_mass_config(self, sigma: float = 0.0) -> PointMassConfig:
-        """The grid options as a :class:`PointMassConfig` (validated) for a prior of
+        """The grid options as a `PointMassConfig` (validated) for a prior of
         largest standard deviation ``sigma``."""
         return PointMassConfig(
             cells=self.grid_cells(sigma), span_sigma=self.span_sigma, min_spacing=self.min_spacing_m,
@@ -212,7 +212,7 @@ class AcquisitionConfig:
 
 @dataclass
 class TanInputs:
-    """What acquisition needs from the TAN model (one thin adapter, :func:`tan_inputs`).
+    """What acquisition needs from the TAN model (one thin adapter, `tan_inputs`).
 
     Attributes:
         ins_pos: ``(N, K+1, 3)`` INS positions.
@@ -238,7 +238,7 @@ class TanInputs:
 
 
 def tan_inputs(truth: Any, scenario: Any) -> TanInputs:
-    """Adapter from the simulator's truth and the scenario to :class:`TanInputs`."""
+    """Adapter from the simulator's truth and the scenario to `TanInputs`."""
     dtype, device = truth.pos.dtype, truth.pos.device
     return TanInputs(
         ins_pos=truth.ins_pos, radar=truth.radar, ins_error=truth.ins_error,
@@ -251,7 +251,7 @@ def tan_inputs(truth: Any, scenario: Any) -> TanInputs:
 
 @dataclass
 class AcquisitionResult:
-    """One method's run: the standard :class:`FilterRun` plus acquisition diagnostics.
+    """One method's run: the standard `FilterRun` plus acquisition diagnostics.
 
     Attributes:
         run: Errors, covariances, NIS etc. of the output estimate (acquisition included).
@@ -325,7 +325,7 @@ def lattice_bilinear(
     four corner gathers and the blend run per cell.
 
     Args:
-        terrain: A bilinear :class:`~neuralmap.terrain.grid.GridTerrain`.
+        terrain: A bilinear `GridTerrain`.
         ins_xy: ``(N, 2)`` INS horizontal positions.
         centre: ``(N, 2)`` grid centres (state space: INS − truth).
         spacing: ``(N, 2)`` grid spacings.
@@ -362,7 +362,7 @@ def cells_on_map(ins_xy: torch.Tensor, centre: torch.Tensor, spacing: torch.Tens
                  offsets: torch.Tensor, extent: tuple[float, ...]) -> torch.Tensor:
     """``(N, G, G)`` bool: the cell's position ``p_ins − s`` lies on the map.
 
-    Separable (rows ``i`` along y, columns ``j`` along x, as :func:`lattice_bilinear`):
+    Separable (rows ``i`` along y, columns ``j`` along x, as `lattice_bilinear`):
     the test runs per grid row and column ``(N, G)`` and one outer product per cell.
 
     Args:
@@ -427,18 +427,18 @@ def run_acquisition(
     """Runs one acquisition method over all runs (see the module docstring).
 
     Args:
-        inputs: From :func:`tan_inputs`.
-        method: One of :data:`ACQUISITION_METHODS`.
+        inputs: From `tan_inputs`.
+        method: One of `ACQUISITION_METHODS`.
         terrain: Map evaluated for the grid likelihood (``point_mass*``).
         linearizer: Linearisation for the EKF and the bank (``ekf``, ``bank``,
             ``point_mass_ekf``).
-        config: Options (:class:`AcquisitionConfig`).
+        config: Options (`AcquisitionConfig`).
         name: Method name stored in the run.
         progress: Called with ``1/K`` as each of the K filter steps starts (the fraction of
             the run done, e.g. a progress bar's ``update``); None = silent.
 
     Returns:
-        :class:`AcquisitionResult`.
+        `AcquisitionResult`.
 
     Raises:
         NeuralMapError: Unknown method, missing terrain/linearizer, runs starting off the
@@ -462,7 +462,7 @@ def run_acquisition(
 
 def _tracker_pool(inputs: TanInputs, cfg: AcquisitionConfig) -> Any:
     """The whole-flight tracker that runs take over at hand-off
-    (:class:`~neuralmap.nav.tracker_handoff.TrackerPool`): ``cfg.tracker_cells`` per axis,
+    (`TrackerPool`): ``cfg.tracker_cells`` per axis,
     the lattice no finer than one step's transition blur (as in the TAN study), no
     widening of its own (a lost run goes back to the acquisition grid)."""
     from neuralmap.nav.tracker_handoff import TrackerPool

@@ -10,7 +10,7 @@ Faults (all off by default; see the scenario's ``spike_*``, ``patch_*``,
   or roofs instead of the ground, so the clearance reads short (negative bias);
 * **loss of lock** — no measurement (NaN).
 
-The quality record (what a :class:`~neuralmap.filters.policies.QualityR` policy reads):
+The quality record (what a `QualityR` policy reads):
 terrain roughness in the beam footprint (the spread of the *map* heights over the
 footprint around the INS position: what the aircraft can compute), height above ground
 (the altimeter's own reading) and the lock flag.
@@ -25,11 +25,11 @@ import torch
 
 __all__ = ["FAULT_CODES", "QUALITY_COLUMNS", "altimeter_faults", "footprint_roughness"]
 
-#: Fault code per epoch in :attr:`Truth.fault <neuralmap.nav.simulator.Truth>`.
+#: Fault code per epoch in `Truth.fault`.
 FAULT_CODES = {"clean": 0, "spike": 1, "patch": 2, "lock_loss": 3}
 
-#: Columns of :attr:`Truth.quality <neuralmap.nav.simulator.Truth>` (the order
-#: :meth:`QualityR.altimeter <neuralmap.filters.policies.QualityR.altimeter>` expects).
+#: Columns of `Truth.quality` (the order
+#: `QualityR.altimeter` expects).
 QUALITY_COLUMNS = ("roughness_m", "height_agl_m", "lock")
 
 

@@ -13,7 +13,7 @@ residual ``(ĥ − h_map(p̂)) − h_radar`` carries ``−e_r``. Only ``e_r`` is
 (``Q_66 = σ_e²``, the identified fit residual). General AR(p) uses the same companion form.
 
 The PCRB of the augmented model follows from the 5-state information
-(:func:`augment_information`).
+(`augment_information`).
 
 "Switching the map-error state off" (``observed=False``) zeroes its column of H: the state is
 then decoupled and the first five states follow the 5-state filter exactly.
@@ -192,7 +192,7 @@ def augmented_initial_covariance(
     Args:
         p0_nav: ``(5, 5)`` covariance, or 5 standard deviations (paper:
             ``diag(400, 400, 400, 40, 40)``).
-        p0_map: ``(p, p)`` covariance (e.g. :func:`stationary_map_covariance`), ``p``
+        p0_map: ``(p, p)`` covariance (e.g. `stationary_map_covariance`), ``p``
             standard deviations, or one standard deviation for every map state (paper: 40 m).
         p: AR order.
         dtype: Tensor dtype.
@@ -249,7 +249,7 @@ def augment_information(info: torch.Tensor, p: int) -> torch.Tensor:
     information, because its δh entry is 1: ``E[H_i · (−1)] / R = −info[i, 2]`` and
     ``E[(−1)²] / R = info[2, 2]``. So the augmented PCRB is
     ``pcrb_recursion(P0_aug, Φ_aug, Q_aug, augment_information(info, p)[1:])`` with ``info``
-    from :func:`neuralmap.nav.pcrb.terrain_information`.
+    from `neuralmap.nav.pcrb.terrain_information`.
 
     Args:
         info: ``(..., 5, 5)`` 5-state information (per step).
@@ -287,9 +287,9 @@ def paper_tan_model(base: TanModel) -> TanModel:
 
 @dataclass(frozen=True)
 class AugmentedTanModel:
-    """A 5-state :class:`~neuralmap.nav.model.TanModel` augmented with AR map-error states.
+    """A 5-state `TanModel` augmented with AR map-error states.
 
-    Provides what :func:`neuralmap.nav.monte_carlo.run_filter` reads from a model
+    Provides what `neuralmap.nav.monte_carlo.run_filter` reads from a model
     (``n_states``, ``transition``, ``filter_prior``, ``filter_process_noise``, ``base_R``,
     ``jacobian``), so ``run_filter(truth, linearizer, scenario, model=augmented)`` runs the
     6- or 7-state filter of SEEDS 000 on the same truth as the 5-state one.
@@ -364,7 +364,7 @@ class AugmentedTanModel:
 
     def transition(self, *, dtype: torch.dtype = torch.float64,
                    device: str | torch.device = "cpu") -> torch.Tensor:
-        """``(5+p, 5+p)`` Φ (:func:`augmented_transition_matrix`)."""
+        """``(5+p, 5+p)`` Φ (`augmented_transition_matrix`)."""
         return augmented_transition_matrix(self.dt, self.ar, dtype=dtype, device=device)
 
     def filter_process_noise(self, *, dtype: torch.dtype = torch.float64,

@@ -80,11 +80,11 @@ def bootstrap_rmse(
     Args:
         msq: ``(R,)`` per-run mean squared position error over the scored samples, m².
         mask: ``(R,)`` bool, runs in the subset.
-        index: ``(B, R)`` resampled run indices (:func:`resample_index`).
+        index: ``(B, R)`` resampled run indices (`resample_index`).
         confidence: Two-sided coverage of the interval.
 
     Returns:
-        :class:`BootstrapRmse`.
+        `BootstrapRmse`.
     """
     _check(msq, mask)
     msq = msq.double()

@@ -1,7 +1,7 @@
 """The map's height spread over each cell of a point-mass lattice.
 
-Shared by the acquisition grid (:mod:`neuralmap.nav.acquisition`) and the whole-flight
-tracker (:mod:`neuralmap.nav.tracking`), so neither imports the other for it.
+Shared by the acquisition grid (`neuralmap.nav.acquisition`) and the whole-flight
+tracker (`neuralmap.nav.tracking`), so neither imports the other for it.
 """
 
 from __future__ import annotations

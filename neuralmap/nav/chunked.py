@@ -1,13 +1,13 @@
 """Monte Carlo at scale: runs in seed blocks, chunks that bound memory, dealt to Dask.
 
-:func:`neuralmap.nav.simulator.simulate` draws every random number of all N runs from one
+`neuralmap.nav.simulator.simulate` draws every random number of all N runs from one
 generator, so runs ``0 … N−1`` depend on N. Here the runs are grouped into **seed blocks**
-of :data:`SEED_BLOCK_RUNS` runs; block ``b`` is simulated on its own with seed
-:func:`block_seed` (``seed`` itself for block 0, a splitmix64 hash of ``(seed, b)`` after)
+of `SEED_BLOCK_RUNS` runs; block ``b`` is simulated on its own with seed
+`block_seed` (``seed`` itself for block 0, a splitmix64 hash of ``(seed, b)`` after)
 and the world (truth terrain) built once from ``seed``. A chunk is a whole number of seed
 blocks, so a run's truth, its filter outputs and every reduction are the same whatever
 the chunk size or the number of processes (bit-identical in float64). Up to
-:data:`SEED_BLOCK_RUNS` runs, the draws are exactly those of ``simulate`` (the study's
+`SEED_BLOCK_RUNS` runs, the draws are exactly those of ``simulate`` (the study's
 default results are unchanged); beyond, they are a different (equally valid) sample.
 
 Every seed block is simulated on its own and the blocks of one **filter batch**
@@ -17,11 +17,11 @@ on the chunking); a chunk is whole filter batches, the unit dealt to a worker. M
 batch's truth and filter histories (``O(batch · K · 25)`` floats) live only while the
 batch runs; what is kept is per run a handful of numbers (final errors and
 bounds, flags) and per step running sums, added per seed block in block order; glibc is
-told to return large freed blocks to the system (:func:`bound_allocator`), so resident
+told to return large freed blocks to the system (`bound_allocator`), so resident
 memory stays flat over a long run.
 
 The chunks run in this process or on a Dask cluster (``cluster``: ``local:N``, a scheduler
-address or a :class:`distributed.Client`; :mod:`neuralmap.cluster`); the world, tile and
+address or a `distributed.Client`; `neuralmap.cluster`); the world, tile and
 methods are scattered to the workers once, and the progress comes from the finished chunks.
 """
 
@@ -61,7 +61,7 @@ _MASK64 = (1 << 64) - 1
 
 
 #: Allocations at or above this size go to their own memory maps (returned to the system
-#: when freed); see :func:`bound_allocator`. Above a filter step's temporaries (a batch's
+#: when freed); see `bound_allocator`. Above a filter step's temporaries (a batch's
 #: ``(8192, 5, 5)`` covariance is 1.6 MiB), below a batch's histories (hundreds of MiB).
 MMAP_THRESHOLD_BYTES = 32 << 20
 #: Free memory at the top of the heap kept for reuse rather than returned (trimmed).
@@ -153,7 +153,7 @@ class MethodSummary:
 
     def metrics(self, *, divergence_sigma: float = 9.0,
                 pcrb_final: float | None = None, pcrb_factor: float = 5.0) -> dict[str, Any]:
-        """RMSE curve and figures as :func:`neuralmap.nav.metrics.navigation_metrics`.
+        """RMSE curve and figures as `neuralmap.nav.metrics.navigation_metrics`.
 
         Divergence: final error above ``divergence_sigma`` × the filter's 1σ, or above
         ``pcrb_factor`` × ``pcrb_final`` when given, or the estimate left the map.
@@ -180,10 +180,10 @@ class MethodSummary:
 
 @dataclass
 class ChunkedResult:
-    """What :func:`run_monte_carlo_chunked` returns.
+    """What `run_monte_carlo_chunked` returns.
 
     Attributes:
-        summaries: Method name to its :class:`MethodSummary`.
+        summaries: Method name to its `MethodSummary`.
         n_runs: Runs N.
         n_chunks: Chunks run.
         t: ``(K+1,)`` sample times.
@@ -240,7 +240,7 @@ def concat_truths(truths: list[Truth]) -> Truth:
         truths: Truths of the same scenario and world, ``(N_b, K+1, …)`` each.
 
     Returns:
-        One :class:`Truth` with ``N = Σ N_b`` runs.
+        One `Truth` with ``N = Σ N_b`` runs.
     """
     if len(truths) == 1:
         return truths[0]
@@ -317,16 +317,16 @@ def run_monte_carlo_chunked(
     """Monte Carlo TAN in chunks of seed blocks, in this process or on a Dask cluster.
 
     Args:
-        scenario: A :class:`Scenario` or a shipped name / YAML path.
+        scenario: A `Scenario` or a shipped name / YAML path.
         methods: Method name to linearizer (picklable when ``cluster`` is given).
         n_runs: Runs N.
         chunk_runs: Runs per chunk (rounded up to whole filter batches), the unit dealt
             to a worker.
         seed: Simulation seed (None = ``scenario.seed``).
-        cluster: Where the chunks run (:func:`neuralmap.cluster.open_cluster`): None or
+        cluster: Where the chunks run (`neuralmap.cluster.open_cluster`): None or
             ``"none"`` = this process; ``"local:N"`` = a Dask LocalCluster of N
             single-threaded workers started for this call; ``"tcp://HOST:8786"`` = a running
-            Dask scheduler; or an open :class:`distributed.Client`.
+            Dask scheduler; or an open `distributed.Client`.
         threads: Torch threads per chunk (in this process or on each worker).
         dtype: Filter dtype.
         device: Torch device of the truth and filters.
@@ -338,10 +338,10 @@ def run_monte_carlo_chunked(
             memory (one batch's truth and filter histories). Changing it may change the
             results in the last bits; ``chunk_runs`` and ``cluster`` never do.
         progress: A progress bar over the runs, advanced as chunks finish (plain lines with
-            a heartbeat when stdout is not a terminal, :mod:`neuralmap.progress`).
+            a heartbeat when stdout is not a terminal, `neuralmap.progress`).
 
     Returns:
-        :class:`ChunkedResult`; the same, bit for bit, for any ``chunk_runs``/``cluster``.
+        `ChunkedResult`; the same, bit for bit, for any ``chunk_runs``/``cluster``.
 
     Raises:
         NeuralMapError: Bad counts, empty methods, a bad ``cluster`` or Dask not installed.

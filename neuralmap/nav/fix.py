@@ -1,13 +1,13 @@
-"""Navigation fixes: what :class:`~neuralmap.nav.navigator.Navigator` returns per epoch.
+"""Navigation fixes: what `Navigator` returns per epoch.
 
-A :class:`Fix` is one epoch for N vehicles (batch first); a :class:`FixTrack` is K epochs
+A `Fix` is one epoch for N vehicles (batch first); a `FixTrack` is K epochs
 (every field with a time axis after N) plus the counters of what the navigator skipped or
 re-did. The state convention is the 5-state TAN error of SEEDS 004, ``δX = [δx, δy, δh,
 δv_x, δv_y]`` = INS − truth; a fix is the corrected estimate ``INS − δX̂`` and ``cov`` is
 the covariance of ``δX`` (the INS reading is known, so it is also the covariance of the
 estimate ``[x, y, h, v_x, v_y]``).
 
-Status codes (index into :data:`STATUS`):
+Status codes (index into `STATUS`):
 
 * ``acquiring`` — the posterior is still wide (the acquisition grid holds the vehicle, or
   the tracker's horizontal σ is above the navigator's ``acquired_sigma_m``);
@@ -57,7 +57,7 @@ class Fix:
         velocity: ``(N, 2)`` estimated horizontal velocity, m/s: the INS velocity from
             successive INS positions minus ``δv̂`` (NaN at the first epoch).
         cov: ``(N, 5, 5)`` covariance of ``[x, y, h, v_x, v_y]``.
-        status: ``(N,)`` int64 code, index into :data:`STATUS`.
+        status: ``(N,)`` int64 code, index into `STATUS`.
         nis: ``(N,)`` mean NIS over the navigator's lost-lock window (NaN until the first
             measurement update).
         lat: ``(N,)`` WGS-84 latitude, deg, when the navigator has a map frame, else None.
@@ -80,7 +80,7 @@ class Fix:
         return int(self.xy.shape[0])
 
     def status_names(self) -> list[str]:
-        """``N`` status names (:data:`STATUS`)."""
+        """``N`` status names (`STATUS`)."""
         return status_names(self.status)
 
     def sigma_xy(self) -> torch.Tensor:
@@ -90,13 +90,13 @@ class Fix:
 
 @dataclass
 class FixTrack:
-    """K epochs of N vehicles (:meth:`Navigator.replay`).
+    """K epochs of N vehicles (`Navigator.replay`).
 
     Attributes:
         t: ``(K,)`` epoch times, s.
         xy: ``(N, K, 2)``; altitude ``(N, K)``; velocity ``(N, K, 2)``; cov ``(N, K, 5, 5)``;
             status ``(N, K)`` int64; nis ``(N, K)``; lat, lon ``(N, K)`` or None — as
-            :class:`Fix`, with the time axis after N.
+            `Fix`, with the time axis after N.
         counts: What the navigator counted over the replay (summed over vehicles):
             ``missing_radar`` (NaN clearances), ``out_of_range`` (clearances outside the
             sensor's range), ``spikes`` (clearances the tracker's spike gate left out), ``gaps`` (intervals longer than the nominal period, up to
@@ -123,7 +123,7 @@ class FixTrack:
         return int(self.t.shape[0])
 
     def fix(self, k: int) -> Fix:
-        """Epoch ``k`` as a :class:`Fix` (views, no copies)."""
+        """Epoch ``k`` as a `Fix` (views, no copies)."""
         n = self.xy.shape[0]
         return Fix(t=self.t[k].expand(n), xy=self.xy[:, k], altitude=self.altitude[:, k],
                    velocity=self.velocity[:, k], cov=self.cov[:, k], status=self.status[:, k],

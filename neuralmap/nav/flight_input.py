@@ -1,14 +1,14 @@
 """Recorded flights into the navigator: map-frame logs, lat/lon logs, KF-GINS INS results.
 
-Three inputs, one result (:class:`FlightInput`, batch first like the Navigator):
+Three inputs, one result (`FlightInput`, batch first like the Navigator):
 
 (a) **Map-frame flight log** (CSV or NPZ), the format of
-    :mod:`neuralmap.learning.flight_log`: ``time, ins_x, ins_y, ins_h, radar`` (optional
+    `neuralmap.learning.flight_log`: ``time, ins_x, ins_y, ins_h, radar`` (optional
     ``flight``; rows of one flight contiguous, every flight on the same times → one vehicle
     each). Optional reference columns ``ref_x, ref_y, ref_h`` (map frame, m).
 (b) **Geographic log** (CSV or NPZ): ``time, lat, lon, alt, radar``; ``lat, lon`` WGS-84
     degrees, ``alt`` the INS altitude (m, above the DEM's vertical datum unless declared
-    ellipsoidal, :mod:`neuralmap.nav.vertical_datum`), ``radar`` the measured clearance (m).
+    ellipsoidal, `neuralmap.nav.vertical_datum`), ``radar`` the measured clearance (m).
     Optional reference ``ref_lat, ref_lon, ref_alt`` (same datum as ``alt``).
 (c) **KF-GINS navigation result** (11 columns, what ``neuralmap-gins`` writes as
     ``KF_GINS_Navresult.nav``) as the INS, with a separate radar log (CSV/NPZ: ``time,
@@ -17,7 +17,7 @@ Three inputs, one result (:class:`FlightInput`, batch first like the Navigator):
     the geoid undulation must be given. A reference may also come as a KF-GINS navigation
     file (the truth file of ``neuralmap-gins --truthpath``).
 
-Counted, not fatal (in :attr:`FlightInput.counts`): missing radar samples (empty / NaN /
+Counted, not fatal (in `FlightInput.counts`): missing radar samples (empty / NaN /
 inf), clearances outside the sensor's stated range, time gaps (a step longer than
 ``gap_factor`` × the median step), epochs off the map, radar epochs outside the INS record.
 Refused with the file, line and column: time out of order, non-finite positions or
@@ -50,7 +50,7 @@ _GEO_COLUMNS = ("time", "lat", "lon", "alt", "radar")
 
 @dataclass
 class FlightInput:
-    """A recorded flight in the map frame, ready for :meth:`Navigator.replay`.
+    """A recorded flight in the map frame, ready for `Navigator.replay`.
 
     Attributes:
         t: ``(K,)`` epoch times, s, strictly increasing.
@@ -380,7 +380,7 @@ def read_flight_input(
         map_frame: The map's frame (needed for lat/lon and KF-GINS input).
         extent: ``(xmin, xmax, ymin, ymax)`` of the map, m; epochs outside are counted and
             a log with no epoch inside is refused. None = not checked.
-        fmt: One of :data:`FLIGHT_FORMATS` (``"auto"``: by extension and columns).
+        fmt: One of `FLIGHT_FORMATS` (``"auto"``: by extension and columns).
         radar: The radar log of a KF-GINS input.
         reference: A KF-GINS navigation file as the reference of a KF-GINS input.
         alt_datum: ``"dem"`` or ``"ellipsoidal"``; None = ``"dem"`` for CSV/NPZ logs and
@@ -392,7 +392,7 @@ def read_flight_input(
         dtype: Tensor dtype.
 
     Returns:
-        The :class:`FlightInput`.
+        The `FlightInput`.
 
     Raises:
         NeuralMapError: A refused log (file, line and column named), see the module

@@ -1,19 +1,19 @@
 """The map frame on the Earth: tile-frame metres <-> WGS-84 latitude/longitude.
 
-Every :class:`~neuralmap.dem.tile.DemTile` works in a tile-local east-north metric frame;
+Every `DemTile` works in a tile-local east-north metric frame;
 its georeference says where that frame lies:
 
-- :class:`~neuralmap.dem.tile.GeoReference` (a lon/lat source): the frame *is* the
+- `GeoReference` (a lon/lat source): the frame *is* the
   equirectangular projection about the tile centre on the WGS-84 ellipsoid
-  (:mod:`neuralmap.dem.geo`), ``x = x0 + (lon − lon0)·m_lon``, ``y = y0 + (lat − lat0)·m_lat``.
+  (`neuralmap.dem.geo`), ``x = x0 + (lon − lon0)·m_lon``, ``y = y0 + (lat − lat0)·m_lat``.
   Both directions are closed forms, exact inverses of each other.
-- :class:`~neuralmap.dem.tile.ProjectedReference` (a metric source with a CRS): the frame is
+- `ProjectedReference` (a metric source with a CRS): the frame is
   the file's projected CRS shifted to a local origin; lat/lon go through pyproj
   (``EPSG:4326`` <-> the file's CRS, ``always_xy``) and the offset. pyproj is optional:
   ``pip install 'neuralmap[nav]'``.
 
 Heights are not converted here: the vertical datum is handled by
-:mod:`neuralmap.nav.vertical_datum`.
+`neuralmap.nav.vertical_datum`.
 """
 
 from __future__ import annotations
@@ -108,7 +108,7 @@ class MapFrame:
 
     @classmethod
     def from_tile_info(cls, info: dict[str, Any]) -> MapFrame:
-        """The map frame from a :meth:`DemTile.describe` dict (as a map file records it).
+        """The map frame from a `DemTile.describe` dict (as a map file records it).
 
         Raises:
             NeuralMapError: The dict holds neither ``geo`` nor ``projected``.
@@ -148,7 +148,7 @@ class MapFrame:
 
     def to_geo(self, x: Any, y: Any) -> tuple[Any, Any]:
         """Map-frame ``(x, y)`` metres to ``(lat, lon)`` degrees (WGS-84); inverse of
-        :meth:`to_map`, same types and shapes."""
+        `to_map`, same types and shapes."""
         x_a, back = _as_float64(x)
         y_a, _ = _as_float64(y)
         if isinstance(self.reference, GeoReference):

@@ -31,7 +31,7 @@ def measure_map_error(
 
     Args:
         terrain_map: Any terrain model (``forward(xy) -> height``).
-        truth_model: The truth terrain (:func:`neuralmap.nav.truth_terrain.true_terrain`).
+        truth_model: The truth terrain (`neuralmap.nav.truth_terrain.true_terrain`).
         tile: The tile whose extent the points cover.
         n_points: Number of points.
         seed: Seed of the points.

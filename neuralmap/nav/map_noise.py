@@ -1,7 +1,7 @@
 """The navigator's measurement noise from what a user has: the sensor and the map's own error.
 
 In the studies the tracker's ``R`` is the altimeter variance plus the DEM error *measured
-against the truth terrain* (:func:`neuralmap.studies.setup.dem_error_model`). A real flight
+against the truth terrain* (`neuralmap.studies.setup.dem_error_model`). A real flight
 has no truth terrain, so the navigator builds ``R`` from stated numbers (SEEDS 004: the map
 error is white noise added to R)::
 
@@ -11,12 +11,12 @@ error is white noise added to R)::
 * ``σ_dem`` — the DEM's stated vertical accuracy (``map_error.dem_accuracy_m``; a
   producer's figure such as the 1 m σ of a lidar DTM; 0 when unknown);
 * ``σ_fit`` — a neural map's fit error against its DEM: ``map_error.fit_rmse_m`` when
-  given, else read from the map file's stored fit metrics (:func:`map_fit_rmse`: the
+  given, else read from the map file's stored fit metrics (`map_fit_rmse`: the
   between-node error when stored — the aircraft flies between nodes — else the node RMSE);
   0 for a grid map (it *is* the DEM).
 
 For EKF methods a measured linearisation table
-(:class:`~neuralmap.linearize.measured_noise.NoiseTable`, ``map_error.linearisation_table``)
+(`NoiseTable`, ``map_error.linearisation_table``)
 adds the linearisation miss as a function of the position σ on top (the EKF's ``R`` then
 also carries the table's variance at the filter's σ); the grid methods evaluate the map at
 every cell and need no linearisation term.
@@ -74,8 +74,8 @@ class MapNoise:
 def map_fit_rmse(terrain: Any) -> tuple[float, str]:
     """A map's own fit error from its stored metrics.
 
-    Blockwise maps (:func:`neuralmap.terrain.export.load_map`) and latent maps
-    (:class:`~neuralmap.terrain.latent.map.LatentTerrainMap`) carry ``metrics`` written at
+    Blockwise maps (`neuralmap.terrain.export.load_map`) and latent maps
+    (`LatentTerrainMap`) carry ``metrics`` written at
     training (``rmse_m`` at the nodes, ``offnode_rmse_m`` / ``between_rmse_m`` between
     them). A grid map (``heights`` buffer, no metrics) is the DEM itself: 0.
 
@@ -101,13 +101,13 @@ def measurement_noise(config: Any, terrain: Any = None, *,
     """The navigator's ``R`` parts from its config and the map (module docstring).
 
     Args:
-        config: A :class:`~neuralmap.nav.navigator_config.NavigatorConfig`.
+        config: A `NavigatorConfig`.
         terrain: The map (its stored fit metrics are read when ``fit_rmse_m`` is None).
         map_error_variance: Overrides the whole map term ``σ_dem² + σ_fit²`` (m²), e.g. the
             DEM error measured against a truth terrain in a study.
 
     Returns:
-        :class:`MapNoise`.
+        `MapNoise`.
 
     Raises:
         NeuralMapError: ``map_error_variance`` negative or not finite.
@@ -129,8 +129,8 @@ def measurement_noise(config: Any, terrain: Any = None, *,
 
 
 def load_noise_table(path: str | Path) -> Any:
-    """A :class:`~neuralmap.linearize.measured_noise.NoiseTable` from its JSON form
-    (:meth:`NoiseTable.to_dict`, or a results.json entry holding those keys).
+    """A `NoiseTable` from its JSON form
+    (`NoiseTable.to_dict`, or a results.json entry holding those keys).
 
     Raises:
         NeuralMapError: Missing file, not JSON, or keys missing (names them).

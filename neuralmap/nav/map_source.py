@@ -2,19 +2,19 @@
 
 ``resolve_map(text)`` accepts, in this order:
 
-1. an existing file or folder that is a DEM (:data:`neuralmap.dem.readers.
+1. an existing file or folder that is a DEM (`neuralmap.dem.readers.
    SUPPORTED_EXTENSIONS`: GeoTIFF via rasterio, ``.asc``, ``.hgt``, ``.npy``/``.npz``):
-   the DEM is navigated on its bicubic grid (:class:`~neuralmap.terrain.grid.GridTerrain`);
+   the DEM is navigated on its bicubic grid (`GridTerrain`);
 2. an existing trained map: the ``neural_map.pt`` of ``train.py``, a latent-grid map
-   bitstream or a sharded region map index (:func:`neuralmap.terrain.export.load_map`);
+   bitstream or a sharded region map index (`neuralmap.terrain.export.load_map`);
 3. an embedded tile name (``jacksboro``, ``topobathy``, ``synthetic[:N]``), on its bicubic
    grid.
 
 The map's own error model (no truth terrain exists for a real flight): the variance the
 navigator adds to the altimeter's is ``σ_DEM² + σ_fit²`` — the DEM's stated vertical
 accuracy (``dem_accuracy_m``, from the navigator config or the caller; 0 when unknown) and,
-for a trained map, the fit error it records (:func:`neuralmap.nav.map_noise.map_fit_rmse`).
-The navigator builds its ``R`` from the same parts (:mod:`neuralmap.nav.map_noise`).
+for a trained map, the fit error it records (`neuralmap.nav.map_noise.map_fit_rmse`).
+The navigator builds its ``R`` from the same parts (`neuralmap.nav.map_noise`).
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ class MapSource:
 
     @property
     def frame(self) -> MapFrame:
-        """The :class:`MapFrame` (built on first use; pyproj only for projected maps).
+        """The `MapFrame` (built on first use; pyproj only for projected maps).
 
         Raises:
             NeuralMapError: The map has no usable georeference or pyproj is missing.
@@ -145,7 +145,7 @@ def resolve_map(text: str, *, dem_accuracy_m: float | None = None,
         text: A DEM file, a trained map file (or sharded index), or a sample tile name.
         dem_accuracy_m: The DEM's stated vertical accuracy (1σ), m; None = 0 (unknown).
         dtype: Height dtype of a DEM grid.
-        **tile_options: Reader options of :func:`neuralmap.dem.load_tile` (``units``,
+        **tile_options: Reader options of `neuralmap.dem.load_tile` (``units``,
             ``nodata``, ``spacing`` for bare ``.npy`` grids, ...).
 
     Raises:

@@ -11,7 +11,7 @@ Definitions (the report quotes them; ``e`` is the error of the corrected estimat
 - RMSE curve: ``sqrt(mean_n e_{n,k}²)`` per step. Time-averaged RMSE: root of the mean of
   ``e²`` over the runs and the **last half** of the samples (indices ``(K+1)//2 … K``).
   Final: the RMSE at the last sample.
-- Divergence: :data:`DIVERGENCE_RULE`. Numerical failures (the filter's covariance became
+- Divergence: `DIVERGENCE_RULE`. Numerical failures (the filter's covariance became
   non-finite or lost positive definiteness: ``n_unhealthy``) are counted apart from
   estimate divergence. "Converged" runs are the included runs that neither diverged nor
   failed numerically.
@@ -59,7 +59,7 @@ DIVERGENCE_RULE = (
 
 
 def divergence_rule(pcrb_factor: float = 5.0, divergence_sigma: float = 9.0) -> str:
-    """:data:`DIVERGENCE_RULE` with the given factors.
+    """`DIVERGENCE_RULE` with the given factors.
 
     Args:
         pcrb_factor: Multiple of the final PCRB position bound.
@@ -111,7 +111,7 @@ def chi2_quantile(p: float, dof: int) -> float:
 
 
 def wilson_hilferty(p: float, dof: int) -> float:
-    """Wilson–Hilferty approximation of the χ² quantile (see :func:`chi2_quantile`)."""
+    """Wilson–Hilferty approximation of the χ² quantile (see `chi2_quantile`)."""
     z = NormalDist().inv_cdf(p)
     c = 2.0 / (9.0 * dof)
     return dof * max(1.0 - c + z * math.sqrt(c), 0.0) ** 3
@@ -160,7 +160,7 @@ def diverged_runs(
     pcrb_factor: float = 5.0,
     divergence_sigma: float = 9.0,
 ) -> torch.Tensor:
-    """The divergence rule (:func:`divergence_rule`) per run.
+    """The divergence rule (`divergence_rule`) per run.
 
     Args:
         final_err: ``(N,)`` final horizontal error, m.
@@ -249,9 +249,9 @@ def navigation_metrics(
     """Metrics of one method's Monte Carlo run (definitions in the module docstring).
 
     Args:
-        run: The method's :class:`FilterRun`.
+        run: The method's `FilterRun`.
         pcrb_pos: ``(K+1,)`` PCRB position bound ``sqrt(J⁻¹_xx + J⁻¹_yy)``, m
-            (:func:`neuralmap.nav.pcrb.pcrb_position`).
+            (`neuralmap.nav.pcrb.pcrb_position`).
         pcrb_factor: Divergence threshold as a multiple of the final PCRB bound.
         divergence_sigma: Divergence threshold as a multiple of the filter's final 1σ
             horizontal bound ``sqrt(P_xx + P_yy)``.

@@ -12,8 +12,8 @@ State ``δX = [δx, δy, δh, δv_x, δv_y]`` = INS minus truth.
   ``R = R_altimeter + fit_variance + linearisation variance`` (SEEDS 004: the fit error is
   white noise added to R). The PCRB uses the truth's altimeter variance alone.
 
-:class:`TanModel` holds these numbers once; :func:`neuralmap.nav.simulator.simulate`,
-:func:`neuralmap.nav.monte_carlo.run_filter`, :func:`neuralmap.nav.pcrb.pcrb` and the
+`TanModel` holds these numbers once; `neuralmap.nav.simulator.simulate`,
+`neuralmap.nav.monte_carlo.run_filter`, `neuralmap.nav.pcrb.pcrb` and the
 reports all read them from here.
 """
 
@@ -79,7 +79,7 @@ class TanModel:
 
     @classmethod
     def from_scenario(cls, scenario: Any) -> TanModel:
-        """The model of a :class:`~neuralmap.nav.scenario.Scenario` (validated first).
+        """The model of a `Scenario` (validated first).
 
         Duck-typed objects work too: a missing truth description falls back to the
         filter's (``init_error_sigma()`` to ``sqrt(P0_diag)``, ``truth_process_noise()``

@@ -1,10 +1,10 @@
 """Monte Carlo TAN runs: the batched EKF over simulated truth, one method at a time.
 
-:func:`run_filter` runs the 5-state TAN EKF (:func:`neuralmap.nav.tan.tan_filter_step`) for
-all N runs of a :class:`~neuralmap.nav.simulator.Truth` at once with one linearisation
-method; :func:`run_monte_carlo` simulates the truth once and runs every method on it;
-:func:`run_filters` runs several filters on one truth, in this process or one filter per
-task on a Dask cluster (:mod:`neuralmap.cluster`; bit-identical to this process).
+`run_filter` runs the 5-state TAN EKF (`neuralmap.nav.tan.tan_filter_step`) for
+all N runs of a `Truth` at once with one linearisation
+method; `run_monte_carlo` simulates the truth once and runs every method on it;
+`run_filters` runs several filters on one truth, in this process or one filter per
+task on a Dask cluster (`neuralmap.cluster`; bit-identical to this process).
 
 Timing convention: sample 0 is the prior (``δX̂_0 = 0``, ``P_0 = diag(P0_diag)``, no
 altimeter update at t = 0, matching the PCRB's ``J_0 = P_0⁻¹``); steps ``k = 1 … K`` each
@@ -73,11 +73,11 @@ class FilterRun:
 
 
 class MonteCarloResult(NamedTuple):
-    """What :func:`run_monte_carlo` returns (unpacks as ``truth, runs``).
+    """What `run_monte_carlo` returns (unpacks as ``truth, runs``).
 
     Attributes:
         truth: The simulated truth shared by every method.
-        runs: Method name to its :class:`FilterRun`, in the order of ``methods``.
+        runs: Method name to its `FilterRun`, in the order of ``methods``.
     """
 
     truth: Truth
@@ -133,25 +133,25 @@ def run_filter(
     and on the device of ``truth``; the linearizer's outputs are cast to them.
 
     Args:
-        truth: Simulated truth (:func:`neuralmap.nav.simulator.simulate`).
+        truth: Simulated truth (`neuralmap.nav.simulator.simulate`).
         linearizer: The map linearisation method.
         scenario: Supplies the filter tuning (``P0_diag``, ``Q_diag``, ``R_m2``,
             ``fit_variance_m2``, ``dt``).
         progress: True shows a progress bar over the steps (plain lines when stdout is
-            not a terminal, :mod:`neuralmap.progress`); a tqdm bar object is advanced by
-            one per step instead (used by :func:`run_monte_carlo`).
+            not a terminal, `neuralmap.progress`); a tqdm bar object is advanced by
+            one per step instead (used by `run_monte_carlo`).
         method: Method name stored in the result.
-        policy: Optional robust/adaptive update policy (:mod:`neuralmap.filters.policies`),
-            reset first; every :class:`~neuralmap.filters.policies.QualityR` inside it gets
+        policy: Optional robust/adaptive update policy (`neuralmap.filters.policies`),
+            reset first; every `QualityR` inside it gets
             the altimeter's quality record (``truth.quality``) before each update. Epochs
             with a loss of lock (NaN clearance) are not updated.
         model: The filter's model; None = ``TanModel.from_scenario(scenario)``. An
-            augmented model (:class:`neuralmap.nav.augmented.AugmentedTanModel`, with
+            augmented model (`neuralmap.nav.augmented.AugmentedTanModel`, with
             ``n_states > 5`` and a ``jacobian``) runs the augmented filter; the result
             keeps the 5 navigation states (``err``, ``P``).
 
     Returns:
-        :class:`FilterRun`.
+        `FilterRun`.
 
     Raises:
         NeuralMapError: The map was made from another tile than the truth's.
@@ -238,7 +238,7 @@ def run_filter(
 
 @dataclass(frozen=True)
 class FilterJob:
-    """One filter of :func:`run_filters`: what :func:`run_filter` takes besides the truth.
+    """One filter of `run_filters`: what `run_filter` takes besides the truth.
 
     Attributes:
         linearizer: The map linearisation method.
@@ -271,21 +271,21 @@ def run_filters(
     """Runs several filters on the same truth, in this process or on a Dask cluster.
 
     On a cluster the truth is scattered to the workers once and every filter is one task,
-    run with this process's torch thread count, so each :class:`FilterRun` is bit-identical
-    to :func:`run_filter` here; the progress bar advances as filters finish (with
+    run with this process's torch thread count, so each `FilterRun` is bit-identical
+    to `run_filter` here; the progress bar advances as filters finish (with
     heartbeat lines while waiting).
 
     Args:
         truth: The simulated truth every filter flies.
-        jobs: Filter name to its :class:`FilterJob` (picklable on a cluster: linearizers,
+        jobs: Filter name to its `FilterJob` (picklable on a cluster: linearizers,
             policies and models travel to the workers).
-        cluster: :func:`neuralmap.cluster.open_cluster`'s value: None/``"none"`` = this
+        cluster: `neuralmap.cluster.open_cluster`'s value: None/``"none"`` = this
             process, ``"local:N"``, a scheduler address, or an open ``distributed.Client``.
         progress: A progress bar over the filters' steps (this process) or over the
             filters (a cluster).
 
     Returns:
-        Filter name to its :class:`FilterRun`, in the order of ``jobs``.
+        Filter name to its `FilterRun`, in the order of ``jobs``.
 
     Raises:
         NeuralMapError: A map of another tile, a bad ``cluster``, Dask not installed.
@@ -350,7 +350,7 @@ def run_monte_carlo(
     ``device`` (their parameter dtype is kept; outputs are cast to ``dtype``).
 
     Args:
-        scenario: A :class:`Scenario` or a shipped name / YAML path.
+        scenario: A `Scenario` or a shipped name / YAML path.
         methods: Method name to linearizer, e.g. ``{"neural": ..., "bilinear": ...}``.
         n_runs: Number of Monte Carlo runs N.
         seed: Simulation seed; None = ``scenario.seed``.
@@ -358,14 +358,14 @@ def run_monte_carlo(
             when stdout is not a terminal).
         device: Device of the truth and the filters.
         dtype: Filter dtype (float64 default).
-        tile: The scenario's tile, when already loaded (else :func:`scenario_tile`).
+        tile: The scenario's tile, when already loaded (else `scenario_tile`).
         truth_terrain: The truth terrain, when already built
-            (:func:`neuralmap.nav.truth_terrain.true_terrain`; else built from the seed).
-        cluster: Where the methods' filters run (:func:`run_filters`): None = this
+            (`neuralmap.nav.truth_terrain.true_terrain`; else built from the seed).
+        cluster: Where the methods' filters run (`run_filters`): None = this
             process, else one task per method on a Dask cluster (bit-identical).
 
     Returns:
-        :class:`MonteCarloResult` ``(truth, runs)``.
+        `MonteCarloResult` ``(truth, runs)``.
 
     Raises:
         NeuralMapError: Bad scenario, empty ``methods``, a map of another tile, a bad

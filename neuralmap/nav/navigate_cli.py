@@ -12,7 +12,7 @@ report.md, results.json, config.yaml and, when the log carries a reference, the 
 against it (track on the hillshade with σ ellipses, error against time with ±3σ, status
 timeline, TensorBoard events). The same implementation runs as the ``flight`` study
 (``python evaluate.py --config configs/flight.yaml --log LOG``;
-:mod:`neuralmap.studies.flight`). A refused log or bad option prints one ``error:`` line,
+`neuralmap.studies.flight`). A refused log or bad option prints one ``error:`` line,
 exits 2 and writes nothing.
 """
 

@@ -17,7 +17,7 @@ round-trip form, so reading the CSV back gives the navigator's float64 values ex
 (properties: vehicle, epochs, counts) and one ``Point`` per fix (properties: the CSV
 columns). Written only for a georeferenced map.
 
-With a reference, :func:`add_reference_errors` puts into the study outputs the errors in
+With a reference, `add_reference_errors` puts into the study outputs the errors in
 the study report format: a table and results.json entries (horizontal RMSE, final error,
 the fraction inside the 3σ ellipse, NEES), the track over the hillshade with σ ellipses,
 the east/north error against time inside ±3σ, the status timeline and TensorBoard curves.
@@ -85,7 +85,7 @@ def _track_arrays(track: FixTrack) -> dict[str, np.ndarray]:
 
 def write_navigation_csv(path: str | Path, track: FixTrack,
                          reference_xy: torch.Tensor | None = None) -> Path:
-    """Writes navigation.csv atomically (columns: :data:`CSV_COLUMNS`, then the reference
+    """Writes navigation.csv atomically (columns: `CSV_COLUMNS`, then the reference
     columns when ``reference_xy`` ``(N, K, 2)`` is given)."""
     d = _track_arrays(track)
     ref = None if reference_xy is None else reference_xy.detach().cpu().double().numpy()
@@ -273,7 +273,7 @@ def add_reference_errors(outputs: Any, track: FixTrack, reference_xy: torch.Tens
                          ins_xy: torch.Tensor, preview: Any, n_ellipses: int = 20,
                          reference_altitude: torch.Tensor | None = None,
                          ins_altitude: torch.Tensor | None = None) -> dict:
-    """Errors against the reference into a :class:`~neuralmap.studies.outputs.StudyOutputs`
+    """Errors against the reference into a `StudyOutputs`
     (table, results.json ``errors``, three figures, TensorBoard curves).
 
     Args:
@@ -281,14 +281,14 @@ def add_reference_errors(outputs: Any, track: FixTrack, reference_xy: torch.Tens
         track: The navigated track.
         reference_xy: ``(N, K, 2)`` reference positions, map frame.
         ins_xy: ``(N, K, 2)`` INS positions (drawn beside the estimate).
-        preview: A :class:`~neuralmap.dem.tile.DemTile` drawn as hillshade.
+        preview: A `DemTile` drawn as hillshade.
         n_ellipses: σ ellipses drawn along the track.
         reference_altitude: ``(N, K)`` reference altitude (same datum), optional: adds the
             vertical RMSE of TAN and of the INS.
         ins_altitude: ``(N, K)`` INS altitude, with ``reference_altitude``.
 
     Returns:
-        The error summary (:func:`reference_errors`).
+        The error summary (`reference_errors`).
     """
     errors = reference_errors(track, reference_xy)
     ins_err = (ins_xy.double() - reference_xy.double()).norm(dim=-1)

@@ -1,36 +1,35 @@
 """The navigator: terrain-aided fixes from a map, an INS and a radar altimeter, epoch by epoch.
 
-:class:`Navigator` turns a flight — a recorded log or a live sensor stream — into
-:class:`~neuralmap.nav.fix.Fix` es with their covariance, for N vehicles at once (batch
+`Navigator` turns a flight — a recorded log or a live sensor stream — into
+`Fix` es with their covariance, for N vehicles at once (batch
 first). It is built from
 
-* a map: any :class:`~neuralmap.terrain.base.TerrainModel` (a DEM grid, a blockwise
+* a map: any `TerrainModel` (a DEM grid, a blockwise
   neural map, a latent map, a region map);
-* a method (:class:`~neuralmap.nav.navigator_config.NavigatorConfig`):
+* a method (`NavigatorConfig`):
 
   - ``point_mass_tracker`` (default): the whole-flight Rao-Blackwellised point-mass
-    tracker of :mod:`neuralmap.nav.tracking` (:class:`~neuralmap.filters.
-    point_mass_tracker.PointMassTracker`, Bergman, Ljung and Gustafsson), started on the
-    point-mass acquisition grid (:mod:`neuralmap.nav.acquisition`) when the initial
+    tracker of `neuralmap.nav.tracking` (`PointMassTracker`, Bergman, Ljung and Gustafsson), started on the
+    point-mass acquisition grid (`neuralmap.nav.acquisition`) when the initial
     horizontal σ exceeds ``acquisition.above_sigma_m`` and handed to the tracker once the
-    grid posterior is unimodal and small (:func:`~neuralmap.nav.acquisition.handoff_ready`,
-    :func:`~neuralmap.nav.tracker_handoff.grid_posterior_moments`);
+    grid posterior is unimodal and small (`handoff_ready`,
+    `grid_posterior_moments`);
   - ``point_mass_ekf``: the acquisition grid, then the 5-state TAN EKF (SEEDS 004)
     linearised by autograd on the map;
-  - any EKF linearizer name (:data:`neuralmap.linearize.factory.LINEARIZER_NAMES`) with a
-    robust/adaptive policy by registry name (:mod:`neuralmap.filters.policies.registry`);
+  - any EKF linearizer name (`neuralmap.linearize.factory.LINEARIZER_NAMES`) with a
+    robust/adaptive policy by registry name (`neuralmap.filters.policies.registry`);
 
-* a sensor/noise config in YAML (:mod:`neuralmap.nav.navigator_config`) and the map's own
-  error model (:mod:`neuralmap.nav.map_noise`): ``R = σ_alt² + σ_dem² + σ_fit²``.
+* a sensor/noise config in YAML (`neuralmap.nav.navigator_config`) and the map's own
+  error model (`neuralmap.nav.map_noise`): ``R = σ_alt² + σ_dem² + σ_fit²``.
 
-State and timing (as :func:`~neuralmap.nav.monte_carlo.run_filter` and
-:func:`~neuralmap.nav.tracking.run_tracker`): the 5-state error ``δX = [δx, δy, δh, δv_x,
-δv_y]`` = INS − truth; a fix is ``INS − δX̂``. The first epoch after :meth:`Navigator.reset`
+State and timing (as `run_filter` and
+`run_tracker`): the 5-state error ``δX = [δx, δy, δh, δv_x,
+δv_y]`` = INS − truth; a fix is ``INS − δX̂``. The first epoch after `Navigator.reset`
 is the prior (``δX̂ = 0``, ``P0``, no update); every later epoch predicts over the interval
 since the previous one and updates with the altimeter: ``y = h_ins − clearance =
 t(p_ins − δp) + δh − v``.
 
-Integrity, per vehicle and epoch (status codes of :data:`~neuralmap.nav.fix.STATUS`):
+Integrity, per vehicle and epoch (status codes of `STATUS`):
 
 * **Lost lock**: the mean NIS over the last ``integrity.lost_window`` updates above
   ``χ²_p(W)/W`` (``p = integrity.lost_prob``) **re-acquires from the open-loop prior**
@@ -64,7 +63,7 @@ Integrity, per vehicle and epoch (status codes of :data:`~neuralmap.nav.fix.STAT
   to fire the test, while a lost lock (every NIS large) still fires it once the window
   fills.
 
-Streaming equals replay: :meth:`Navigator.replay` is :meth:`Navigator.step` over the epochs
+Streaming equals replay: `Navigator.replay` is `Navigator.step` over the epochs
 (the filter is recursive; the batch is over vehicles), so the two agree bit for bit.
 """
 
@@ -86,7 +85,7 @@ from neuralmap.terrain.base import inside_extent
 
 __all__ = ["COUNT_KEYS", "Navigator"]
 
-#: Counters of :attr:`FixTrack.counts` / :attr:`Navigator.counts`.
+#: Counters of `FixTrack.counts` / `Navigator.counts`.
 COUNT_KEYS = ("epochs", "missing_radar", "out_of_range", "spikes", "gaps", "long_gaps",
               "off_map_epochs", "lost", "reacquisitions", "handoffs", "updates")
 
@@ -238,7 +237,7 @@ class _TrackerFilter:
     def _predictive_nis(self, y: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
         """``(N,)`` NIS of ``y`` against the predicted mixture, ``(y − ŷ)² / S_y`` with
         ``ŷ = Σ w (g + c·μ)``, ``S_y = Σ w (g + c·μ − ŷ)² + cᵀPc + R`` over the cells on the
-        map (what :meth:`PointMassTracker.update` reports as its NIS)."""
+        map (what `PointMassTracker.update` reports as its NIS)."""
         trk = self.tracker
         yc = g + torch.einsum("z,nzij->nij", trk.c, trk.lin_mean)
         w = trk.weights
@@ -472,24 +471,24 @@ class Navigator:
     """Terrain-aided navigation of N vehicles over one map, epoch by epoch.
 
     Args:
-        terrain: The map, any :class:`~neuralmap.terrain.base.TerrainModel` with an
+        terrain: The map, any `TerrainModel` with an
             ``extent`` (``forward(xy (..., 2)) -> (...)`` heights).
-        config: A :class:`NavigatorConfig`, a mapping or YAML path of overrides over the
+        config: A `NavigatorConfig`, a mapping or YAML path of overrides over the
             shipped ``configs/navigator.yaml``, or None (the shipped defaults).
         n_vehicles: N, the batch size of every input.
         map_frame: Anything with ``to_geo(x, y) -> (lat, lon)`` (e.g.
-            :class:`neuralmap.nav.georef.MapFrame`); fixes then carry lat/lon.
+            `neuralmap.nav.georef.MapFrame`); fixes then carry lat/lon.
         map_error_variance: Overrides the map's error variance in ``R`` (m²), e.g. a
             study's DEM error measured against its truth terrain; None = from the config
-            and the map's stored fit metrics (:mod:`neuralmap.nav.map_noise`).
+            and the map's stored fit metrics (`neuralmap.nav.map_noise`).
         dtype: dtype of the fixes (float64 default).
         tile: The DEM tile, for the EKF linearizers that read the DEM itself (``bilinear``,
             ``nine_point``, ...); None = rebuilt from a grid map's heights.
 
     Attributes:
         config: The validated config.
-        noise: :class:`~neuralmap.nav.map_noise.MapNoise`, the parts of ``R``.
-        counts: Counters summed over vehicles since :meth:`reset` (:data:`COUNT_KEYS`).
+        noise: `MapNoise`, the parts of ``R``.
+        counts: Counters summed over vehicles since `reset` (`COUNT_KEYS`).
 
     Raises:
         NeuralMapError: Bad config, a map without an extent, ``n_vehicles < 1``, a policy
@@ -574,7 +573,7 @@ class Navigator:
         return policy
 
     def reset(self) -> None:
-        """Starts a new flight for every vehicle: the next :meth:`step` is the prior."""
+        """Starts a new flight for every vehicle: the next `step` is the prior."""
         n, cfg = self.n_vehicles, self.config
         sigma0 = float(self._P0[:2, :2].diagonal().max()) ** 0.5
         self._grid: _Grid | None = None
@@ -638,7 +637,7 @@ class Navigator:
             clearance: ``(N,)`` radar-altimeter clearance, m (NaN = no measurement).
 
         Returns:
-            :class:`~neuralmap.nav.fix.Fix`.
+            `Fix`.
 
         Raises:
             NeuralMapError: Bad shapes, non-finite INS inputs, time not increasing.
@@ -829,7 +828,7 @@ class Navigator:
     # ------------------------------------------------------------------ whole flights
     def replay(self, t: torch.Tensor, ins_position: torch.Tensor, ins_altitude: torch.Tensor,
                clearance: torch.Tensor) -> FixTrack:
-        """A whole flight: :meth:`reset`, then :meth:`step` at every epoch.
+        """A whole flight: `reset`, then `step` at every epoch.
 
         Args:
             t: ``(K,)`` epoch times, s, strictly increasing.
@@ -838,8 +837,8 @@ class Navigator:
             clearance: ``(N, K)`` clearances, m (NaN = no measurement).
 
         Returns:
-            :class:`~neuralmap.nav.fix.FixTrack` (equal, bit for bit, to the fixes of
-            :meth:`step` called K times after :meth:`reset`), with :attr:`counts`.
+            `FixTrack` (equal, bit for bit, to the fixes of
+            `step` called K times after `reset`), with `counts`.
         """
         t = torch.as_tensor(t)
         n = self.n_vehicles

@@ -1,8 +1,8 @@
 """The navigator's configuration: method, sensor, noise, map error and integrity, from YAML.
 
-Scenario style (:mod:`neuralmap.nav.scenario`): one YAML file, sections of named options,
+Scenario style (`neuralmap.nav.scenario`): one YAML file, sections of named options,
 every option checked on load with the file and key in the message. The shipped default is
-``configs/navigator.yaml`` (:data:`DEFAULT_CONFIG`); a user file overrides any subset of it::
+``configs/navigator.yaml`` (`DEFAULT_CONFIG`); a user file overrides any subset of it::
 
     method: point_mass_tracker        # or point_mass_ekf, or an EKF linearizer name
     sensor:   {dt_s: 1.0, max_gap_s: 5.0, altimeter_sigma_m: 10.0,
@@ -17,7 +17,7 @@ The filter's numbers follow (SEEDS 004, 5-state error ``[δx, δy, δh, δv_x, �
 ``P0 = diag(σ_p², σ_p², σ_h², σ_v², σ_v²)`` from ``initial``; ``Q`` per nominal period
 ``T = dt_s`` is ``diag(q_p², q_p², q_h², q_v², q_v²)`` from ``process_noise``
 (``velocity_sigma_mps`` is the velocity random walk per period), and an interval ``Δt`` gets
-``Q · Δt / T`` (random-walk scaling); ``R`` is built by :mod:`neuralmap.nav.map_noise`.
+``Q · Δt / T`` (random-walk scaling); ``R`` is built by `neuralmap.nav.map_noise`.
 """
 
 from __future__ import annotations
@@ -92,14 +92,14 @@ class ProcessNoiseConfig:
 
 @dataclass
 class MapErrorConfig:
-    """The map's own error model (:mod:`neuralmap.nav.map_noise`).
+    """The map's own error model (`neuralmap.nav.map_noise`).
 
     Attributes:
         dem_accuracy_m: The DEM's stated vertical accuracy (1σ), m; None = unknown (0).
         fit_rmse_m: A neural map's fit error, m; None = read it from the map's stored
             fit metrics (``offnode_rmse_m``, ``between_rmse_m`` or ``rmse_m``), 0 for a grid.
         linearisation_table: Path of a measured noise table (JSON of
-            :class:`~neuralmap.linearize.measured_noise.NoiseTable`), EKF methods only.
+            `NoiseTable`), EKF methods only.
     """
 
     dem_accuracy_m: float | None = None
@@ -133,11 +133,11 @@ class IntegrityConfig:
 
 @dataclass
 class TrackerSection:
-    """Lattice of the point-mass tracker (:class:`~neuralmap.nav.tracking.TrackerOptions`).
+    """Lattice of the point-mass tracker (`TrackerOptions`).
 
     Attributes:
         cells, span_sigma, principal_axes, dtype, flatten_likelihood, min_cell_blur: As
-            :class:`~neuralmap.nav.tracking.TrackerOptions` (the lost-lock test is the
+            `TrackerOptions` (the lost-lock test is the
             navigator's, ``integrity``; the tracker's own widening is off).
     """
 
@@ -151,7 +151,7 @@ class TrackerSection:
 
 @dataclass
 class AcquisitionSection:
-    """The point-mass acquisition grid (:class:`~neuralmap.nav.acquisition.AcquisitionConfig`).
+    """The point-mass acquisition grid (`AcquisitionConfig`).
 
     Attributes:
         above_sigma_m: ``point_mass_tracker`` starts on the grid when the initial
@@ -159,7 +159,7 @@ class AcquisitionSection:
         max_spacing_m, max_cells, span_sigma, dtype, handoff_sigma_m, handoff_affinity,
         handoff_hold, min_acquire_steps, flatten_likelihood, reacquire_sigma_m,
         outlier_prob, outlier_width_m: As
-            :class:`~neuralmap.nav.acquisition.AcquisitionConfig` (``outlier_prob`` > 0:
+            `AcquisitionConfig` (``outlier_prob`` > 0:
             the grid's likelihood is a Gaussian / uniform mixture; default 0: with 0.01 or
             0.001 and the flattened likelihood the grid never reached the hand-off on the
             tiny synthetic tile from σ0 = 250 m, not investigated).
@@ -190,13 +190,13 @@ _SECTIONS: dict[str, type] = {
 
 @dataclass
 class NavigatorConfig:
-    """Everything a :class:`~neuralmap.nav.navigator.Navigator` needs besides the map.
+    """Everything a `Navigator` needs besides the map.
 
     Attributes:
         method: ``point_mass_tracker`` (default), ``point_mass_ekf`` or an EKF linearizer
-            name (:data:`neuralmap.linearize.factory.LINEARIZER_NAMES`).
+            name (`neuralmap.linearize.factory.LINEARIZER_NAMES`).
         policy: Robust/adaptive update policy of the EKF methods, a
-            :data:`neuralmap.filters.policies.registry.POLICY_NAMES` name (``ekf`` = none).
+            `neuralmap.filters.policies.registry.POLICY_NAMES` name (``ekf`` = none).
         policy_args: Options of the policy.
         sensor, initial, process_noise, map_error, integrity, tracker, acquisition: The
             sections (their classes document the options).
@@ -258,7 +258,7 @@ class NavigatorConfig:
         return cfg.validate()
 
     def validate(self) -> NavigatorConfig:
-        """Checks every option; raises :class:`NeuralMapError` naming it and the source."""
+        """Checks every option; raises `NeuralMapError` naming it and the source."""
         where = self.source
 
         def bad(key: str, value: Any, need: str) -> NeuralMapError:
@@ -365,7 +365,7 @@ def load_navigator_config(source: NavigatorConfig | dict[str, Any] | str | os.Pa
     """A validated config: the shipped defaults, overridden by ``source``.
 
     Args:
-        source: None (the shipped ``navigator.yaml``), a :class:`NavigatorConfig`
+        source: None (the shipped ``navigator.yaml``), a `NavigatorConfig`
             (validated, returned), a mapping or a YAML file path (overrides over the
             shipped defaults).
 

@@ -2,10 +2,10 @@
 
 The TAN EKF's measurement noise is the altimeter's plus the method's miss
 ``e = t(p) − h(p̂) − slope(p̂) · (p − p̂)`` (map error and linearisation error, SEEDS 000:
-``m_d`` and ``m2``). :func:`neuralmap.linearize.measured_noise.measure_linearization_noise`
+``m_d`` and ``m2``). `neuralmap.linearize.measured_noise.measure_linearization_noise`
 measures ``E[e²]`` over the map with ``p − p̂ ~ N(0, σ² I)``. While the filter converges its
 errors are not Gaussian with its own covariance (some runs lag behind it), so the miss it
-meets in flight is larger than the map table says at the same σ. :func:`calibrate_noise`
+meets in flight is larger than the map table says at the same σ. `calibrate_noise`
 therefore flies the filter on pilot Monte Carlo runs (an independent seed of trajectories
 and sensor noise over the same world), reconstructs at every step the prior estimate
 ``p̂``, the prior covariance ``P⁻`` and the true position ``p``, evaluates the miss there,
@@ -47,10 +47,10 @@ def flight_miss(run: Any, truth: Any, linearizer: Any, model: Any, truth_model: 
     evaluated at ``(p̂_k, P⁻_k[:2, :2])`` and ``e_k = t(p_k) − h(p̂_k) − slope · (p_k − p̂_k)``.
 
     Args:
-        run: A :class:`~neuralmap.nav.monte_carlo.FilterRun` (5-state) on ``truth``.
+        run: A `FilterRun` (5-state) on ``truth``.
         truth: Its simulated truth.
         linearizer: The method the run used (its height and slope).
-        model: The filter's :class:`~neuralmap.nav.model.TanModel`.
+        model: The filter's `TanModel`.
         truth_model: The true terrain (float64).
 
     Returns:
@@ -148,23 +148,23 @@ def calibrate_noise(linearizer: Any, table: NoiseTable, *, pilot: Any, scenario:
     """Replaces a table's ``variance_m2`` by the miss met on pilot flights.
 
     Each iteration flies the EKF (``run_filter``) on ``pilot`` with the current table,
-    measures the miss (:func:`flight_miss`), bins ``e²`` on the table's σ nodes
-    (:func:`binned_mean_square`), keeps the map value where the pilot weight is below
-    ``min_weight``, and makes the result non-decreasing in σ (:func:`isotonic_increasing`).
+    measures the miss (`flight_miss`), bins ``e²`` on the table's σ nodes
+    (`binned_mean_square`), keeps the map value where the pilot weight is below
+    ``min_weight``, and makes the result non-decreasing in σ (`isotonic_increasing`).
 
     Args:
         linearizer: The method (unwrapped).
-        table: Its map table (:func:`measure_linearization_noise`).
-        pilot: Pilot truth (:func:`neuralmap.nav.simulator.simulate`, an independent seed).
+        table: Its map table (`measure_linearization_noise`).
+        pilot: Pilot truth (`neuralmap.nav.simulator.simulate`, an independent seed).
         scenario: The scenario the filter runs (its R without the map variance).
-        model: The filter's :class:`~neuralmap.nav.model.TanModel` for that scenario.
+        model: The filter's `TanModel` for that scenario.
         truth_model: The true terrain.
         iterations: Pilot flights (>= 1).
         min_weight: Pilot weight a node needs to use the flight value.
         local: Fit ``e² ≈ a + b u`` per node on the method's own variance ``u``
-            (:func:`~neuralmap.linearize.measured_noise.fit_offset_scale`, tent weights).
+            (`fit_offset_scale`, tent weights).
         progress: Called with the share of the work each pilot step does
-            (:func:`neuralmap.progress.stage_progress`); None = silent.
+            (`neuralmap.progress.stage_progress`); None = silent.
 
     Returns:
         The table with ``variance_m2`` and ``flight_samples`` from the last iteration.
@@ -217,7 +217,7 @@ def derive_method_noise(methods: dict[str, Any], *, scenario: Any, tile: Any, tr
         methods: Method name -> linearizer.
         scenario: The study's scenario.
         tile: Its tile (the map extent of the table).
-        truth_terrain: The study's :class:`~neuralmap.nav.truth_terrain.TrueTerrain` (the
+        truth_terrain: The study's `TrueTerrain` (the
             pilot flies over the same world).
         seed: The study's seed; the pilot flies ``seed + 1`` (independent trajectories and
             sensor noise), the map table uses ``seed``.

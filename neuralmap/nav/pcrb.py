@@ -80,7 +80,7 @@ def pcrb_recursion(
     ``J_0 = P0⁻¹ (+ initial_info)``; for ``k = 0 … K−1``:
     ``J_{k+1} = (Q_k + F_k J_k⁻¹ F_kᵀ)⁻¹ + I_{k+1}`` with ``I_{k+1} = info_increments[k]``
     (e.g. ``E[Hᵀ R⁻¹ H]`` of the measurement taken at step ``k+1``, after the predict —
-    the order in which :class:`~neuralmap.filters.ekf.BatchedEKF` runs). Computed in
+    the order in which `BatchedEKF` runs). Computed in
     covariance form ``B = J⁻¹``: ``P⁻ = F B Fᵀ + Q``, ``B⁺ = solve(I + P⁻ I, P⁻)``,
     symmetrised. Everything in float64.
 
@@ -136,7 +136,7 @@ def pcrb_position(bound: torch.Tensor) -> torch.Tensor:
     """Horizontal position bound ``sqrt(B[0, 0] + B[1, 1])`` per step (metres).
 
     Args:
-        bound: ``(K + 1, n, n)`` bound covariances from :func:`pcrb` (states 0, 1 = x, y).
+        bound: ``(K + 1, n, n)`` bound covariances from `pcrb` (states 0, 1 = x, y).
 
     Returns:
         ``(K + 1,)`` root of the summed horizontal variances (the RMSE floor).
@@ -205,7 +205,7 @@ def terrain_information(
         on_map: ``(N, K + 1)`` bool, where the measurement exists (default: the terrain's
             ``contains``, or everywhere if it has none).
         progress: Called with the share of the slope evaluations each chunk does
-            (:func:`neuralmap.progress.stage_progress`); None = silent.
+            (`neuralmap.progress.stage_progress`); None = silent.
 
     Returns:
         ``(K + 1, 5, 5)`` information per step (float64) and ``(K + 1,)`` the number of
@@ -256,7 +256,7 @@ def pcrb(
 
     ``H = [−h_x, −h_y, 1, 0, 0]`` uses the slopes of ``terrain`` at the *true* positions
     ``truth.pos``; ``E[Hᵀ R⁻¹ H]`` is the mean over the trajectories on the map at each
-    step (``truth.on_map``); see :func:`pcrb_recursion` for the recursion. The first
+    step (``truth.on_map``); see `pcrb_recursion` for the recursion. The first
     measurement enters at step 1: the filter starts from ``P0`` at step 0 and runs
     predict-then-update at steps 1 … K (set ``update_at_step0`` for a filter that also
     updates at step 0).
@@ -278,7 +278,7 @@ def pcrb(
             ``on_map (N, K+1)`` bool (duck-typed; see ``neuralmap.nav.simulator.Truth``).
         scenario: Object with ``dt`` and the fields named above (duck-typed).
         terrain: The true terrain model (e.g. the simulator's bicubic
-            :class:`~neuralmap.terrain.grid.GridTerrain`), not the map under test.
+            `GridTerrain`), not the map under test.
         model: ``"truth"`` or ``"filter"``.
         R_m2: Measurement variance override, m².
         runs: ``(N,)`` bool, trajectories to include (e.g. those the metrics keep).
@@ -348,24 +348,24 @@ def map_aware_pcrb(
     The measurement is ``y = t_map(p) + e_map(p) + δh − v``: the information comes from the
     slopes of ``map_terrain`` (what such a filter can linearise) at the true positions, and
     the map's error ``e_map`` is noise of variance ``map_error_var`` (measured against the
-    truth terrain, e.g. :func:`neuralmap.nav.map_error.measure_map_error`). With
+    truth terrain, e.g. `neuralmap.nav.map_error.measure_map_error`). With
     ``map_error_corr = ρ > 0`` (the correlation of the map error between successive
-    samples, e.g. :func:`neuralmap.nav.map_error.map_error_correlation` at the distance
+    samples, e.g. `neuralmap.nav.map_error.map_error_correlation` at the distance
     flown per step) the map error is a first-order Gauss-Markov state appended to the
     5-state model: ``e_{k+1} = ρ e_k + w``, ``Var w = (1 − ρ²) σ²``, ``e_0 ~ N(0, σ²)``,
     ``H = [−t_x, −t_y, 1, 0, 0, 1]``, ``R = R_altimeter`` (state augmentation for
     coloured measurement noise); with ``ρ = 0``, ``R = R_altimeter + σ²`` on the 5 states.
-    Same recursion, prior and process noise as :func:`pcrb` (``model="truth"``).
+    Same recursion, prior and process noise as `pcrb` (``model="truth"``).
 
     Args:
         truth: Simulation result (``pos (N, K+1, 3)``, optionally ``on_map``).
-        scenario: The scenario (as for :func:`pcrb`).
+        scenario: The scenario (as for `pcrb`).
         map_terrain: The map the filter knows (grid or neural; ``forward(xy)``).
         map_error_var: Map error variance σ², m² (≥ 0).
         map_error_corr: Correlation ρ of the map error between successive samples, [0, 1).
         runs: ``(N,)`` bool, trajectories to include.
         R_m2: Altimeter variance override (default: the truth's, ``altimeter_sigma_m²``).
-        progress: As for :func:`pcrb`.
+        progress: As for `pcrb`.
 
     Returns:
         ``(K + 1, 5, 5)`` bound covariances of the navigation states (float64).

@@ -1,18 +1,18 @@
 """Navigation scenarios: flight, INS and sensor errors, and the filter's tuning, from YAML.
 
-A :class:`Scenario` holds everything the simulator and the terrain-aided navigation (TAN)
+A `Scenario` holds everything the simulator and the terrain-aided navigation (TAN)
 filter need besides the map: the tile, the flight (start, speed, heading, waypoints,
 altitude), the truth error models (INS initial errors and random walks, radar-altimeter
 noise, DEM-making error, outliers) and the filter's tuning (``P0``, ``Q``, ``R``, map fit
 variance). Shipped scenarios live in ``configs/scenarios/<name>.yaml`` (``paper``,
-``jacksboro``, ``tiny``); :func:`load_scenario` reads them by name or path.
+``jacksboro``, ``tiny``); `load_scenario` reads them by name or path.
 
 Truth INS error model (SEEDS 004's 5-state error model driven by white noise): the error
 ``δX = [δx, δy, δh, δv_x, δv_y]`` (INS minus truth) starts at
 ``δX_0 ~ N(init_error_mean, diag(σ_p², σ_p², σ_h², σ_v², σ_v²))`` with
 ``σ_p = init_pos_sigma_m``, ``σ_h = init_alt_sigma_m``, ``σ_v = init_vel_sigma_mps``, and
 propagates as ``δX_{k+1} = Φ δX_k + w_k``, ``w_k ~ N(0, Q_truth)`` with
-``Q_truth = diag(q_p², q_p², q_h², vrw²·T, vrw²·T)`` (:meth:`Scenario.truth_process_noise`):
+``Q_truth = diag(q_p², q_p², q_h², vrw²·T, vrw²·T)`` (`Scenario.truth_process_noise`):
 ``q_p = pos_noise_sigma_m`` per step, ``q_h = alt_noise_sigma_m`` per step and the velocity
 random walk ``vrw = vel_random_walk`` in m/s/√s. A scenario whose ``Q_diag`` equals
 ``Q_truth``, whose ``P0_diag`` equals the initial spread, with zero ``init_error_mean``
@@ -70,8 +70,8 @@ class Scenario:
         description: Free text: where the numbers come from.
         tile: Sample tile name (``"jacksboro"``, ``"synthetic"``) or path of a DEM file.
         tile_options: Keyword arguments for the tile: for ``"synthetic"`` those of
-            :func:`neuralmap.dem.synthetic_tile` (``shape``, ``spacing``, ``seed``,
-            ``relief``, ``hurst``); otherwise those of :func:`neuralmap.dem.load_tile`
+            `neuralmap.dem.synthetic_tile` (``shape``, ``spacing``, ``seed``,
+            ``relief``, ``hurst``); otherwise those of `neuralmap.dem.load_tile`
             (``spacing``, ``origin``, ``name``).
         dt: Filter and sampling period T, s.
         duration_s: Flight duration, s; the simulation has ``K = round(duration_s / dt)``
@@ -120,7 +120,7 @@ class Scenario:
             ``height above ground · tan(angle)``, used for the roughness quality indicator.
         truth_model: ``"dem"`` (truth = bicubic DEM + DEM-making error) or ``"subgrid"``
             (also fractal detail below the grid spacing, on a finer grid; see
-            :mod:`neuralmap.nav.truth_terrain`).
+            `neuralmap.nav.truth_terrain`).
         subgrid_factor: Refinement of the ``subgrid`` truth grid (2 … 8).
         P0_diag: Filter's initial covariance diagonal ``(5,)``, m², m², m², (m/s)², (m/s)².
         Q_diag: Filter's process-noise diagonal per step ``(5,)``.
@@ -359,11 +359,11 @@ def load_scenario(name_or_path: str | os.PathLike[str] | Scenario) -> Scenario:
 
     Args:
         name_or_path: A shipped name (``"paper"``, ``"jacksboro"``, ``"tiny"``, read from
-            ``configs/scenarios/<name>.yaml``), a YAML file path, or a :class:`Scenario`
+            ``configs/scenarios/<name>.yaml``), a YAML file path, or a `Scenario`
             (validated and returned).
 
     Returns:
-        The validated :class:`Scenario`.
+        The validated `Scenario`.
 
     Raises:
         NeuralMapError: Unknown name, missing or unreadable file, unknown keys (the message
@@ -403,8 +403,8 @@ def save_scenario(scenario: Scenario, path: str | os.PathLike[str]) -> Path:
 def scenario_tile(scenario: Scenario) -> DemTile:
     """Loads the scenario's DEM tile.
 
-    ``tile == "synthetic"`` calls :func:`neuralmap.dem.synthetic_tile` with
-    ``tile_options``; anything else calls :func:`neuralmap.dem.load_tile` with them.
+    ``tile == "synthetic"`` calls `neuralmap.dem.synthetic_tile` with
+    ``tile_options``; anything else calls `neuralmap.dem.load_tile` with them.
 
     Args:
         scenario: The scenario.

@@ -4,7 +4,7 @@ Everything is batched over the N Monte Carlo runs (no Python loop over runs; the
 path is built by a loop over time steps). Random numbers come from a seeded CPU generator
 in float64 and are then cast, so a seed gives the same truth on every device and dtype.
 
-Models (see :mod:`neuralmap.nav.scenario` for the parameters):
+Models (see `neuralmap.nav.scenario` for the parameters):
 
 - Flight: a nominal path from the start at ``speed_mps``, rate-limited turns
   (``turn_rate_dps``) toward the waypoints in order, straight flight otherwise; each run is
@@ -12,12 +12,12 @@ Models (see :mod:`neuralmap.nav.scenario` for the parameters):
   Altitude ``max(tile) + altitude_agl_m + climb_rate_mps · t``.
 - INS errors (SEEDS 004 5-state error model): ``δX_0 ~ N(init_error_mean,
   diag(init_error_sigma²))``, ``δX_{k+1} = Φ δX_k + w_k``, ``w_k ~ N(0, Q_truth)``
-  (:meth:`Scenario.truth_process_noise`); INS output = truth + δX.
+  (`Scenario.truth_process_noise`); INS output = truth + δX.
 - Radar altimeter: ``h_radar = h_true − terrain_true(p_true) + v``,
   ``v ~ N(0, altimeter_sigma_m²)``; with probability ``outlier_prob`` a sample also gets
   ``N(0, outlier_sigma_m²)`` (flagged in ``outlier``).
-- True terrain: bicubic :class:`~neuralmap.terrain.grid.GridTerrain` of the tile plus, when
-  ``dem_error_sigma_m > 0``, a DEM-making error field (:func:`dem_error_field`), one
+- True terrain: bicubic `GridTerrain` of the tile plus, when
+  ``dem_error_sigma_m > 0``, a DEM-making error field (`dem_error_field`), one
   realisation per seed shared by all runs (the world is fixed, the map is wrong).
 """
 
@@ -57,17 +57,17 @@ class Truth:
         ins_error: ``(N, K+1, 5)`` true INS error ``δX`` (INS − truth).
         extent: The tile's ``(xmin, xmax, ymin, ymax)``.
         tile_name: The tile's name.
-        tile_fingerprint: The tile's :meth:`DemTile.fingerprint` (the DEM, not the truth
+        tile_fingerprint: The tile's `DemTile.fingerprint` (the DEM, not the truth
             terrain with DEM error), checked against the map's.
         scenario: The scenario simulated.
         seed: The seed used.
         dem_error: ``(ny, nx)`` DEM-making error field added to the tile (m), or None.
-        terrain: The truth terrain flown over (:func:`~neuralmap.nav.truth_terrain.true_terrain`).
+        terrain: The truth terrain flown over (`true_terrain`).
         fault: ``(N, K+1)`` int8 altimeter fault code per epoch
-            (:data:`~neuralmap.nav.altimeter.FAULT_CODES`: 0 clean, 1 spike, 2 patch, 3
+            (`FAULT_CODES`: 0 clean, 1 spike, 2 patch, 3
             loss of lock; ``radar`` is NaN at a loss of lock).
         quality: ``(N, K+1, 3)`` the altimeter's quality record
-            (:data:`~neuralmap.nav.altimeter.QUALITY_COLUMNS`: footprint roughness of the
+            (`QUALITY_COLUMNS`: footprint roughness of the
             map at the INS position, height above ground read by the altimeter, lock flag).
     """
 
@@ -186,7 +186,7 @@ def simulate(
             leaves it None, the draws unchanged: only quality-aware policies read it).
 
     Returns:
-        :class:`Truth` with ``K = scenario.n_steps``.
+        `Truth` with ``K = scenario.n_steps``.
 
     Raises:
         NeuralMapError: ``n_runs < 1``, a bad scenario, or a tile that is not a DemTile.

@@ -1,7 +1,7 @@
 """The 5-state terrain-aided navigation (TAN) error-state EKF step (SEEDS 004).
 
 State ``δX = [δx, δy, δh, δv_x, δv_y]`` = INS minus truth; output correction: the corrected
-estimate is ``INS − δX̂``. One step (:func:`tan_filter_step`):
+estimate is ``INS − δX̂``. One step (`tan_filter_step`):
 
 1. predict ``δX̂⁻ = Φ δX̂``, ``P⁻ = Φ P Φᵀ + Q`` (SEEDS 004, Φ);
 2. linearise the map at the best horizontal estimate ``p̂ = p_ins − δX̂⁻[:2]`` with the
@@ -145,28 +145,28 @@ def tan_filter_step(
     map that returns NaN off its extent cannot leak into the filter.
 
     Args:
-        ekf: A :class:`neuralmap.filters.ekf.BatchedEKF` with ``n = 5`` states; updated in
+        ekf: A `neuralmap.filters.ekf.BatchedEKF` with ``n = 5`` states; updated in
             place.
         ins_pos: ``(N, 3)`` INS position ``x, y, h`` at this step, m.
         radar: ``(N,)`` radar-altimeter clearance, m.
         linearizer: The map linearisation method (``forward(xy, pos_cov) ->
             Linearization``).
-        F: ``(5, 5)`` transition matrix (:func:`transition_matrix`).
+        F: ``(5, 5)`` transition matrix (`transition_matrix`).
         Q: ``(5, 5)`` or ``(N, 5, 5)`` process noise.
         R: Base measurement variance (altimeter + map fit), float or ``(N,)`` m²; the
             linearisation variance is added per sample.
         extent: Map ``(xmin, xmax, ymin, ymax)``; None = the linearizer's (or no check).
         mask: ``(N,)`` bool, optional; False skips the update of that sample.
         policy: Optional robust/adaptive filter policy
-            (:mod:`neuralmap.filters.policies`), passed to the predict and the update.
+            (`neuralmap.filters.policies`), passed to the predict and the update.
         jacobian: For a state augmented beyond the 5 navigation states (e.g. the AR
-            map-error states of :mod:`neuralmap.nav.augmented`): builds the ``(N, n)``
+            map-error states of `neuralmap.nav.augmented`): builds the ``(N, n)``
             rows of H from the ``(N, 2)`` slopes. The extra states enter the measurement
             linearly, so their prediction ``H[:, 5:] · x̂⁻[5:]`` is taken off the residual.
             None = the 5-state ``H = [−h_x, −h_y, 1, 0, 0]``.
 
     Returns:
-        :class:`StepDiagnostics`.
+        `StepDiagnostics`.
     """
     n = ekf.x.shape[0]
     if ins_pos.shape != (n, 3) or radar.shape != (n,):

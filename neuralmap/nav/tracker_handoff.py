@@ -1,12 +1,12 @@
 """Hand-off from the acquisition grid to the whole-flight point-mass tracker.
 
 Acquisition from a large initial error runs on the fixed point-mass grid of
-:mod:`neuralmap.nav.acquisition` (the prior's grid, which holds every mode at once); once a
-run's grid posterior is unimodal and small (:func:`~neuralmap.nav.acquisition.handoff_ready`)
-the run is handed to a :class:`~neuralmap.filters.point_mass_tracker.PointMassTracker`
+`neuralmap.nav.acquisition` (the prior's grid, which holds every mode at once); once a
+run's grid posterior is unimodal and small (`handoff_ready`)
+the run is handed to a `PointMassTracker`
 instead of the EKF. The tracker starts from the grid posterior's moments
-(:func:`grid_posterior_moments`), exactly: its lattice is built around them and
-:meth:`~neuralmap.filters.point_mass_tracker.PointMassTracker.reset` imposes the mean and
+(`grid_posterior_moments`), exactly: its lattice is built around them and
+`reset` imposes the mean and
 covariance of the whole 5-state ``[δp, δh, δv]`` to round-off.
 
 Why the moments and not the grid's masses resampled onto the lattice: at hand-off the
@@ -15,11 +15,11 @@ acquisition grid (25 m cells at σ0 = 100 m, 50 m at 1 km, 94 m at 3 km), so its
 the first two moments is the grid's quantisation, not information; the hand-off test has
 already required it to be close to its Gaussian fit (Bhattacharyya coefficient ≥ 0.9).
 
-:class:`TrackerPool` holds one tracker over all N runs; runs not handed off (or sent back
+`TrackerPool` holds one tracker over all N runs; runs not handed off (or sent back
 to acquisition by the lost-lock test) are dormant: predicted, never updated, their output
 ignored, so the pool never re-allocates and no Python loop runs over runs.
 
-Moments of the grid posterior (:func:`grid_posterior_moments`), per run, with ``w`` the
+Moments of the grid posterior (`grid_posterior_moments`), per run, with ``w`` the
 cell masses, ``s`` the cell coordinates, ``a`` the per-cell altitude-error mean and ``v_a``
 its common conditional variance::
 
@@ -27,7 +27,7 @@ its common conditional variance::
     ā = Σ w a,   σ²_a = v_a + Σ w (a − ā)²,   Σ_as = Σ w (a − ā)(s − s̄)ᵀ,
 
 and the velocity error from the Gaussian conditional on the position (module docstring of
-:mod:`neuralmap.nav.acquisition`): ``δv = v₀ + B (s − m_p) + ε``, so
+`neuralmap.nav.acquisition`): ``δv = v₀ + B (s − m_p) + ε``, so
 ``Cov(δv, s) = B Σ_ss``, ``Cov(δv) = P_vv − B P_pp B + B Σ_ss B`` and
 ``Cov(δv, a) = B Σ_sa``.
 """
@@ -102,7 +102,7 @@ def grid_posterior_moments(pm: PointMassFilter, index: torch.Tensor, *, ppp: tor
 
 @dataclass
 class PoolStep:
-    """Per-run results of one :meth:`TrackerPool.step` (``(N,)`` each; dormant runs:
+    """Per-run results of one `TrackerPool.step` (``(N,)`` each; dormant runs:
     ``updated`` False, ``nis`` NaN, ``residual`` 0)."""
 
     nis: torch.Tensor
@@ -111,7 +111,7 @@ class PoolStep:
 
 
 class TrackerPool:
-    """One :class:`PointMassTracker` over all N runs; the members are the runs handed off.
+    """One `PointMassTracker` over all N runs; the members are the runs handed off.
 
     Args:
         n: Runs N.
@@ -125,13 +125,13 @@ class TrackerPool:
             the caller's lost-lock test sends a run back to the acquisition grid).
         dtype: Tracker dtype.
         dormant_sigma_m: Horizontal σ of a dormant run's Gaussian (keeps it cheap).
-        out_dtype: dtype of :attr:`x`, :attr:`P`.
+        out_dtype: dtype of `x`, `P`.
 
     Attributes:
         member: ``(N,)`` bool, runs the tracker is tracking.
         x: ``(N, 5)`` tracker mean of the members (other rows: stale).
         P: ``(N, 5, 5)`` tracker covariance of the members.
-        tracker: The :class:`PointMassTracker`.
+        tracker: The `PointMassTracker`.
         cell_updates: Cell measurement updates done for members.
     """
 
@@ -201,11 +201,11 @@ class TrackerPool:
             y: ``(N,)`` ``h_ins − h_radar``.
             heights: Callable ``(ins_xy (N, 2)) -> g`` with ``g(points (N, G, G, 2))`` the
                 map heights at ``p_ins − s`` (NaN off the map), as
-                :func:`neuralmap.nav.tracking._heights`.
+                `neuralmap.nav.tracking._heights`.
             R: Measurement variance, m².
 
         Returns:
-            :class:`PoolStep`.
+            `PoolStep`.
         """
         trk = self.tracker
         trk.predict(Q_s=self._qs, Q_z=self._qz)

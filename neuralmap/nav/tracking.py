@@ -1,18 +1,18 @@
 """TAN with the point-mass tracker for the whole flight (Bergman, Ljung and Gustafsson).
 
 The 5-state TAN error model (SEEDS 004, ``δX = [δx, δy, δh, δv_x, δv_y]``, INS − truth)
-maps onto :class:`~neuralmap.filters.point_mass_tracker.PointMassTracker` as
+maps onto `PointMassTracker` as
 
 * ``s = δp`` (on the lattice), ``z = [δh, δv_x, δv_y]`` (a Kalman part per cell);
 * ``s_{k+1} = s_k + T [δv_x, δv_y] + w_p``: ``E = T [[0, 1, 0], [0, 0, 1]]``, ``F = I``;
 * ``y = h_ins − h_radar = t(p_ins − s) + δh − v`` (the altimeter model of
-  :mod:`neuralmap.nav.acquisition`): ``g(s) = t(p_ins − s)`` on the map under test (any
-  :class:`~neuralmap.terrain.base.TerrainModel`: a grid, or a neural map — baked onto a
-  grid first when that is faster, :func:`neuralmap.terrain.bake.bake_to_grid`), ``c =
+  `neuralmap.nav.acquisition`): ``g(s) = t(p_ins − s)`` on the map under test (any
+  `TerrainModel`: a grid, or a neural map — baked onto a
+  grid first when that is faster, `neuralmap.terrain.bake.bake_to_grid`), ``c =
   [1, 0, 0]``, ``R`` = altimeter variance + the map's error variance.
 
 Cells whose ``p_ins − s`` lies off the map get zero likelihood; a run whose every cell is
-off the map is predicted only. The result is a :class:`~neuralmap.nav.monte_carlo.FilterRun`
+off the map is predicted only. The result is a `FilterRun`
 like every EKF method's, so the metrics, PCRB comparison and reports take it unchanged.
 """
 
@@ -40,7 +40,7 @@ TRACKER_METHOD = "point_mass_tracker"
 
 @dataclass
 class TrackerOptions:
-    """Options of :func:`run_tracker`.
+    """Options of `run_tracker`.
 
     Attributes:
         cells: Lattice cells per axis.
@@ -52,7 +52,7 @@ class TrackerOptions:
         widen_min_sigma_m: Smallest σ of a widened grid, m.
         chunk_runs: Runs per tracker batch (bounds memory; 0 = all at once).
         flatten_likelihood: Add the map's height spread over each cell to the likelihood
-            variance (:func:`neuralmap.nav.cell_variance.cell_height_variance`): needed while
+            variance (`neuralmap.nav.cell_variance.cell_height_variance`): needed while
             the cells are coarser than the terrain's detail (large initial errors).
         min_cell_blur: Smallest cell step in units of one step's horizontal transition
             spread ``b = sqrt(λ_max(Q_s) + T² λ_max(P0_v))`` (the lattice's minimum
@@ -74,7 +74,7 @@ class TrackerOptions:
     extra: dict[str, Any] = field(default_factory=dict)
 
     def tracker_config(self, blur_m: float = 0.0) -> TrackerConfig:
-        """The :class:`TrackerConfig` (validated); ``blur_m`` = one step's transition
+        """The `TrackerConfig` (validated); ``blur_m`` = one step's transition
         spread ``b`` (m) for the lattice floor (``min_cell_blur``)."""
         if self.dtype not in ("float32", "float64"):
             raise NeuralMapError(
@@ -91,7 +91,7 @@ class TrackerOptions:
 
 @dataclass
 class TrackerResult:
-    """The tracker's :class:`FilterRun` and its own counters.
+    """The tracker's `FilterRun` and its own counters.
 
     Attributes:
         run: Errors, covariances, NIS of the tracker's posterior mean.
@@ -115,7 +115,7 @@ def _tan_matrices(dt: float, dtype: torch.dtype) -> tuple[torch.Tensor, ...]:
 
 def transition_blur(P0: torch.Tensor, Q: torch.Tensor, dt: float) -> float:
     """One step's horizontal transition spread ``b = sqrt(λ_max(Q_s) + T² λ_max(P0_v))``, m
-    (the lattice floor of :attr:`TrackerOptions.min_cell_blur`); ``P0``, ``Q``: ``(5, 5)``."""
+    (the lattice floor of `TrackerOptions.min_cell_blur`); ``P0``, ``Q``: ``(5, 5)``."""
     P0 = torch.as_tensor(P0, dtype=torch.float64)
     Q = torch.as_tensor(Q, dtype=torch.float64)
     q = torch.linalg.eigvalsh(0.5 * (Q[:2, :2] + Q[:2, :2].T))[-1].clamp_min(0.0)
@@ -156,11 +156,11 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
                 progress: Callable[[float], None] | None = None) -> TrackerResult:
     """Runs the point-mass tracker over every run of a simulated truth.
 
-    Timing as :func:`neuralmap.nav.monte_carlo.run_filter`: sample 0 is the prior
+    Timing as `neuralmap.nav.monte_carlo.run_filter`: sample 0 is the prior
     (``δX̂ = 0``, ``P0``), steps ``k = 1 … K`` predict and update with altimeter sample k.
 
     Args:
-        truth: :class:`~neuralmap.nav.simulator.Truth` (``ins_pos``, ``radar``,
+        truth: `Truth` (``ins_pos``, ``radar``,
             ``ins_error``, ``on_map``, ``extent``, ``t``).
         terrain: The map under test (``forward(xy) -> heights``).
         P0: ``(5, 5)`` prior covariance (positive definite).
@@ -168,13 +168,13 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
             cross terms between ``s`` and ``z`` are not).
         R: Measurement variance, m² (altimeter + map error).
         dt: Period T, s.
-        options: :class:`TrackerOptions`.
+        options: `TrackerOptions`.
         method: Name stored in the run.
         progress: Called with the share of the work each step of each chunk of runs does
-            (:func:`neuralmap.progress.stage_progress`); None = silent.
+            (`neuralmap.progress.stage_progress`); None = silent.
 
     Returns:
-        :class:`TrackerResult`.
+        `TrackerResult`.
 
     Raises:
         NeuralMapError: ``P0`` not positive definite, bad options, ``R`` not > 0.

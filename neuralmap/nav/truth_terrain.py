@@ -2,7 +2,7 @@
 
 A Monte Carlo study must not fly over the very surface its grid methods interpolate (the
 "inverse crime": the truth would then be the bicubic interpolation of the map itself, and
-every grid method would look better than it can be). :func:`true_terrain` builds the
+every grid method would look better than it can be). `true_terrain` builds the
 scenario's truth once and every consumer uses it: the simulator (altimeter clearances),
 the PCRB (terrain slopes along the true path) and the map-error measurement.
 
@@ -39,7 +39,7 @@ class TrueTerrain:
     """The truth terrain of a scenario and how it was made.
 
     Attributes:
-        model: float64 bicubic :class:`GridTerrain` of the truth (fine grid for
+        model: float64 bicubic `GridTerrain` of the truth (fine grid for
             ``subgrid``); ``forward(xy) -> height``.
         kind: ``"dem"`` or ``"subgrid"``.
         dem_error: ``(ny, nx)`` DEM-making error added at the DEM nodes (m), or None.
@@ -203,13 +203,13 @@ def true_terrain(scenario: Any, tile: DemTile, *, seed: int) -> TrueTerrain:
     """Builds the scenario's truth terrain (see the module docstring).
 
     Args:
-        scenario: A :class:`~neuralmap.nav.scenario.Scenario` (its ``truth_model``,
+        scenario: A `Scenario` (its ``truth_model``,
             ``subgrid_factor``, ``dem_error_sigma_m``, ``dem_error_corr_m``).
         tile: The scenario's DEM tile.
         seed: The run's seed (one world per seed, shared by every run and method).
 
     Returns:
-        :class:`TrueTerrain`.
+        `TrueTerrain`.
     """
     dem_error = None
     heights = tile.heights

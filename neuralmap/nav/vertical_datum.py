@@ -11,7 +11,7 @@ vertical datum (orthometric heights for SRTM/NED/Copernicus: EGM96/EGM2008/NAVD8
 results); the geoid undulation ``N`` of the area must then be given and the altitude
 used is ``h − N`` (orthometric = ellipsoidal − undulation). Without ``N`` it is refused.
 
-:func:`check_datum` refuses a log whose altitudes disagree with the map and the radar by
+`check_datum` refuses a log whose altitudes disagree with the map and the radar by
 more than the filter's own uncertainty can explain — the symptom of a wrong datum.
 """
 

@@ -1,7 +1,7 @@
 """Studies behind one entry point: ``python evaluate.py --config configs/<study>.yaml``.
 
 Each study is one module with a config dataclass and ``run(config, outputs)``; they share
-one outputs writer (:class:`~neuralmap.studies.outputs.StudyOutputs`).
+one outputs writer (`StudyOutputs`).
 """
 
 from neuralmap.studies.base import StudyConfig

@@ -2,7 +2,7 @@
 
 Flies the scenario (default jacksboro) at several initial horizontal errors σ0 (per axis,
 the filter's P0 matched), with the start moved so that ±3σ0 of the prior stays on the
-tile, and runs every acquisition method of :mod:`neuralmap.nav.acquisition` on the same
+tile, and runs every acquisition method of `neuralmap.nav.acquisition` on the same
 truth, on the grid map (bilinear DEM) and, when a trained neural map is available, on the
 neural map. Reports divergences, all-run RMSE against the PCRB over the last half, time
 to acquire (first time after which the error stays below 3× the PCRB), wall time and
@@ -146,7 +146,7 @@ class AcquisitionStudyConfig(ClusterOptions):
     divergence_sigma: float = 9.0
 
     def validate(self) -> None:
-        """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
+        """Checks values; raises `NeuralMapError` naming the option and the fix."""
         super().validate()
         if self.neural_likelihood_oversample < 0:
             raise NeuralMapError(f"--neural_likelihood_oversample must be >= 0, got "
@@ -182,7 +182,7 @@ class AcquisitionStudyConfig(ClusterOptions):
         self.acquisition_config().validate()
 
     def acquisition_config(self) -> AcquisitionConfig:
-        """The :class:`~neuralmap.nav.acquisition.AcquisitionConfig` of these options."""
+        """The `AcquisitionConfig` of these options."""
         return AcquisitionConfig(
             cells=self.grid_cells, max_spacing_m=self.max_spacing_m, max_cells=self.max_cells,
             dtype=self.grid_dtype, min_spacing_m=self.min_spacing_m,
@@ -227,7 +227,7 @@ def scenario_at_sigma(scenario: Any, sigma: float, extent: tuple[float, ...]) ->
 
 
 def _runs_on_map(inputs: Any, kept: torch.Tensor) -> Any:
-    """The :class:`~neuralmap.nav.acquisition.TanInputs` of the runs ``kept (N,)`` only."""
+    """The `TanInputs` of the runs ``kept (N,)`` only."""
     idx = kept.nonzero().reshape(-1)
     return dataclasses.replace(
         inputs, ins_pos=inputs.ins_pos[idx], radar=inputs.radar[idx],
@@ -273,7 +273,7 @@ def _row_metrics(res: Any, bound: torch.Tensor, config: AcquisitionStudyConfig,
 
 def _maps(config: AcquisitionStudyConfig, device: torch.device,
           ) -> tuple[Any, dict[str, tuple[Any, Any, float]], list[str]]:
-    """The shared setup (:func:`~neuralmap.studies.setup.prepare_tan`) and, per map kind of
+    """The shared setup (`prepare_tan`) and, per map kind of
     ``config.maps``, (likelihood terrain, EKF linearizer, extra R); the notes say which
     neural map flies, or why its rows are skipped (no map given and none found)."""
     setup = prepare_tan(
@@ -523,7 +523,7 @@ def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: DemTile,
               acq_cfg: AcquisitionConfig, device: torch.device, dtype: torch.dtype,
               seed: int, progress: Any = None) -> dict[str, Any]:
     """Point mass over a plane: no terrain information, the posterior must stay wide
-    (``progress``: the filter's fraction callback, :func:`neuralmap.progress.stage_progress`)."""
+    (``progress``: the filter's fraction callback, `neuralmap.progress.stage_progress`)."""
     flat = _flat_tile(tile)
     sigma = float(min(config.sigmas_m))
     scenario = scenario_at_sigma(base, sigma, flat.extent)
@@ -623,7 +623,7 @@ def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: l
 
 
 def _figure(outputs: StudyOutputs, results: dict[str, Any], dt: float) -> None:
-    """One error-vs-time figure per σ0 (:func:`~neuralmap.viz.navigation.plot_error_vs_time`)."""
+    """One error-vs-time figure per σ0 (`plot_error_vs_time`)."""
     curves = results["curves"]
     for sigma in results["sigmas"]:
         rows = {key.split("/", 1)[1]: curve for key, curve in curves.items()

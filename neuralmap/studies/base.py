@@ -19,7 +19,7 @@ class StudyConfig:
 
     Attributes:
         study: Which study runs (the ``study:`` key of a config; see
-            :mod:`neuralmap.studies.registry`).
+            `neuralmap.studies.registry`).
         experiment: Output folder name: results go to
             ``<runs_dir>/<experiment>/version_<N>/``.
         runs_dir: Root of the run folders.
@@ -63,12 +63,12 @@ class StudyConfig:
 
     @property
     def torch_dtype(self) -> torch.dtype:
-        """The torch dtype of :attr:`dtype`."""
+        """The torch dtype of `dtype`."""
         return torch_dtype(self.dtype)
 
     @property
     def torch_device(self) -> torch.device:
-        """The torch device of :attr:`device` (checked)."""
+        """The torch device of `device` (checked)."""
         return check_device(self.device)
 
 

@@ -1,5 +1,5 @@
 """The ``--cluster`` option of the Monte Carlo studies (tan, tan_scale, learned, gnss_ins,
-acquisition): where their independent tasks run (:mod:`neuralmap.cluster`)."""
+acquisition): where their independent tasks run (`neuralmap.cluster`)."""
 
 from __future__ import annotations
 
@@ -36,5 +36,5 @@ class ClusterOptions(StudyConfig):
 
     @property
     def cluster_spec(self) -> ClusterSpec:
-        """The parsed :attr:`cluster`."""
+        """The parsed `cluster`."""
         return parse_cluster(self.cluster)

@@ -140,7 +140,7 @@ class DemErrorsStudyConfig(StudyConfig):
     compare_subgrid: bool = True
 
     def validate(self) -> None:
-        """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
+        """Checks values; raises `NeuralMapError` naming the option and the fix."""
         super().validate()
         if self.max_order < 1:
             raise NeuralMapError(f"--max_order must be >= 1, got {self.max_order}.")
@@ -194,7 +194,7 @@ class DemErrorsStudyConfig(StudyConfig):
 def prior_estimates(truth: Any, run: Any, model: Any) -> tuple[torch.Tensor, torch.Tensor]:
     """Where the filter linearised: the prior estimates ``p̂_k`` and covariances ``P⁻_k``.
 
-    Rebuilt from a :class:`~neuralmap.nav.monte_carlo.FilterRun` of the 5-state filter:
+    Rebuilt from a `FilterRun` of the 5-state filter:
     ``x_{k-1} = δX_{k-1} − err_{k-1}``, ``x⁻_k = Φ x_{k-1}``, ``p̂_k = p_ins,k − x⁻_k[:2]``,
     ``P⁻_k = Φ P_{k-1} Φᵀ + Q`` (exact for a filter without adaptive policies).
 

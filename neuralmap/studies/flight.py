@@ -2,15 +2,15 @@
 ``neuralmap-navigate``.
 
 ``python evaluate.py --config configs/flight.yaml --log LOG --map MAP`` and
-``neuralmap-navigate LOG --map MAP`` run the same steps (:func:`navigate_flight`, then
-:func:`write_flight`):
+``neuralmap-navigate LOG --map MAP`` run the same steps (`navigate_flight`, then
+`write_flight`):
 
-1. resolve the map (:func:`neuralmap.nav.map_source.resolve_map`: trained map, DEM file or
+1. resolve the map (`neuralmap.nav.map_source.resolve_map`: trained map, DEM file or
    embedded tile) and its frame;
-2. read the log into the map frame (:func:`neuralmap.nav.flight_input.read_flight_input`),
+2. read the log into the map frame (`neuralmap.nav.flight_input.read_flight_input`),
    refusing bad logs before anything is written;
-3. check the vertical datum (:func:`neuralmap.nav.vertical_datum.check_datum`);
-4. replay it through :class:`~neuralmap.nav.navigator.Navigator` (configured by the
+3. check the vertical datum (`neuralmap.nav.vertical_datum.check_datum`);
+4. replay it through `Navigator` (configured by the
    navigator YAML, ``configs/navigator.yaml`` by default);
 5. write navigation.csv, navigation.geojson and, with a reference, the errors in the study
    report format (report.md, results.json, figures, TensorBoard) through the studies' one
@@ -41,9 +41,9 @@ class FlightStudyConfig(StudyConfig):
 
     Attributes:
         log: The flight log: map-frame or geographic CSV/NPZ, or a KF-GINS navigation
-            result (then ``radar`` is required). See :mod:`neuralmap.nav.flight_input`.
+            result (then ``radar`` is required). See `neuralmap.nav.flight_input`.
         map: A DEM file, a trained map file or an embedded tile name
-            (:mod:`neuralmap.nav.map_source`).
+            (`neuralmap.nav.map_source`).
         navigator: Navigator YAML (None = the shipped ``configs/navigator.yaml``).
         navigator_options: Overrides on top of it, by section
             (``{sensor: {altimeter_sigma_m: 5}}``).
@@ -78,7 +78,7 @@ class FlightStudyConfig(StudyConfig):
     n_ellipses: int = 20
 
     def validate(self) -> None:
-        """Checks the options (not the files: those are read by :func:`navigate_flight`).
+        """Checks the options (not the files: those are read by `navigate_flight`).
 
         Raises:
             NeuralMapError: A missing ``log``/``map`` or a value out of range.
@@ -118,12 +118,12 @@ class FlightNavigation:
 
     Attributes:
         config: The study config.
-        source: The resolved map (:class:`~neuralmap.nav.map_source.MapSource`).
-        flight: The flight input (:class:`~neuralmap.nav.flight_input.FlightInput`).
-        navigator_config: The :class:`~neuralmap.nav.navigator_config.NavigatorConfig` used.
-        track: The :class:`~neuralmap.nav.fix.FixTrack`.
+        source: The resolved map (`MapSource`).
+        flight: The flight input (`FlightInput`).
+        navigator_config: The `NavigatorConfig` used.
+        track: The `FixTrack`.
         datum: The datum check's summary.
-        noise: The navigator's ``R`` parts (:class:`~neuralmap.nav.map_noise.MapNoise`).
+        noise: The navigator's ``R`` parts (`MapNoise`).
         seconds: Wall time of the replay.
     """
 
@@ -213,8 +213,8 @@ def navigate_flight(config: FlightStudyConfig) -> FlightNavigation:
 
 
 def _replay(navigator: Any, flight: Any, *, progress: bool) -> Any:
-    """:meth:`Navigator.replay` with a progress bar (heartbeat lines off a terminal): the
-    same reset and :meth:`Navigator.step` per epoch, so the same fixes bit for bit."""
+    """`Navigator.replay` with a progress bar (heartbeat lines off a terminal): the
+    same reset and `Navigator.step` per epoch, so the same fixes bit for bit."""
     from neuralmap.nav.fix import FixTrack
     from neuralmap.progress import stage_progress
 
@@ -292,6 +292,6 @@ def write_flight(nav: FlightNavigation, outputs: StudyOutputs) -> None:
 
 
 def run(config: FlightStudyConfig, outputs: StudyOutputs) -> None:
-    """Navigates the flight and writes its outputs (:func:`navigate_flight`,
-    :func:`write_flight`)."""
+    """Navigates the flight and writes its outputs (`navigate_flight`,
+    `write_flight`)."""
     write_flight(navigate_flight(config), outputs)

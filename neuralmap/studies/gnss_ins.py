@@ -19,7 +19,7 @@ multipath jumps). Every variant runs on the same draws (same seed). Variants:
 
 The paper's tuning mechanisms (adaptive factor on ``P⁻`` and quality-based R) are update
 policies of the batched Kalman core, built from the policy registry
-(:func:`neuralmap.filters.policies.make_policy`).
+(`neuralmap.filters.policies.make_policy`).
 
 Outputs: error tables per variant (RMSE, 95th percentile, spikes in degraded stretches,
 divergence, NEES, NIS), error-vs-time plots with the degraded stretches shaded, a map of
@@ -85,7 +85,7 @@ class GnssInsStudyConfig(ClusterOptions):
         lever_arm_m: IMU-to-antenna vector [forward, right, down] (m).
         urban_effects: Outages, degraded stretches and multipath (False = open sky).
         propagate_every: IMU samples per covariance propagation.
-        variants: Filter variants to compare (see :data:`VARIANTS`).
+        variants: Filter variants to compare (see `VARIANTS`).
         r_scale: σ factor of the ``r_scaled`` variant.
         c0: Threshold of the adaptive factor (paper 003: 1–1.5).
         window: Epochs of innovations in the windowed factor's covariance estimate (≥ 6,
@@ -96,9 +96,9 @@ class GnssInsStudyConfig(ClusterOptions):
         quality_weight: Quantisation parameter of every quality indicator (0.1–0.5).
         divergence_m: A run diverged when its horizontal error ever exceeds this.
         warmup_s: Initial transient left out of NEES/NIS/attitude statistics.
-        cluster: Where the variants run (:class:`~neuralmap.studies.cluster_options.ClusterOptions`;
+        cluster: Where the variants run (`ClusterOptions`;
             default this process): on a Dask cluster the variants are dealt by cost to as
-            many groups as the cluster has worker threads (:func:`deal_variants`); each group
+            many groups as the cluster has worker threads (`deal_variants`); each group
             simulates the IMU once and filters its variants in lockstep. The results do not
             depend on it (bit-identical).
     """
@@ -127,7 +127,7 @@ class GnssInsStudyConfig(ClusterOptions):
     warmup_s: float = 10.0
 
     def validate(self) -> None:
-        """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
+        """Checks values; raises `NeuralMapError` naming the option and the fix."""
         super().validate()
         if self.n_runs < 1:
             raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
@@ -194,7 +194,7 @@ class GnssInsStudyConfig(ClusterOptions):
 
 def build_policy(name: str, config: GnssInsStudyConfig) -> FilterPolicy | None:
     """The update policy of a variant (None for the plain filters), from the policy
-    registry (:func:`~neuralmap.filters.policies.make_policy`) with the study's ``c0``,
+    registry (`make_policy`) with the study's ``c0``,
     ``quality_weight`` and windowed-factor options."""
     if name not in VARIANTS:
         raise NeuralMapError(f"--variants: unknown variant {name!r}; known: {', '.join(VARIANTS)}.")
@@ -341,7 +341,7 @@ def _run_group(config: GnssInsStudyConfig, names: list[str], *, traj: Any = None
 
 def deal_variants(variants: list[str], workers: int) -> list[list[str]]:
     """Deals the variants to workers: costliest first, each to the worker with the least
-    work so far (longest-processing-time rule, :data:`VARIANT_COST`).
+    work so far (longest-processing-time rule, `VARIANT_COST`).
 
     Splitting the runs instead (every worker all variants on half the runs) was measured
     slower: each worker then pays every variant's per-epoch torch overhead, which hardly
@@ -366,7 +366,7 @@ def deal_variants(variants: list[str], workers: int) -> list[list[str]]:
 
 
 def _run_group_task(config: GnssInsStudyConfig, names: list[str]) -> dict[str, Any]:
-    """One group of variants on a cluster's worker (:func:`_run_group`, its own threads)."""
+    """One group of variants on a cluster's worker (`_run_group`, its own threads)."""
     if config.threads is not None:
         torch.set_num_threads(int(config.threads))
     return _run_group(config, names)

@@ -5,13 +5,13 @@ On the same Monte Carlo draws the 5-state TAN EKF (SEEDS 004) flies with
 * **hand-tuned**: paper 004's own P0, Q and R (``configs/scenarios/paper.yaml``);
 * **consistent**: the truth's Q and R (the scenario's filter);
 * **learned**: Q and R learned by maximum likelihood through the filter
-  (:mod:`neuralmap.learning`) on *other* simulated flights, from a mis-specified start
+  (`neuralmap.learning`) on *other* simulated flights, from a mis-specified start
   (Q × ``q_scale``, R × ``r_scale``);
 * **variational**: the variational-Bayes adaptive filter (Huang et al. 2018) from the same
   mis-specified start (it adapts R and P⁻ online);
 * **learned + refined map**: on a map carrying a known systematic error (a region biased by
   ``bias_m``), the learned filter on the original biased map and on the map refined from
-  flights (:func:`neuralmap.learning.map_refine.refine_map`), scored on draws not used for
+  flights (`neuralmap.learning.map_refine.refine_map`), scored on draws not used for
   the refinement.
 
 A linear-Gaussian anchor compares the gradient answer with EM (Shumway–Stoffer).
@@ -88,7 +88,7 @@ class LearnedStudyConfig(ClusterOptions):
         target_param_rel, target_em_rel, target_map_ratio: Targets.
         pcrb_factor, divergence_sigma: Divergence rule (as the tan study).
         cluster: Where the configurations' test filters run (one task per configuration on
-            a Dask cluster, :func:`neuralmap.nav.monte_carlo.run_filters`; bit-identical);
+            a Dask cluster, `neuralmap.nav.monte_carlo.run_filters`; bit-identical);
             default this process. Noise learning, refinement and EM run here.
     """
 
@@ -131,11 +131,11 @@ class LearnedStudyConfig(ClusterOptions):
 
     @property
     def methods(self) -> list[str]:
-        """The linearisers :func:`neuralmap.studies.setup.prepare_tan` builds."""
+        """The linearisers `neuralmap.studies.setup.prepare_tan` builds."""
         return [self.method] if self.map_source == "neural" else ["bilinear"]
 
     def validate(self) -> None:
-        """Checks values; raises :class:`NeuralMapError` naming the option."""
+        """Checks values; raises `NeuralMapError` naming the option."""
         super().validate()
         if self.map_source not in ("neural", "grid"):
             raise NeuralMapError(f"--map_source must be neural or grid, got {self.map_source!r}.")

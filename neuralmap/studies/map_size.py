@@ -5,13 +5,13 @@ carries a raw float32 grid, so this study measures both families at equal footin
 scenario's tile (jacksboro by default; ``configs/map_size_topobathy.yaml`` and
 ``configs/map_size_synthetic.yaml`` run it on the other sample tiles):
 
-* **compressed grids**: every codec of :mod:`neuralmap.terrain.codecs` (LERC, JPEG-LS,
+* **compressed grids**: every codec of `neuralmap.terrain.codecs` (LERC, JPEG-LS,
   JPEG 2000, int16 + zstd, SZ3) at every maximum error and decimation of the config,
   decoded to a grid (bicubic);
-* **neural maps**: every map file given (any file :func:`~neuralmap.terrain.export.load_map`
+* **neural maps**: every map file given (any file `load_map`
   reads) or found under ``runs_dir``. Blockwise maps are stored in float32 and in each
-  quantised form of :mod:`neuralmap.terrain.quantize`; the stored size is the file
-  :func:`~neuralmap.terrain.export.save_map` writes. Other maps (e.g. entropy-coded
+  quantised form of `neuralmap.terrain.quantize`; the stored size is the file
+  `save_map` writes. Other maps (e.g. entropy-coded
   latent-grid maps) are measured as the file they are;
 * the blockwise maps *baked* (evaluated once at the DEM nodes when loaded, then queried
   as a bicubic grid): the neural map's storage with the grid's query speed;
@@ -23,16 +23,16 @@ for neural maps, against the bicubic DEM there and the bicubic interpolation of 
 own node values), height + slope query throughput, and navigation accuracy on the
 scenario's Monte Carlo. **Every map is linearised by the same robust method**: autograd of
 its own surface with the region variance (the tangent plane's mean squared miss over the
-position uncertainty, :mod:`neuralmap.linearize.region_variance`) and R increased by the
+position uncertainty, `neuralmap.linearize.region_variance`) and R increased by the
 map's own error variance against the truth beyond the scenario's fit variance; so a map is
 judged by its surface, and rare divergences of a point linearisation do not decide.
 Navigation RMSE is given over all runs and over the converged runs, each with a paired
-bootstrap interval (:mod:`neuralmap.nav.bootstrap`), and as a ratio to the full-resolution
+bootstrap interval (`neuralmap.nav.bootstrap`), and as a ratio to the full-resolution
 grid's with its interval.
 
 Fronts (plotted as PNG): bytes vs node RMSE, bytes vs maximum node error, bytes vs
 navigation RMSE. Figures of merit: the BD-rate of every neural family against JPEG 2000 on
-the node-RMSE front (:func:`~neuralmap.studies.rate_distortion.bd_rate`), every neural
+the node-RMSE front (`bd_rate`), every neural
 map's bytes over LERC's and JPEG-LS's at equal maximum error, and the targets:
 
 * a neural map of at most 25 % of the raw float32 grid with a node RMSE of at most 3 m;
@@ -104,22 +104,22 @@ class MapSizeStudyConfig(StudyConfig):
     Attributes:
         scenario: Scenario name (``configs/scenarios/<name>.yaml``) or a YAML path.
         n_runs: Monte Carlo trajectories (the same truth for every map).
-        codecs: Grid codecs (:data:`neuralmap.terrain.codecs.GRID_CODECS`).
+        codecs: Grid codecs (`neuralmap.terrain.codecs.GRID_CODECS`).
         max_errors: Maximum node errors (m, each > 0) of every codec.
         decimations: Decimation factors (1 = full resolution; 2, 4: coarser grids
             interpolated back, bicubic).
         decimated_max_errors: Maximum errors used for decimated grids (``None`` = the
             same as ``max_errors``).
-        neural_maps: Map files (anything :func:`~neuralmap.terrain.export.load_map` reads:
+        neural_maps: Map files (anything `load_map` reads:
             blockwise ``neural_map.pt``, latent-grid bitstreams, ...); ``None`` = the newest
             map of the scenario's tile in every experiment folder of ``runs_dir``; ``[]`` =
             no neural maps (codecs only). Every map must record the tile it was fitted to.
         quantizations: Stored forms of each blockwise map: ``none`` (float32) and schemes
-            of :data:`neuralmap.terrain.quantize.QUANT_SCHEMES` (other maps are measured
+            of `neuralmap.terrain.quantize.QUANT_SCHEMES` (other maps are measured
             as stored).
         baked: Stored forms (of ``quantizations``) also evaluated *baked*: the loaded map
             evaluated once at the DEM nodes at load time and queried as a bicubic grid
-            (:func:`neuralmap.terrain.bake.bake_to_grid`): the neural map's storage with
+            (`neuralmap.terrain.bake.bake_to_grid`): the neural map's storage with
             the grid's query speed.
         map_error_points: Random points between the nodes for the errors against truth.
         query_points: Points of the throughput measurement.
@@ -154,7 +154,7 @@ class MapSizeStudyConfig(StudyConfig):
     confidence: float = 0.95
 
     def validate(self) -> None:
-        """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
+        """Checks values; raises `NeuralMapError` naming the option and the fix."""
         super().validate()
         if self.n_runs < 1:
             raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
@@ -454,7 +454,7 @@ def _plot_front(
 
 def _run_masks(run: Any, metrics: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-run mean squared position error over the scored (second-half) samples and the
-    included / converged masks, as :func:`~neuralmap.nav.metrics.navigation_metrics`
+    included / converged masks, as `navigation_metrics`
     defines them."""
     err = run.err.detach().to("cpu", torch.float64)
     P = run.P.detach().to("cpu", torch.float64)

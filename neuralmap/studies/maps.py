@@ -24,7 +24,7 @@ __all__ = [
 #: File name of an exported neural map inside a training run folder.
 MAP_FILENAME = "neural_map.pt"
 #: Every map file a training run folder may hold: the blockwise export and the latent-grid
-#: bitstream (:mod:`neuralmap.terrain.latent`).
+#: bitstream (`neuralmap.terrain.latent`).
 MAP_FILENAMES = (MAP_FILENAME, "latent_map.nlat")
 
 NO_MAP_MESSAGE = (
@@ -71,11 +71,11 @@ def find_latest_map(runs_dir: str | os.PathLike[str], *, tile_fingerprint: str =
 
 def find_tile_maps(runs_dir: str | os.PathLike[str], tile_fingerprint: str) -> list[Path]:
     """The newest map of the tile in every experiment folder of ``runs_dir`` (experiments
-    in name order), the tile read from the map file as :func:`find_latest_map` reads it.
+    in name order), the tile read from the map file as `find_latest_map` reads it.
 
     Args:
         runs_dir: Root of the run folders.
-        tile_fingerprint: The tile's :meth:`~neuralmap.dem.tile.DemTile.fingerprint`.
+        tile_fingerprint: The tile's `fingerprint`.
 
     Returns:
         One path per experiment that holds a map of the tile (may be empty).

@@ -1,9 +1,9 @@
 """One outputs writer for every study: report.md, summary.md, results.json, PNGs, TensorBoard,
 config.yaml.
 
-A study writes through :class:`StudyOutputs` while it runs; everything lands in a hidden
+A study writes through `StudyOutputs` while it runs; everything lands in a hidden
 staging folder under ``<runs_dir>/<experiment>/`` and is published as the next free
-``version_<N>`` only by :meth:`StudyOutputs.finalize`, so an interrupted or failed study
+``version_<N>`` only by `StudyOutputs.finalize`, so an interrupted or failed study
 leaves nothing that looks complete (and no staging folder either).
 """
 
@@ -83,7 +83,7 @@ class RunCounts:
 
     @classmethod
     def from_metrics(cls, m: Any) -> RunCounts:
-        """From a :func:`~neuralmap.nav.metrics.navigation_metrics` dict: total = runs
+        """From a `navigation_metrics` dict: total = runs
         not excluded as off the map (non-finite runs included), failed = non-finite +
         unhealthy, good = converged."""
         failed = int(m.get("n_nonfinite") or 0) + int(m.get("n_unhealthy") or 0)
@@ -111,7 +111,7 @@ class RunCounts:
         return (self.total - self.good) / self.total if self.total else None
 
     def too_few(self, min_converged: int = MIN_CONVERGED) -> str:
-        """The verdict when :meth:`enough` is False: "not enough converged runs (n of N)"."""
+        """The verdict when `enough` is False: "not enough converged runs (n of N)"."""
         failed = f", {self.failed} failed numerically" if self.failed else ""
         return (f"{NOT_ENOUGH} ({self.good} of {self.total}{failed}; a verdict needs "
                 f"≥ {min_converged} and half)")
@@ -130,7 +130,7 @@ def verdict(holds: bool | None, *, partly: bool = False, runs: RunCounts | None 
         detail: Text appended in parentheses (e.g. "by 12 %", or why nothing was measured).
 
     Returns:
-        A verdict of the :data:`VERDICTS` vocabulary.
+        A verdict of the `VERDICTS` vocabulary.
     """
     if runs is not None and not runs.enough(min_converged):
         return runs.too_few(min_converged)
@@ -157,7 +157,7 @@ class Claim:
         paper: Which paper (e.g. ``"SEEDS 004"``) or ``"toolkit target"``.
         claim: The claim in words.
         measured: What this run measured, in words and numbers.
-        verdict: A verdict of :data:`VERDICTS` (see :func:`verdict`).
+        verdict: A verdict of `VERDICTS` (see `verdict`).
         detail: How the verdict was reached (the rule), optional.
     """
 
@@ -241,7 +241,7 @@ class StudyOutputs:
     Attributes:
         dir: The staging folder to write extra files into (published by finalize).
         results: The dict that becomes ``results.json`` (the study fills it).
-        claims: The claims added with :meth:`add_claim`.
+        claims: The claims added with `add_claim`.
     """
 
     def __init__(self, root: str | Path, *, config: Any, title: str, echo: bool = True,
@@ -316,7 +316,7 @@ class StudyOutputs:
             paper: Source (``"SEEDS 002"``, ``"toolkit target"``).
             claim: The claim in words.
             measured: What was measured.
-            verdict: A verdict of :data:`VERDICTS` (build it with :func:`verdict`).
+            verdict: A verdict of `VERDICTS` (build it with `verdict`).
             runs: The Monte Carlo runs the claim rests on: too few converged runs replace
                 the verdict by "not enough converged runs (n of N)", and numerical
                 failures are named in ``measured``.

@@ -4,16 +4,16 @@ A map format is a curve of stored bytes against error. Comparisons between two f
 made on their fronts (the points no other point of the same format beats in both bytes and
 error):
 
-* :func:`bytes_at_error`: the bytes a front needs for a given error, interpolated linearly
+* `bytes_at_error`: the bytes a front needs for a given error, interpolated linearly
   in ``log(bytes)`` over ``log(error)`` between its points (None outside the front's range);
-* :func:`bd_rate`: the Bjøntegaard delta rate (G. Bjøntegaard, VCEG-M33, 2001): the mean
+* `bd_rate`: the Bjøntegaard delta rate (G. Bjøntegaard, VCEG-M33, 2001): the mean
   relative difference in bytes of curve B against curve A over their common error range,
   ``exp(mean(log R_B - log R_A)) - 1`` with the mean taken uniformly in ``log(error)``
   (the distortion axis; ``-20 log10(error)`` is a PSNR up to a constant, so this is the
   usual BD-rate with PSNR). The log-rates are interpolated piecewise linearly (robust with
   few points, unlike the original cubic fit) on a fine grid of the common range. Negative
   values: B needs fewer bytes than A at equal error;
-* :func:`gaussian_rd_bytes`: how few bytes any coder could need for a node RMSE if the tile
+* `gaussian_rd_bytes`: how few bytes any coder could need for a node RMSE if the tile
   were a Gaussian field with its own (smoothed) spectrum, by reverse water-filling over the
   tile's DCT coefficients (T. M. Cover and J. A. Thomas, *Elements of Information Theory*,
   2nd ed., Theorem 10.3.3). Among fields of a given covariance the Gaussian one is the
@@ -25,10 +25,10 @@ error):
   the Gaussian source is the hardest (Cover & Thomas, Thm. 10.3.3 with the maximum-entropy
   property, Thm. 8.6.5): its R(D) is an **upper** bound on the R(D) of a non-Gaussian,
   non-stationary source with the same spectrum, such as terrain; a codec may sit below it;
-* :func:`shannon_lower_bound_bytes`: the Shannon lower bound
+* `shannon_lower_bound_bytes`: the Shannon lower bound
   ``R(D) ≥ h̄ − ½ log2(2πe D)`` bits per node (Cover & Thomas, Problem 10.8; Berger 1971,
   §4.3), with the differential entropy rate ``h̄`` of the field estimated by
-  :func:`innovation_entropy_bits`: the entropy of the innovations of a causal linear
+  `innovation_entropy_bits`: the entropy of the innovations of a causal linear
   predictor given a causal context of local roughness. Since
   ``h(X | past) = h(X − f(past) | past) ≤ h(X − f(past) | c(past))`` for any causal ``f``
   and context ``c``, that entropy is an upper estimate of ``h̄``: the bound computed from it
@@ -217,7 +217,7 @@ def causal_innovations(heights: np.ndarray) -> np.ndarray:
     """Innovations of the least-squares causal linear predictor of each node.
 
     Every node ``x[i, j]`` at least two rows/columns inside the tile is predicted from its
-    raster-order past :data:`CAUSAL_OFFSETS` by one linear predictor with an intercept,
+    raster-order past `CAUSAL_OFFSETS` by one linear predictor with an intercept,
     fitted by least squares over the tile: ``e = x − (a₀ + Σ_m a_m x[i + di_m, j + dj_m])``.
 
     Args:
@@ -246,7 +246,7 @@ def innovation_entropy_bits(heights: np.ndarray, *, context_bins: int = 8) -> fl
     """Conditional differential entropy of the causal innovations, bits per node: an upper
     estimate of the field's entropy rate ``h̄`` (see the module docstring).
 
-    The innovations ``e`` of :func:`causal_innovations` are grouped by a causal context, the
+    The innovations ``e`` of `causal_innovations` are grouped by a causal context, the
     local activity ``c = ¼ (|e_W| + |e_NW| + |e_N| + |e_NE|)`` of the four already-coded
     neighbours (a function of the past, so ``h(X | past) ≤ h(e | c) ≤ h(e)``), cut into
     ``context_bins`` equally populated bins; ``h(e | c) = Σ_b p_b h(e | b)``, each term
@@ -263,7 +263,7 @@ def innovation_entropy_bits(heights: np.ndarray, *, context_bins: int = 8) -> fl
         The entropy estimate, bits per node.
 
     Raises:
-        ValueError: Bad heights (see :func:`causal_innovations`) or ``context_bins < 1``.
+        ValueError: Bad heights (see `causal_innovations`) or ``context_bins < 1``.
     """
     if int(context_bins) < 1:
         raise ValueError(f"innovation_entropy_bits: context_bins must be >= 1, got "
@@ -291,7 +291,7 @@ def shannon_lower_bound_bytes(heights: np.ndarray, rmse_m: float, *,
 
     ``R_SLB(D) = n · max(0, h̄ − ½ log2(2πe D)) / 8`` bytes for ``n`` nodes and
     ``D = rmse²`` (Cover & Thomas, Problem 10.8), with ``h̄`` from
-    :func:`innovation_entropy_bits` unless given.
+    `innovation_entropy_bits` unless given.
 
     Args:
         heights: ``(ny, nx)`` node heights, m (voids filled).

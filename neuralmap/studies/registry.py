@@ -1,7 +1,7 @@
 """The studies ``evaluate.py`` can run, by the ``study:`` key of their config.
 
 Each entry names the module that holds the study's config dataclass (a subclass of
-:class:`~neuralmap.studies.base.StudyConfig`) and its ``run(config, outputs)``. Modules are
+`StudyConfig`) and its ``run(config, outputs)``. Modules are
 imported on demand, so a study's optional dependencies are needed only when it runs.
 """
 

@@ -1,6 +1,6 @@
 """The one setup every TAN-family study shares (tan, tan_outliers, tan_scale, learned,
 dem_errors, acquisition, map_size): scenario, tile, neural map, truth terrain and
-linearisation methods, frozen, built from explicit arguments (:func:`prepare_tan`)."""
+linearisation methods, frozen, built from explicit arguments (`prepare_tan`)."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ DEFAULT_METHODS: tuple[str, ...] = (
 @dataclass
 class TanOptions(StudyConfig):
     """Options every Monte Carlo TAN study shares (``tan``, ``tan_scale``, ``tan_outliers``): what
-    :func:`prepare_tan` needs and the divergence rule.
+    `prepare_tan` needs and the divergence rule.
 
     Attributes:
         map: Exported neural map (``neural_map.pt``); ``None`` = the newest
@@ -68,7 +68,7 @@ class TanOptions(StudyConfig):
     divergence_sigma: float = 9.0
 
     def validate(self) -> None:
-        """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
+        """Checks values; raises `NeuralMapError` naming the option and the fix."""
         super().validate()
         if self.n_runs < 1:
             raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
@@ -112,14 +112,14 @@ def build_methods(
     """One linearizer per method name (``neural*`` = the map with autograd).
 
     Args:
-        names: Method names (:data:`neuralmap.linearize.factory.LINEARIZER_NAMES`).
+        names: Method names (`neuralmap.linearize.factory.LINEARIZER_NAMES`).
         tile: The scenario's DEM tile (grid and plane-fit methods).
         terrain_map: The loaded neural map (None when no neural method is asked for).
         device: Device the filters run on.
         fit_variance: The neural map's error variance (m²), its linearisation variance.
 
     Returns:
-        Method name -> :class:`~neuralmap.linearize.base.Linearizer`, in ``names`` order.
+        Method name -> `Linearizer`, in ``names`` order.
     """
     methods: dict[str, Any] = {}
     for name in names:
@@ -203,7 +203,7 @@ def prepare_tan(
     linearisation methods, from explicit arguments.
 
     Args:
-        scenario: Scenario name, YAML path, or an already built :class:`Scenario`.
+        scenario: Scenario name, YAML path, or an already built `Scenario`.
         methods: Linearisation method names.
         map_path: Neural map file; None = the newest map of the scenario's tile under
             ``runs_dir`` (only read when a method needs a terrain model).
@@ -223,7 +223,7 @@ def prepare_tan(
             raising (``acquisition``: its neural-map rows are skipped).
 
     Returns:
-        The frozen :class:`TanSetup` (record its map and seed with :meth:`TanSetup.pin`).
+        The frozen `TanSetup` (record its map and seed with `TanSetup.pin`).
 
     Raises:
         NeuralMapError: Bad scenario, no map, a map of another tile.
@@ -281,12 +281,12 @@ def void_exposure(tile: Any, truth: Any) -> dict[str, int]:
 def dem_error_model(scenario: Any, tile: Any, truth_terrain: Any, *, n_points: int,
                     seed: int) -> dict[str, Any]:
     """The bilinear DEM as a map, with its error against the truth terrain: the noise of the
-    map-aware PCRB (:func:`neuralmap.nav.pcrb.map_aware_pcrb`).
+    map-aware PCRB (`neuralmap.nav.pcrb.map_aware_pcrb`).
 
     Args:
         scenario: The study's scenario (its speed × period is the correlation lag).
         tile: The DEM tile.
-        truth_terrain: The study's :class:`~neuralmap.nav.truth_terrain.TrueTerrain`.
+        truth_terrain: The study's `TrueTerrain`.
         n_points: Seeded random points between the nodes.
         seed: Seed of the points.
 

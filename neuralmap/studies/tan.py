@@ -61,7 +61,7 @@ from neuralmap.viz.tensorboard_nav import log_navigation
 
 __all__ = ["DEFAULT_METHODS", "TanStudyConfig", "run"]
 
-#: The EKF started by the point-mass filter (:func:`neuralmap.nav.acquisition.run_acquisition`'s
+#: The EKF started by the point-mass filter (`neuralmap.nav.acquisition.run_acquisition`'s
 #: ``point_mass_ekf`` on the bilinear DEM): the toolkit's recommended EKF method.
 PM_EKF_METHOD = "point_mass_ekf"
 
@@ -81,29 +81,29 @@ _FIGURES = {
 @dataclass
 class TanStudyConfig(TanOptions, ClusterOptions):
     """Options of the TAN Monte Carlo study (``study: tan``): the shared TAN options
-    (:class:`~neuralmap.studies.setup.TanOptions`) plus the plots.
+    (`TanOptions`) plus the plots.
 
     Attributes:
         n_plot_trajectories: Trajectories drawn over the hillshade.
         methods: The shared linearisation methods plus ``point_mass_tracker`` (the point-mass
-            tracker on the bilinear DEM for the whole flight, :mod:`neuralmap.nav.tracking`)
+            tracker on the bilinear DEM for the whole flight, `neuralmap.nav.tracking`)
             and ``point_mass_ekf`` (the bilinear EKF started by the point-mass filter: the
             grid acquires, the EKF takes over once the posterior is unimodal and small,
-            :mod:`neuralmap.nav.acquisition`; R = altimeter + the bilinear DEM's map table,
-            :func:`~neuralmap.linearize.measured_noise.measure_linearization_noise`).
+            `neuralmap.nav.acquisition`; R = altimeter + the bilinear DEM's map table,
+            `measure_linearization_noise`).
         tracker_cells: Lattice cells per axis of ``point_mass_tracker`` (cell = σ/3.1).
         tracker_stated_r: Fly ``point_mass_tracker`` a second time with the R a user has
             (the altimeter variance + the DEM's stated accuracy ``dem_error_sigma_m``², as
-            the :class:`~neuralmap.nav.navigator.Navigator` builds it, no truth terrain)
+            the `Navigator` builds it, no truth terrain)
             and report what is lost against the truth-tuned R.
         noise: R of the EKF methods: ``"measured"`` = the altimeter variance + each method's
             miss against the truth terrain as a function of the position σ, measured over the
-            map and on pilot flights (:mod:`neuralmap.nav.noise_calibration`); ``"scenario"``
+            map and on pilot flights (`neuralmap.nav.noise_calibration`); ``"scenario"``
             = the scenario's ``R_m2 + fit_variance_m2`` + each method's own variance.
         noise_pilot_runs: Pilot runs of the in-flight measurement (0 = the map table only).
         noise_iterations: Pilot flights (fixed-point iterations).
         cluster: Where the EKF methods' filters run (one task per method on a Dask cluster,
-            :func:`neuralmap.nav.monte_carlo.run_filters`; bit-identical); default this
+            `neuralmap.nav.monte_carlo.run_filters`; bit-identical); default this
             process. The tracker, the point-mass EKF and the pilot flights run here.
     """
 
@@ -118,7 +118,7 @@ class TanStudyConfig(TanOptions, ClusterOptions):
     noise_iterations: int = 3
 
     def validate(self) -> None:
-        """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
+        """Checks values; raises `NeuralMapError` naming the option and the fix."""
         methods = list(self.methods)
         if any(methods.count(own) > 1 for own in _OWN_METHODS):
             raise NeuralMapError(f"--methods lists a method twice: {methods}.")
@@ -432,12 +432,12 @@ def _run_point_mass_ekf(config: Any, scenario: Any, truth: Any, tile: Any, truth
 
     The grid (the bilinear DEM's likelihood) acquires from the prior and hands each run to
     the bilinear EKF once its posterior is unimodal and small
-    (:func:`~neuralmap.nav.acquisition.run_acquisition`, ``point_mass_ekf``, default
-    :class:`~neuralmap.nav.acquisition.AcquisitionConfig`). R splits into the part both
+    (`run_acquisition`, ``point_mass_ekf``, default
+    `AcquisitionConfig`). R splits into the part both
     filters share — the altimeter variance + the DEM's error variance, the map table at
     σ = 0 — and the EKF's linearisation excess over it, ``v(σ) − v(0)``, read from the
     bilinear method's map table at the filter's position σ
-    (:func:`~neuralmap.linearize.measured_noise.measure_linearization_noise`: the miss
+    (`measure_linearization_noise`: the miss
     ``t(p) − h(p̂) − slope(p̂)·(p − p̂)`` against the truth terrain with ``p − p̂ ~ N(0, σ² I)``).
     The table is the whole R: no pilot flights, since an EKF the grid has started does not
     lock onto a wrong terrain match, which is what the pilot flights of a cold-started EKF
@@ -523,7 +523,7 @@ def _add_map_aware_bound(results: dict[str, Any], bound: np.ndarray, dem: dict[s
 
 def _tracker_claims(results: dict[str, Any]) -> list[Any]:
     """The point-mass tracker's targets against both bounds (toolkit targets), each judged
-    by the one verdict rule (:func:`neuralmap.studies.outputs.verdict`): RMSE and
+    by the one verdict rule (`neuralmap.studies.outputs.verdict`): RMSE and
     divergence rest on every on-map run, NEES on the converged runs."""
     entry = results["methods"].get(TRACKER_METHOD)
     if not entry:
@@ -568,7 +568,7 @@ RECOMMENDED_EKF = (PM_EKF_METHOD, "neural_region")
 
 def _consistency_claims(results: dict[str, Any]) -> list[Any]:
     """NEES band coverage of the recommended EKF method (toolkit target: >= 90 % of steps),
-    the first of :data:`RECOMMENDED_EKF` in the results; the other methods' coverage is in
+    the first of `RECOMMENDED_EKF` in the results; the other methods' coverage is in
     the table."""
     name = next((m for m in RECOMMENDED_EKF
                  if results["methods"].get(m, {}).get("nees_in_band") is not None), None)

@@ -2,7 +2,7 @@
 
 The scenario is flown twice on the same Monte Carlo draws: once with a clean altimeter (the
 plain EKF's reference) and once with faults — isolated spikes, patches of consecutive
-biased returns (canopy, roofs) and losses of lock (:mod:`neuralmap.nav.altimeter`). The
+biased returns (canopy, roofs) and losses of lock (`neuralmap.nav.altimeter`). The
 faulty flight is filtered with every policy: plain EKF, χ² gate, Huber, Sage-Husa, IGG-III,
 RAF (IGG-III + Yang's factor, SEEDS 002), RAF + quality R (SEEDS 003's quality factor
 before the adaptive factor), paper 003's tuned filter (quality R + innovation inflation)
@@ -43,7 +43,7 @@ from neuralmap.viz.navigation import plot_error_vs_time
 
 __all__ = ["POLICIES", "TanOutliersConfig", "run", "study_policy"]
 
-#: The study's default policies (registry names of :mod:`neuralmap.filters.policies`, in
+#: The study's default policies (registry names of `neuralmap.filters.policies`, in
 #: report order) with their labels; ``--policies`` takes any registry name.
 POLICIES: dict[str, str] = {
     name: policy_label(name)
@@ -57,7 +57,7 @@ def study_policy(name: str, *, R: float) -> FilterPolicy | None:
     filter's nominal measurement variance: ``R/4 … 100 R``.
 
     Args:
-        name: A registry name (:data:`~neuralmap.filters.policies.POLICY_NAMES`).
+        name: A registry name (`POLICY_NAMES`).
         R: The filter's nominal measurement variance, m².
     """
     args = {"R_min": R / 4.0, "R_max": 100.0 * R} if name == "sage_husa" else {}
@@ -67,11 +67,11 @@ def study_policy(name: str, *, R: float) -> FilterPolicy | None:
 @dataclass
 class TanOutliersConfig(TanOptions):
     """Options of the altimeter-fault study (``study: tan_outliers``): the shared TAN
-    options (:class:`~neuralmap.studies.setup.TanOptions`; the scenario's own fault
+    options (`TanOptions`; the scenario's own fault
     settings are replaced by the ones below) plus the faults, policies and targets.
 
     Attributes:
-        policies: Update policies, registry names (default :data:`POLICIES`); ``ekf`` is the
+        policies: Update policies, registry names (default `POLICIES`); ``ekf`` is the
             plain filter.
         spike_prob: Probability per epoch of an isolated spike.
         spike_min_m: Smallest spike, m.
@@ -103,7 +103,7 @@ class TanOutliersConfig(TanOptions):
     target_rmse_ratio: float = 1.3
 
     def validate(self) -> None:
-        """Checks values; raises :class:`NeuralMapError` naming the option and the fix."""
+        """Checks values; raises `NeuralMapError` naming the option and the fix."""
         super().validate()
         bad = [p for p in self.policies if p not in POLICY_NAMES]
         if not self.policies or bad:
@@ -304,7 +304,7 @@ def _targets(config: TanOutliersConfig, results: dict[str, Any]) -> dict[str, An
 
 def _claims(outputs: StudyOutputs, config: TanOutliersConfig, results: dict[str, Any]) -> None:
     """Paper 002's / 003's claims and the toolkit target, per method. Every claim is over
-    all runs of the policies it compares (:meth:`RunCounts.all_runs`); numerical failures
+    all runs of the policies it compares (`RunCounts.all_runs`); numerical failures
     count as failed runs in the divergence figures."""
     def fmt(v: Any, spec: str = "{:.1f}") -> str:
         return "n/a" if v is None else spec.format(v)

@@ -1,7 +1,7 @@
 """The TAN study's results: ``results.json``, ``report.md``, console table, claims check.
 
 The evaluation front end (``evaluate.py``) collects one metrics dict per linearisation
-method (:func:`neuralmap.nav.metrics.navigation_metrics`), the posterior Cramér-Rao bound
+method (`neuralmap.nav.metrics.navigation_metrics`), the posterior Cramér-Rao bound
 and the run configuration; this module turns them into the files a user reads. It knows
 nothing about filters or maps: every input is plain numbers, lists and dicts.
 
@@ -10,7 +10,7 @@ The claims check compares the measured numbers with paper 004's statements (SEED
 25 m (1σ) better than the classical linearisations; and with the toolkit's accuracy targets
 (neural RMSE over all runs within 1.5× the PCRB, divergence ≤ 2 %). A verdict needs a
 minimum number of converged runs per method (the shared rule of
-:func:`neuralmap.studies.outputs.verdict`); below it the claim reads "not enough converged
+`neuralmap.studies.outputs.verdict`); below it the claim reads "not enough converged
 runs (n of N)". Numerical failures count against every claim (as not converged, and as
 failed runs in the divergence target).
 """
@@ -96,7 +96,7 @@ class ClaimCheck:
     Attributes:
         claim: The statement being checked (with its source).
         measured: The measured value(s), as text with units.
-        verdict: A verdict of :data:`neuralmap.studies.outputs.VERDICTS`.
+        verdict: A verdict of `neuralmap.studies.outputs.VERDICTS`.
         detail: How the verdict was reached (the rule), and caveats.
         paper: The claim's source, the report's "paper" column (``"SEEDS 004"`` or
             ``"toolkit target"``); the claim text does not repeat it.
@@ -112,7 +112,7 @@ class ClaimCheck:
 def _last_half_rms(curve: Sequence[float]) -> float:
     """Root mean square of the finite values of the last half of a curve (NaN when none).
 
-    The same time average as :func:`neuralmap.nav.metrics.navigation_metrics` uses for the
+    The same time average as `neuralmap.nav.metrics.navigation_metrics` uses for the
     PCRB (samples ``(K+1)//2 … K``).
     """
     values = np.asarray(curve, dtype=np.float64)
@@ -139,11 +139,11 @@ def build_results(
 
     Args:
         method_metrics: Method name -> metrics dict from
-            :func:`neuralmap.nav.metrics.navigation_metrics` (must hold :data:`METHOD_KEYS`;
+            `neuralmap.nav.metrics.navigation_metrics` (must hold `METHOD_KEYS`;
             curves and counts are kept when present).
         t: ``(K+1,)`` time stamps in seconds.
         pcrb_pos: ``(K+1,)`` horizontal position PCRB in metres
-            (:func:`neuralmap.nav.pcrb.pcrb_position`).
+            (`neuralmap.nav.pcrb.pcrb_position`).
         divergence_rule: The divergence rule text (``neuralmap.nav.metrics.DIVERGENCE_RULE``).
         config: The evaluation configuration (JSON-serialisable).
         scenario: The scenario's fields.
@@ -155,13 +155,13 @@ def build_results(
             PCRB then bounds nothing and is shown as a reference curve).
 
     Returns:
-        A dict with ``methods`` (name -> the :data:`METHOD_KEYS` plus counts and
+        A dict with ``methods`` (name -> the `METHOD_KEYS` plus counts and
         ``final_pos_m``), ``curves`` (``t``, ``pcrb_pos_m`` and per-method curves),
         ``pcrb_pos_m`` (RMS over the last half), ``pcrb_pos_final_m``,
         ``divergence_rule``, ``config``, ``scenario``, ``map``, ``off_map``, ``timing_s``.
 
     Raises:
-        NeuralMapError: When a method lacks one of :data:`METHOD_KEYS` or the curves do
+        NeuralMapError: When a method lacks one of `METHOD_KEYS` or the curves do
             not match ``t``.
     """
     if not method_metrics:
@@ -265,7 +265,7 @@ def check_claims(
     runs are named, never silently dropped.
 
     Args:
-        results: The structure from :func:`build_results`.
+        results: The structure from `build_results`.
         neural_method: Name of the neural-map method.
         pos_limit_m: Claimed 1σ position bound, metres.
         vel_limit_mps: Claimed 1σ velocity bound, m/s.
@@ -275,7 +275,7 @@ def check_claims(
         min_converged: Minimum converged runs for a 1σ-based verdict.
 
     Returns:
-        One :class:`ClaimCheck` per claim/target, in the order above.
+        One `ClaimCheck` per claim/target, in the order above.
     """
     methods: Mapping[str, Mapping[str, Any]] = results["methods"]
     neural = methods.get(neural_method)
@@ -431,7 +431,7 @@ def format_table(results: Mapping[str, Any], *, markdown: bool = False) -> str:
     """The per-method metrics table.
 
     Args:
-        results: The structure from :func:`build_results`.
+        results: The structure from `build_results`.
         markdown: Pipe table for markdown instead of aligned plain text.
 
     Returns:
@@ -524,10 +524,10 @@ def noise_section(noise: Mapping[str, Any]) -> list[str]:
 def report_text(results: Mapping[str, Any]) -> str:
     """The TAN study's own report sections: setup, metrics table, off-map runs, divergence
     rule and timing (the title, figures and claims table come from
-    :class:`~neuralmap.studies.outputs.StudyOutputs`).
+    `StudyOutputs`).
 
     Args:
-        results: The structure from :func:`build_results`.
+        results: The structure from `build_results`.
 
     Returns:
         Markdown text.

@@ -1,9 +1,9 @@
 """TAN Monte Carlo at scale (``study: tan_scale``): chunked runs in bounded memory.
 
-The same scenario, map and methods as the TAN study (:func:`neuralmap.studies.setup.prepare_tan`),
-flown as :func:`neuralmap.nav.chunked.run_monte_carlo_chunked` runs: seed blocks of 1024
+The same scenario, map and methods as the TAN study (`neuralmap.studies.setup.prepare_tan`),
+flown as `neuralmap.nav.chunked.run_monte_carlo_chunked` runs: seed blocks of 1024
 runs, chunks of ``chunk_runs`` runs dealt to a Dask cluster (``--cluster``; default
-``local``: a LocalCluster of one single-threaded worker per core, :mod:`neuralmap.cluster`).
+``local``: a LocalCluster of one single-threaded worker per core, `neuralmap.cluster`).
 Only per-run final errors and bounds and per-step sums are kept, so a million runs fit in
 memory; the results do not depend on ``chunk_runs`` or ``cluster`` (bit-identical in
 float64). Up to 1024 runs
@@ -41,7 +41,7 @@ class TanScaleConfig(TanOptions, ClusterOptions):
         batch_runs: Runs filtered as one batch (whole seed blocks of 1024); bounds memory.
             Larger batches pay the filter's per-step overhead less often; changing it may
             change results in the last bits, ``chunk_runs`` and ``cluster`` never do.
-        cluster: Where the chunks run (:class:`~neuralmap.studies.cluster_options.ClusterOptions`);
+        cluster: Where the chunks run (`ClusterOptions`);
             default ``local``: a Dask LocalCluster of one single-threaded worker process per
             core this process may use (one chunk per core at a time; the filter is run
             single-threaded, where it is fastest per core). ``none`` = this process.

@@ -6,7 +6,7 @@ tile, ``lon, lat`` of a geographic one; none for a tile without a georeference),
 the height. ``trajectories.geojson`` holds one LineString per run and track in WGS-84
 lon/lat (RFC 7946; a projected tile's points are transformed with rasterio from its CRS),
 written only for georeferenced tiles. Tracks are ``truth``, ``ins`` and each filter's
-estimate; the first :data:`TRACK_RUNS` runs are written.
+estimate; the first `TRACK_RUNS` runs are written.
 """
 
 from __future__ import annotations

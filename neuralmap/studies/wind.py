@@ -54,7 +54,7 @@ __all__ = ["CONDITIONS", "DEFAULT_FILTERS", "WindStudyConfig", "run"]
 CONDITIONS: tuple[str, ...] = ("clean", "outliers", "shear")
 
 #: Filters compared when the config does not list them (policies by registry name,
-#: :data:`neuralmap.filters.policies.POLICIES`; "raf" is SEEDS 002's c0 = 1.5, c1 = 8.5).
+#: `neuralmap.filters.policies.POLICIES`; "raf" is SEEDS 002's c0 = 1.5, c1 = 8.5).
 DEFAULT_FILTERS: tuple[dict[str, Any], ...] = (
     {"name": "KF"},
     {"name": "Sage-Husa", "policy": "sage_husa",
@@ -96,7 +96,7 @@ class WindStudyConfig(StudyConfig):
         coeff_var: Random-walk variance of the AR coefficient (TVAR model).
         lti_correlation_time: ``τ`` (s) of the LTI first-order Markov model.
         filters: The estimators: mappings with ``name``, optional ``model`` (``tvar`` or
-            ``lti``), ``policy`` (a registry name of :mod:`neuralmap.filters.policies`),
+            ``lti``), ``policy`` (a registry name of `neuralmap.filters.policies`),
             ``policy_args`` (a mapping over the policy's defaults) and ``correlated``.
         divergence_threshold: A run diverges when its final error RMS exceeds this (m/s).
         heading_deg: Heading of the dead-reckoned vehicle.
@@ -195,7 +195,7 @@ class WindStudyConfig(StudyConfig):
                            fix_interval=fix_interval, fix_std=self.fix_std)
 
     def filter_specs(self) -> list[WindFilterSpec]:
-        """The configured filters as :class:`WindFilterSpec` (validated)."""
+        """The configured filters as `WindFilterSpec` (validated)."""
         specs = []
         allowed = {"name", "model", "policy", "policy_args", "correlated"}
         for i, entry in enumerate(self.filters):

@@ -38,7 +38,7 @@ def bake_to_grid(
         chunk: Points per evaluation batch.
 
     Returns:
-        The :class:`GridTerrain` of the baked heights (float64 buffer).
+        The `GridTerrain` of the baked heights (float64 buffer).
 
     Raises:
         NeuralMapError: ``oversample`` not an integer ``>= 1``.

@@ -31,13 +31,13 @@ def inside_extent(
 class TerrainModel(nn.Module):
     """A terrain height field ``h(x, y)`` in metres over a metric east-north frame.
 
-    Subclasses implement :meth:`forward`; grid and neural models are interchangeable in
+    Subclasses implement `forward`; grid and neural models are interchangeable in
     the linearisation layer and the filter.
 
     Attributes:
         extent: ``(xmin, xmax, ymin, ymax)`` metric bounds where the model is valid.
         tile_name: Name of the DEM tile the model represents.
-        tile_fingerprint: :meth:`DemTile.fingerprint` of that tile ("" when unknown).
+        tile_fingerprint: `DemTile.fingerprint` of that tile ("" when unknown).
     """
 
     extent: tuple[float, float, float, float]
@@ -56,7 +56,7 @@ class TerrainModel(nn.Module):
         raise NotImplementedError
 
     def contains(self, xy: torch.Tensor, margin: float = 0.0) -> torch.Tensor:
-        """Whether points lie inside :attr:`extent` shrunk by ``margin`` metres.
+        """Whether points lie inside `extent` shrunk by ``margin`` metres.
 
         Args:
             xy: ``(..., 2)`` metric points.
@@ -71,7 +71,7 @@ class TerrainModel(nn.Module):
                    stem: str = "neural_map") -> dict[str, Any]:
         """Writes the map's height, residual and slope as GeoTIFF on ``tile``'s source grid.
 
-        See :func:`neuralmap.terrain.geotiff.write_map_geotiffs` (needs rasterio).
+        See `neuralmap.terrain.geotiff.write_map_geotiffs` (needs rasterio).
 
         Args:
             out_dir: Output folder.

@@ -2,8 +2,8 @@
 
 SEEDS 004 splits the map into blocks with one 2-m-1 BP net each and a position gate that
 picks the net. Here all block networks run in one batched operation (grouped ``bmm``, see
-:mod:`neuralmap.terrain.grouped`); blocks overlap and are blended with a C2 partition of
-unity (:mod:`neuralmap.terrain.block_layout`) so that height and slope are continuous
+`neuralmap.terrain.grouped`); blocks overlap and are blended with a C2 partition of
+unity (`neuralmap.terrain.block_layout`) so that height and slope are continuous
 across block borders. Each block sees its own coordinates normalised to [-1, 1] over its
 extended domain, optionally lifted by Fourier features, and predicts a normalised height
 that is de-normalised with the block's own mean and standard deviation: callers always
@@ -33,10 +33,10 @@ ENCODINGS = ("fourier", "none")
 
 @dataclass(frozen=True)
 class BlockwiseDefaults:
-    """Default architecture of :class:`BlockwiseTerrainNet`, the one place it is set.
+    """Default architecture of `BlockwiseTerrainNet`, the one place it is set.
 
-    The net's constructor, :meth:`BlockwiseTerrainNet.from_tile` and the training module
-    take their defaults from :data:`NET_DEFAULTS`; a config states a value only to
+    The net's constructor, `BlockwiseTerrainNet.from_tile` and the training module
+    take their defaults from `NET_DEFAULTS`; a config states a value only to
     override it. These are the values ``python train.py`` fits with (``frequency_scale``
     1.0 was chosen on the jacksboro fit).
 
@@ -72,7 +72,7 @@ NET_DEFAULTS = BlockwiseDefaults()
 class BlockwiseTerrainNet(TerrainModel):
     """Per-block MLPs ``h(x, y)`` over a map, with smooth blending between blocks.
 
-    Build it for a tile with :meth:`from_tile`; the constructor takes the explicit
+    Build it for a tile with `from_tile`; the constructor takes the explicit
     geometry so that an exported map is rebuilt from its config alone.
 
     Args:
@@ -89,7 +89,7 @@ class BlockwiseTerrainNet(TerrainModel):
         activation: ``sine``, ``tanh``, ``silu`` or ``bipolar_sigmoid`` (SEEDS 004).
         blend: Blend blocks (True) or use the hard gate (False, as the paper).
         seed: Seed for the initial weights and frequencies.
-        tile_info: The tile's :meth:`DemTile.describe` dict, recorded in exports.
+        tile_info: The tile's `DemTile.describe` dict, recorded in exports.
     """
 
     def __init__(
@@ -309,7 +309,7 @@ class BlockwiseTerrainNet(TerrainModel):
 
         Returns:
             ``(...)`` heights in metres. Non-finite points (a diverged filter track) give NaN
-            heights with zero gradient, as for :class:`neuralmap.terrain.GridTerrain`.
+            heights with zero gradient, as for `neuralmap.terrain.GridTerrain`.
         """
         if xy.shape[-1] != 2:
             raise NeuralMapError(f"xy must have shape (..., 2), got {tuple(xy.shape)}.")
@@ -359,8 +359,8 @@ class BlockwiseTerrainNet(TerrainModel):
     def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Heights and slopes in one forward-mode pass, without autograd.
 
-        Equal to :meth:`forward` and the autograd gradient of its sum (see
-        :func:`neuralmap.terrain.forward_slope.blockwise_height_and_slope`).
+        Equal to `forward` and the autograd gradient of its sum (see
+        `neuralmap.terrain.forward_slope.blockwise_height_and_slope`).
 
         Args:
             xy: ``(..., 2)`` east/north metres.

@@ -1,12 +1,12 @@
 """Compressed DEM grids: error-bounded raster codecs as the storage baseline for neural maps.
 
 A map stored on board is never a raw float32 grid: it is a compressed one. This module
-encodes a :class:`~neuralmap.dem.tile.DemTile` with the raster codecs of ``imagecodecs``
+encodes a `DemTile` with the raster codecs of ``imagecodecs``
 and the SZ3 error-bounded compressor of ``pysz`` (optional extra ``neuralmap[codecs]``),
 decodes the bytes again and returns the decoded
 tile, so every navigation method (grid interpolation, plane fits, ...) runs on exactly what
 the decoder on board would see. The stored size is the encoded payload plus a fixed
-:data:`HEADER_BYTES` header (shape, spacing, origin, quantisation offset and step, codec).
+`HEADER_BYTES` header (shape, spacing, origin, quantisation offset and step, codec).
 
 Codecs (``max_error`` = the bound on ``|decoded - stored|`` at the stored nodes, metres):
 
@@ -46,7 +46,7 @@ from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.grid import GridTerrain, fill_voids_nearest
 
-#: Every codec name :func:`compress_grid` accepts.
+#: Every codec name `compress_grid` accepts.
 GRID_CODECS = ("lerc", "jpegls", "jpeg2k", "zstd", "sz3")
 
 #: One-line description of each codec, for reports.
@@ -105,10 +105,10 @@ class CompressedGrid:
     """An encoded DEM grid and what the decoder makes of it.
 
     Attributes:
-        codec: Codec name (one of :data:`GRID_CODECS`).
+        codec: Codec name (one of `GRID_CODECS`).
         max_error: Requested maximum error at the stored nodes, metres.
         decimation: Decimation factor (1 = full resolution).
-        payload: The encoded bytes (what is stored, with :data:`HEADER_BYTES`).
+        payload: The encoded bytes (what is stored, with `HEADER_BYTES`).
         stored_shape: ``(ny, nx)`` of the encoded grid.
         step: Height quantisation step in metres (``None`` for LERC and SZ3, which take
             floats).
@@ -119,7 +119,7 @@ class CompressedGrid:
         settings: Codec settings used (e.g. ``near``, the JPEG 2000 PSNR level).
         decode_s: Wall-clock seconds the decoder took for the payload (without the
             bicubic interpolation back of decimated grids).
-        source_fingerprint: :meth:`DemTile.fingerprint` of the tile that was encoded.
+        source_fingerprint: `DemTile.fingerprint` of the tile that was encoded.
     """
 
     codec: str
@@ -137,7 +137,7 @@ class CompressedGrid:
 
     @property
     def nbytes(self) -> int:
-        """Stored bytes: payload plus :data:`HEADER_BYTES`."""
+        """Stored bytes: payload plus `HEADER_BYTES`."""
         return len(self.payload) + HEADER_BYTES
 
     @property
@@ -155,7 +155,7 @@ class CompressedGrid:
     def terrain(
         self, *, method: str = "bicubic", dtype: torch.dtype = torch.float64
     ) -> GridTerrain:
-        """The decoded grid as a :class:`GridTerrain` (interpolation ``method``).
+        """The decoded grid as a `GridTerrain` (interpolation ``method``).
 
         The terrain records the *encoded* tile's name and fingerprint: it is a map of that
         tile (the filters' tile checks accept it for the original tile's scenarios).
@@ -296,18 +296,18 @@ def compress_grid(
 ) -> CompressedGrid:
     """Encodes a DEM tile with an error-bounded raster codec and decodes it back.
 
-    Voids are filled with the nearest valid node first (as :class:`GridTerrain` does).
+    Voids are filled with the nearest valid node first (as `GridTerrain` does).
 
     Args:
         tile: The DEM tile.
-        codec: One of :data:`GRID_CODECS` (see the module docstring for each bound).
+        codec: One of `GRID_CODECS` (see the module docstring for each bound).
         max_error: Maximum error at the stored nodes, metres (> 0).
         decimation: Integer factor ``>= 1``; ``> 1`` stores a resampled coarser grid and
             interpolates the decoded one back to the tile's nodes (bicubic).
         near: JPEG-LS ``NEAR`` parameter (``>= 0``; only for ``"jpegls"``).
 
     Returns:
-        The :class:`CompressedGrid` (payload, stored bytes, decoded tile).
+        The `CompressedGrid` (payload, stored bytes, decoded tile).
 
     Raises:
         NeuralMapError: Unknown codec, ``max_error <= 0``, a bad ``decimation`` or

@@ -33,7 +33,7 @@ def save_map(
     The file records the model class, its constructor config (including the tile it was
     fitted to: name, fingerprint, extent), the float state dict and optional metrics.
     With ``quantization`` the parameters are stored in that compact form instead
-    (:mod:`neuralmap.terrain.quantize`; buffers stay float32) and :func:`load_map`
+    (`neuralmap.terrain.quantize`; buffers stay float32) and `load_map`
     dequantises them; the file size is then the map's stored size.
 
     Args:
@@ -42,7 +42,7 @@ def save_map(
         metrics: Final fit metrics (JSON-like), stored for reports.
         extra: Any further JSON-like information (e.g. the training config).
         quantization: ``None`` (float32) or a scheme of
-            :data:`neuralmap.terrain.quantize.QUANT_SCHEMES` (``"fp16"``, ``"int8_tensor"``,
+            `neuralmap.terrain.quantize.QUANT_SCHEMES` (``"fp16"``, ``"int8_tensor"``,
             ``"int8_block"``, ``"int8_channel"``).
 
     Returns:
@@ -129,11 +129,11 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
     """Loads an exported neural map as a plain ``nn.Module`` in eval mode.
 
     Args:
-        path: A file written by :func:`save_map`, the ``map_index.json`` (or its
+        path: A file written by `save_map`, the ``map_index.json`` (or its
             folder) of a sharded region map: then a
-            :class:`~neuralmap.terrain.sharded.ShardedTerrainMap` that loads shards lazily,
+            `ShardedTerrainMap` that loads shards lazily,
             or a latent-grid map bitstream (recognised by its magic bytes): then a
-            :class:`~neuralmap.terrain.latent.LatentTerrainMap`.
+            `LatentTerrainMap`.
 
     Returns:
         The terrain model; ``.tile_name``, ``.tile_fingerprint``, ``.extent`` and
@@ -156,10 +156,10 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
 
 
 def load_map_file(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
-    """Loads one map file written by :func:`save_map` (no sharded-index dispatch).
+    """Loads one map file written by `save_map` (no sharded-index dispatch).
 
     Raises:
-        NeuralMapError: As :func:`load_map`.
+        NeuralMapError: As `load_map`.
     """
     payload = load_map_payload(path)
     state = payload.get("state_dict")

@@ -6,7 +6,7 @@
     neuralmap-export neural_map.pt --dem N36W085.hgt --out qgis/ --layers [height,residual]
 
 Writes ``<out>/neural_map_<layer>.tif`` (default ``out``: a ``geotiff`` folder next to the
-map) in the source DEM's CRS, grid and no-data (:mod:`neuralmap.terrain.geotiff`). Bad input
+map) in the source DEM's CRS, grid and no-data (`neuralmap.terrain.geotiff`). Bad input
 prints one ``error:`` line and exits 2.
 """
 

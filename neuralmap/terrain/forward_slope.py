@@ -13,7 +13,7 @@ of quintic smoothsteps) are differentiated in closed form, so
 Measured on one CPU thread (``benchmarks/bench_map_size.py``, jacksboro compact maps) it is
 *not* faster than reverse-mode autograd (0.6-0.8x): the three-times-taller ``bmm`` costs
 about what the backward pass does. Its use is a graph-free, exact slope (e.g. under
-``no_grad``); for grid-speed queries bake the map (:mod:`neuralmap.terrain.bake`).
+``no_grad``); for grid-speed queries bake the map (`neuralmap.terrain.bake`).
 """
 
 from __future__ import annotations
@@ -31,7 +31,7 @@ from neuralmap.terrain.grouped import TileGroups
 
 class BlockwiseParameters(Protocol):
     """What the forward-mode pass reads of a blockwise map
-    (:class:`neuralmap.terrain.blockwise.BlockwiseTerrainNet` provides it; declared here so
+    (`neuralmap.terrain.blockwise.BlockwiseTerrainNet` provides it; declared here so
     this module needs no import of the network's module)."""
 
     layout: BlockLayout
@@ -58,7 +58,7 @@ def _axis_weights(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Blocks along one axis, their weights and the weights' derivative.
 
-    Same blocks and weights as :meth:`BlockLayout.axis_candidates`; adds
+    Same blocks and weights as `BlockLayout.axis_candidates`; adds
     ``d w_neighbour / du`` (and ``d w_own / du = -d w_neighbour / du``).
 
     Returns:
@@ -109,7 +109,7 @@ def blockwise_height_and_slope(
     net: BlockwiseParameters, xy: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Heights and slopes of a blockwise map
-    (:class:`~neuralmap.terrain.blockwise.BlockwiseTerrainNet`) by forward-mode
+    (`BlockwiseTerrainNet`) by forward-mode
     differentiation.
 
     Equal (to float rounding) to ``net(xy)`` and to the autograd gradient of its sum; no

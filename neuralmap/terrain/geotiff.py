@@ -8,8 +8,8 @@ no-data cells, so it opens in QGIS (or rasterio, GDAL) on top of the DEM it was 
 * ``slope``: the map's gradient magnitude ``|∇h|`` (m/m), by autograd (any terrain model).
 
 The grid is rebuilt from the tile's georeference: a projected tile
-(:class:`~neuralmap.dem.tile.ProjectedReference`) gets its absolute coordinates back
-(``easting = x + x_offset``); a geographic tile (:class:`~neuralmap.dem.tile.GeoReference`)
+(`ProjectedReference`) gets its absolute coordinates back
+(``easting = x + x_offset``); a geographic tile (`GeoReference`)
 its lon/lat grid (the inverse of the reader's equirectangular map, ``EPSG:4326`` unless
 the source GeoTIFF named another geographic CRS); a tile without a georeference (a plain
 ``.npy``) is written in its tile-local metres without a CRS. Pixels are areas (GDAL
@@ -34,7 +34,7 @@ from neuralmap.io import default_mode
 
 __all__ = ["LAYERS", "NODATA", "map_layers", "source_grid", "write_geotiff", "write_map_geotiffs"]
 
-#: Layers :func:`write_map_geotiffs` can write.
+#: Layers `write_map_geotiffs` can write.
 LAYERS = ("height", "residual", "slope")
 #: No-data value written when the source names none.
 NODATA = -9999.0
@@ -137,7 +137,7 @@ def write_geotiff(path: str | os.PathLike[str], values: np.ndarray, tile: DemTil
         path: Destination ``.tif``.
         values: The layer, row 0 south.
         tile: The tile whose grid and CRS the file takes.
-        nodata: No-data value; None = the source's (when finite) else :data:`NODATA`.
+        nodata: No-data value; None = the source's (when finite) else `NODATA`.
         description: Band description (shown by GIS tools).
 
     Returns:
@@ -205,9 +205,9 @@ def write_map_geotiffs(terrain: torch.nn.Module, tile: DemTile, out_dir: str | o
         terrain: The fitted map.
         tile: The DEM tile it was fitted to.
         out_dir: Output folder (created when missing).
-        layers: Any of :data:`LAYERS`.
+        layers: Any of `LAYERS`.
         stem: File name prefix.
-        nodata: No-data value (see :func:`write_geotiff`).
+        nodata: No-data value (see `write_geotiff`).
 
     Returns:
         Layer name -> path.

@@ -1,8 +1,8 @@
-"""Grid terrain: bilinear and bicubic interpolation of a DEM tile as a :class:`TerrainModel`.
+"""Grid terrain: bilinear and bicubic interpolation of a DEM tile as a `TerrainModel`.
 
 The tile's heights live in a buffer (so ``.to(device, dtype)`` moves them); interpolation is
 batched over any leading shape and built from plain tensor ops, so autograd gives slopes.
-:meth:`GridTerrain.height_and_slope` computes the same slopes analytically (no autograd),
+`GridTerrain.height_and_slope` computes the same slopes analytically (no autograd),
 which is what the filter's hot path uses.
 """
 
@@ -42,7 +42,7 @@ class BilinearParts(NamedTuple):
 def fill_voids_nearest(heights: np.ndarray, spacing: tuple[float, float]) -> np.ndarray:
     """Replaces NaN nodes by the value of the nearest valid node (metric distance).
 
-    Uses :func:`scipy.ndimage.distance_transform_edt` when scipy is installed, otherwise an
+    Uses `scipy.ndimage.distance_transform_edt` when scipy is installed, otherwise an
     exact chunked brute-force search in torch.
 
     Args:
@@ -136,7 +136,7 @@ def _refresh_padding(module: nn.Module, incompatible_keys: object) -> None:
 
 
 class GridTerrain(TerrainModel):
-    """Bilinear or bicubic interpolation of a :class:`DemTile` as a :class:`TerrainModel`.
+    """Bilinear or bicubic interpolation of a `DemTile` as a `TerrainModel`.
 
     Bicubic is Keys cubic convolution with ``a = -1/2`` and the boundary extrapolation
     ``f[-1] = 3 f[0] - 3 f[1] + f[2]`` (symmetric at the far end): it reproduces every
@@ -144,12 +144,12 @@ class GridTerrain(TerrainModel):
     Void (NaN) nodes are filled with the nearest valid node (metric distance) before
     interpolation; ``n_filled`` says how many.
 
-    Points outside :attr:`extent` are clamped to the border: the height is that of the
+    Points outside `extent` are clamped to the border: the height is that of the
     nearest border point and the slope component across the border is zero (what autograd
     of the clamp gives). A point within coordinate rounding of a node is taken at the node
     (a node in float32 lands a hair off it), so nodes, border nodes included, get the same
     cell and slope in float32 as in float64. Callers flag off-map points with
-    :meth:`contains`.
+    `contains`.
     NaN coordinates give NaN heights (never an indexing error; the slope is NaN or 0).
 
     ``heights`` (the void-filled grid) is the persistent buffer; the bicubic padding is
@@ -165,7 +165,7 @@ class GridTerrain(TerrainModel):
 
     Raises:
         NeuralMapError: Unknown ``method``, non-floating ``dtype``, or a tile that is not a
-            :class:`DemTile`.
+            `DemTile`.
     """
 
     heights: torch.Tensor
@@ -293,13 +293,13 @@ class GridTerrain(TerrainModel):
     def bilinear_parts(self, xy: torch.Tensor) -> BilinearParts:
         """Bilinear height, analytic slope and cell twist, without autograd (fast path).
 
-        Uses the bilinear interpolant whatever :attr:`method` is.
+        Uses the bilinear interpolant whatever `method` is.
 
         Args:
             xy: ``(..., 2)`` east/north metres.
 
         Returns:
-            :class:`BilinearParts`; every field has the leading shape ``(...)``.
+            `BilinearParts`; every field has the leading shape ``(...)``.
         """
         xy = self._check_xy(xy)
         lead = xy.shape[:-1]
@@ -423,7 +423,7 @@ class GridTerrain(TerrainModel):
     def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Heights and analytic slopes ``(dh/dx, dh/dy)`` without autograd.
 
-        Equal to autograd of :meth:`forward`, including the zero slope across the border
+        Equal to autograd of `forward`, including the zero slope across the border
         for clamped points.
 
         Args:

@@ -13,8 +13,8 @@ deviation) stay float32, since a height mean in fp16 would already be off by 0.2
   matrix ``(B, d_in, d_out)``); vectors ``(B, d)`` get one scale per block.
 
 The stored form is a dict ``{"scheme": ..., "tensors": {name: {"values": ...,
-"scale": ...}}}`` written into the map payload by :func:`neuralmap.terrain.export.save_map`
-and read back (dequantised to float32) by :func:`neuralmap.terrain.export.load_map`.
+"scale": ...}}}`` written into the map payload by `neuralmap.terrain.export.save_map`
+and read back (dequantised to float32) by `neuralmap.terrain.export.load_map`.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from torch import nn
 
 from neuralmap.exceptions import NeuralMapError
 
-#: Every scheme :func:`quantize_state` accepts.
+#: Every scheme `quantize_state` accepts.
 QUANT_SCHEMES = ("fp16", "int8_tensor", "int8_block", "int8_channel")
 
 _INT8_MAX = 127
@@ -119,7 +119,7 @@ def quantize_state(model: nn.Module, scheme: str) -> dict[str, Any]:
 
     Args:
         model: The neural map (its ``named_parameters`` are quantised, buffers are not).
-        scheme: One of :data:`QUANT_SCHEMES`.
+        scheme: One of `QUANT_SCHEMES`.
 
     Returns:
         ``{"scheme": scheme, "tensors": {name: {"values", ["scale"]}}}``.
@@ -150,7 +150,7 @@ def dequantize_state(quantized: Any) -> dict[str, torch.Tensor]:
 def quantize_model(model: nn.Module, scheme: str) -> nn.Module:
     """A copy of ``model`` whose parameters are the dequantised ``scheme`` values.
 
-    This is exactly the model :func:`neuralmap.terrain.export.load_map` returns for a map
+    This is exactly the model `neuralmap.terrain.export.load_map` returns for a map
     exported with ``quantization=scheme``, without the file round trip.
     """
     out = copy.deepcopy(model)

@@ -1,15 +1,15 @@
 """Sharded neural maps: one index file plus one map file per shard, loaded lazily.
 
-A region map is a :class:`~neuralmap.terrain.block_layout.BlockLayout` over the whole area
+A region map is a `BlockLayout` over the whole area
 whose block grid is cut into rectangular shards of ``shard_blocks = (sbx, sby)`` blocks.
-Each shard is an ordinary :class:`BlockwiseTerrainNet` file (``save_map``) holding the
+Each shard is an ordinary `BlockwiseTerrainNet` file (``save_map``) holding the
 networks of its blocks; the index (``map_index.json``) holds the global layout and which
-file holds which blocks. :class:`ShardedTerrainMap` reads the index only and loads a shard
+file holds which blocks. `ShardedTerrainMap` reads the index only and loads a shard
 the first time a point needs one of its blocks (keeping at most ``max_loaded`` shards),
 so a filter flying over a corner of a 361 km map never reads the rest.
 
 Blending is global: the weights of the (up to four) blocks that see a point come from the
-global layout (the C2 partition of unity of :mod:`neuralmap.terrain.block_layout`), so
+global layout (the C2 partition of unity of `neuralmap.terrain.block_layout`), so
 height and slope stay continuous across shard borders exactly as across block borders.
 
 A shard whose area holds no finite height (a void of the source DEM: sea, a data gap) is
@@ -70,7 +70,7 @@ def write_shard_index(
         path: Destination (conventionally ``map_index.json`` next to the shard files).
         layout: The global block layout.
         shard_blocks: ``(sbx, sby)`` blocks per shard.
-        files: Shard file names relative to the index, in :func:`shard_block_ranges` order;
+        files: Shard file names relative to the index, in `shard_block_ranges` order;
             None for a void shard (no finite height: stored as void, queries give NaN).
         info: Region description, training settings, metrics.
     """
@@ -99,9 +99,9 @@ class ShardedTerrainMap(TerrainModel):
     """A region map stored as an index plus shard files; shards load on first use.
 
     Args:
-        index_path: The ``map_index.json`` written by :func:`write_shard_index`.
+        index_path: The ``map_index.json`` written by `write_shard_index`.
         load_shard: Reads one shard file (``neuralmap.terrain.export.load_map_file``;
-            :func:`~neuralmap.terrain.export.load_map` passes it, which keeps this module
+            `load_map` passes it, which keeps this module
             free of an import of the export module).
         max_loaded: Most shards kept in memory (least recently used ones are dropped).
 

@@ -8,7 +8,7 @@ __all__ = ["DemDataModule", "FitEvaluation", "TerrainFitModule", "evaluate_fit",
 
 
 def main(args: list[str] | None = None) -> object:
-    """Entry point of ``train.py`` (see :func:`neuralmap.training.cli.main`)."""
+    """Entry point of ``train.py`` (see `neuralmap.training.cli.main`)."""
     from neuralmap.training.cli import main as cli_main
 
     return cli_main(args)

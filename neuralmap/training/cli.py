@@ -4,12 +4,12 @@
 
 - ``map`` (the default when the first word is an option): fit a neural map to a DEM tile,
   or to a mosaic of tiles (``--data.path "srtm/*.hgt"`` or a list), with LightningCLI;
-- ``noise``: learn the TAN filter's Q and R from flights (:mod:`neuralmap.training.noise_cli`,
+- ``noise``: learn the TAN filter's Q and R from flights (`neuralmap.training.noise_cli`,
   ``python train.py noise --config configs/learn_noise.yaml``);
 - ``region``: fit a region-scale sharded map on several processes
-  (:mod:`neuralmap.training.region_cli`, ``python train.py region --config
+  (`neuralmap.training.region_cli`, ``python train.py region --config
   configs/train_region.yaml``);
-- ``latent``: fit a latent-grid map (:mod:`neuralmap.training.latent_cli`,
+- ``latent``: fit a latent-grid map (`neuralmap.training.latent_cli`,
   ``python train.py latent --config configs/latent_map.yaml``).
 
 Map fit: ``python train.py`` fits the jacksboro sample with ``configs/train.yaml``;
@@ -116,7 +116,7 @@ def config_learn(argv: list[str]) -> str | None:
     them.
 
     Raises:
-        SystemExit: 2 (one ``error:`` line) when ``learn`` is not a mode of :data:`MODES`.
+        SystemExit: 2 (one ``error:`` line) when ``learn`` is not a mode of `MODES`.
     """
     parser = mode_parser()
     mode = None
@@ -137,7 +137,7 @@ def config_learn(argv: list[str]) -> str | None:
 
 def config_mode(argv: list[str]) -> str:
     """The mode of ``train.py`` without a mode word: the configs' ``learn`` key
-    (:func:`config_learn`), else ``map``. Lets ``python train.py --config
+    (`config_learn`), else ``map``. Lets ``python train.py --config
     configs/latent_map.yaml`` run the mode the config is written for."""
     return config_learn(argv) or "map"
 
@@ -147,7 +147,7 @@ def main(args: list[str] | None = None) -> Path | None:
 
     Args:
         args: Command-line arguments (``None`` = ``sys.argv[1:]``); a first word of
-            :data:`MODES` selects the mode (default ``map``).
+            `MODES` selects the mode (default ``map``).
 
     Returns:
         The exported file: ``neural_map.pt`` (map), ``learned_scenario.yaml`` (noise) or
@@ -192,7 +192,7 @@ def main_map(args: list[str] | None = None) -> Path | None:
         as the last line of stdout.
 
     Raises:
-        SystemExit: Code 2 on bad input (:class:`NeuralMapError`: the message goes to
+        SystemExit: Code 2 on bad input (`NeuralMapError`: the message goes to
             stderr without a traceback) or bad arguments.
     """
     default_config = default_config_path()

@@ -1,10 +1,10 @@
 """The Lightning command line shared by the ``train.py`` modes (map, noise, latent).
 
-:class:`NeuralMapCLI` adds ``--experiment``, ``--runs_dir``, ``--ckpt_path`` and
+`NeuralMapCLI` adds ``--experiment``, ``--runs_dir``, ``--ckpt_path`` and
 ``--threads`` to LightningCLI, checks them before anything is built, and gives every run a
 ``version_N`` folder of its own, reserved atomically. The modes live in
-:mod:`neuralmap.training.cli` (dispatch, map fit), :mod:`neuralmap.training.noise_cli`,
-:mod:`neuralmap.training.latent_cli` and :mod:`neuralmap.training.region_cli` (the region
+`neuralmap.training.cli` (dispatch, map fit), `neuralmap.training.noise_cli`,
+`neuralmap.training.latent_cli` and `neuralmap.training.region_cli` (the region
 fit runs on Lightning Fabric, not a Trainer: the same option style on jsonargparse, the
 parser LightningCLI is built on, and the exit codes defined here).
 """
@@ -38,11 +38,11 @@ RUN_DIR_ENV = "NEURALMAP_RUN_DIR"
 
 
 class NeuralMapCLI(LightningCLI):
-    """LightningCLI for :class:`TerrainFitModule` + :class:`DemDataModule`.
+    """LightningCLI for `TerrainFitModule` + `DemDataModule`.
 
     Adds ``--experiment`` (run folder name, default the tile name), ``--runs_dir``
     (default ``runs``), ``--ckpt_path`` (resume) and ``--threads`` (torch CPU threads).
-    Unless the config sets ``trainer.logger``, a :class:`TensorBoardLogger` writes to
+    Unless the config sets ``trainer.logger``, a `TensorBoardLogger` writes to
     ``<runs_dir>/<experiment>/version_N``.
     """
 
@@ -104,7 +104,7 @@ class NeuralMapCLI(LightningCLI):
 
     def instantiate_trainer(self, **kwargs: Any) -> Any:
         """Trainer with a run folder of its own, reserved here with an atomic ``mkdir``
-        (:func:`neuralmap.io.next_version_dir`): TensorBoard's ``version_N`` is that folder,
+        (`neuralmap.io.next_version_dir`): TensorBoard's ``version_N`` is that folder,
         and without a logger it is the trainer's root (never the experiment folder itself).
         Two runs started at once into one experiment therefore never share a folder."""
         trainer_config = self._get(self.config_init, "trainer", default={})

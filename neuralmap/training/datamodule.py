@@ -49,7 +49,7 @@ class ShuffledBatches(Dataset):
             nodes in the epochs where ``full_fn(epoch)`` is true (the refit phase). The
             number of batches per epoch stays the same; batches grow slightly instead.
         full_fn: Whether an epoch trains on ``full``.
-        offnode: Optional :class:`OffNodeSampler`; each batch then also carries
+        offnode: Optional `OffNodeSampler`; each batch then also carries
             ``round(offnode_ratio * B)`` points between the nodes with their bicubic
             targets, drawn from a generator seeded by ``(seed, epoch, index)``.
         offnode_ratio: Off-node points per node point of a batch.
@@ -153,7 +153,7 @@ def _is_mosaic(path: str | list[str]) -> bool:
 
 def spacing_argument(spacing: float | list[float] | None
                      ) -> float | tuple[float, ...] | None:
-    """``--data.spacing`` as :func:`neuralmap.dem.load_tile` takes it: one number (square
+    """``--data.spacing`` as `neuralmap.dem.load_tile` takes it: one number (square
     cells) or ``[dx, dy]`` metres, the same in every ``train.py`` mode.
 
     Raises:
@@ -179,9 +179,9 @@ class DemDataModule(pl.LightningDataModule):
     ``torch.Generator`` seeded by ``seed``; they are never used for training. Because the
     held-out nodes sit between training nodes, the validation RMSE measures how well the
     map interpolates the DEM at nodes it did not see. The **final evaluation** (see
-    :func:`neuralmap.training.evaluation.evaluate_fit`) uses every valid node, training and
+    `neuralmap.training.evaluation.evaluate_fit`) uses every valid node, training and
     validation alike. Void nodes are excluded from everything and counted
-    (:attr:`n_void`).
+    (`n_void`).
 
     Training batches are cut from in-memory tensors: item ``i`` of the training dataset is
     the ``i``-th batch of this epoch's seeded permutation (``batch_size=None`` loader,
@@ -191,9 +191,9 @@ class DemDataModule(pl.LightningDataModule):
 
     Args:
         path: Sample name (``"jacksboro"``, ``"synthetic"``) or DEM file path, as for
-            :func:`neuralmap.dem.load_tile`; a glob (``"srtm/*.hgt"``) or a list of files /
-            globs: the tiles stitched by :func:`neuralmap.dem.load_mosaic`; from Python
-            also an already loaded :class:`DemTile` (see :meth:`from_tile`).
+            `neuralmap.dem.load_tile`; a glob (``"srtm/*.hgt"``) or a list of files /
+            globs: the tiles stitched by `neuralmap.dem.load_mosaic`; from Python
+            also an already loaded `DemTile` (see `from_tile`).
         spacing: Grid spacing in metres for files that do not carry it (``.npy``, generic
             ``.npz``): one number or ``[dx, dy]``.
         origin: ``[x0, y0]`` metres of node ``[0, 0]`` for such files.
@@ -207,12 +207,12 @@ class DemDataModule(pl.LightningDataModule):
             as the run (or longer, or a run without ``max_epochs``) is disabled with a
             printed warning, so held-out figures are always held out.
         units: ``"metres"`` / ``"degrees"`` for ``.asc``/GeoTIFF files whose units the
-            reader cannot tell (see :func:`neuralmap.dem.load_tile`).
+            reader cannot tell (see `neuralmap.dem.load_tile`).
         nodata: Extra no-data value(s) of the file (e.g. ``-32768`` for int16 SRTM voids).
         height_check: ``"refuse"`` (default), ``"void"`` or ``"off"`` for heights outside
             −12 000 … +9 000 m.
         offnode_ratio: Points between the nodes per node point in every training batch,
-            with the bicubic DEM as target (:class:`OffNodeSampler`), so that the map fits
+            with the bicubic DEM as target (`OffNodeSampler`), so that the map fits
             the continuous surface and not only the nodes; ``0`` trains on the nodes
             alone. How much they weigh is the module's ``offnode_weight``.
         offnode_val_points: Fixed seeded off-node points of the per-epoch validation
@@ -376,7 +376,7 @@ class DemDataModule(pl.LightningDataModule):
     def _reference_slopes(self, xy: torch.Tensor) -> torch.Tensor:
         """Bicubic DEM slopes ``(N, 2)`` float32 at ``xy`` (float64 evaluation, chunked).
 
-        Uses :meth:`GridTerrain.height_and_slope`, the closed form of the autograd slope of
+        Uses `GridTerrain.height_and_slope`, the closed form of the autograd slope of
         the Keys bicubic interpolant.
         """
         grid = GridTerrain(self.tile, method="bicubic", dtype=torch.float64)

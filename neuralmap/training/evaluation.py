@@ -1,7 +1,7 @@
 """Fit evaluation: height and slope errors of a terrain model against its DEM tile.
 
-Used per epoch on the validation nodes (through :class:`FitAccumulator`) and once at the
-end of a fit on every valid node (:func:`evaluate_fit`).
+Used per epoch on the validation nodes (through `FitAccumulator`) and once at the
+end of a fit on every valid node (`evaluate_fit`).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ def height_and_slope(
     """Heights and autograd slopes of a terrain model, also inside ``inference_mode``.
 
     Args:
-        model: Any :class:`TerrainModel` differentiable in ``xy``.
+        model: Any `TerrainModel` differentiable in ``xy``.
         xy: ``(N, 2)`` metric points.
         chunk: Points per autograd pass.
 
@@ -93,7 +93,7 @@ class FitAccumulator:
 
     @classmethod
     def from_tensors(cls, sums: torch.Tensor, maxima: torch.Tensor) -> FitAccumulator:
-        """Rebuilds the state from all-reduced sums and maxima of :meth:`as_tensor`."""
+        """Rebuilds the state from all-reduced sums and maxima of `as_tensor`."""
         s, m = sums.tolist(), maxima.tolist()
         return cls(n=s[0], sum_err=s[1], sum_sq=s[2], max_abs=m[3], slope_sum_sq=s[4],
                    slope_ref_sum_sq=s[5], slope_max=m[6])
@@ -158,16 +158,16 @@ def residual_autocorrelation(
 
 @dataclass
 class FitEvaluation:
-    """Result of :func:`evaluate_fit`.
+    """Result of `evaluate_fit`.
 
     Attributes:
         fitted: ``(ny, nx)`` model heights at every node (voids included), metres.
         residual: ``(ny, nx)`` model minus DEM at valid nodes, NaN at voids, metres.
         acf_x: Residual autocorrelation along rows for lags ``0..L``.
         acf_y: Residual autocorrelation along columns.
-        metrics: Scalars (see :meth:`FitAccumulator.metrics`, plus ``n_void``,
+        metrics: Scalars (see `FitAccumulator.metrics`, plus ``n_void``,
             ``acf_x_lag1``, ``acf_y_lag1`` and the off-node errors of
-            :func:`offnode_error`: ``offnode_rmse_m``, ``offnode_max_abs_m``,
+            `offnode_error`: ``offnode_rmse_m``, ``offnode_max_abs_m``,
             ``offnode_slope_rmse``).
     """
 
@@ -185,7 +185,7 @@ def offnode_error(
     """The model against the bicubic DEM at seeded random points between the nodes.
 
     Points are uniform over the cells with four valid corners
-    (:class:`~neuralmap.training.offnode.OffNodeSampler`); the reference is the Keys
+    (`OffNodeSampler`); the reference is the Keys
     bicubic interpolant of the DEM, the surface a grid map answers there.
 
     Returns:
@@ -230,20 +230,20 @@ def evaluate_fit(
     """Evaluates a terrain model on every valid node of its tile.
 
     Height errors are ``model(x, y) - h`` at the nodes; slope errors compare the model's
-    autograd slope with the bicubic DEM slope (:class:`GridTerrain`, Keys a = -1/2).
+    autograd slope with the bicubic DEM slope (`GridTerrain`, Keys a = -1/2).
 
     Args:
         model: The fitted terrain model.
         tile: The DEM tile it was fitted to.
         slope_ref: Optional precomputed ``(n_valid, 2)`` reference slopes at the valid
-            nodes in row-major order (as :attr:`DemDataModule.all_slopes`).
+            nodes in row-major order (as `DemDataModule.all_slopes`).
         chunk: Points per evaluation pass.
         max_lag: Largest autocorrelation lag in nodes.
-        offnode_points: Random points between the nodes for :func:`offnode_error`
+        offnode_points: Random points between the nodes for `offnode_error`
             (0 skips it).
 
     Returns:
-        The :class:`FitEvaluation`.
+        The `FitEvaluation`.
     """
     ny, nx = tile.shape
     valid = tile.valid_mask

@@ -1,8 +1,8 @@
 """FlightDataModule: flights for noise learning, simulated from a scenario or read from a log.
 
-Simulated flights (default) come from :func:`neuralmap.nav.simulator.simulate` over the
+Simulated flights (default) come from `neuralmap.nav.simulator.simulate` over the
 scenario's truth terrain with a seed; the validation flights use another seed (other
-trajectories and noise, same world). A flight log (:mod:`neuralmap.learning.flight_log`)
+trajectories and noise, same world). A flight log (`neuralmap.learning.flight_log`)
 replaces the simulation: a seeded fraction of its flights is held out for validation.
 Each training batch is a set of flight indices; the module slices the flights itself.
 """
@@ -87,7 +87,7 @@ def check_flights_fit_scenario(flights: FlightBatch, scenario: Scenario, *, sour
 
 
 class FlightDataModule(pl.LightningDataModule):
-    """Training and validation flights for :class:`~neuralmap.training.noise_module.NoiseLearningModule`.
+    """Training and validation flights for `NoiseLearningModule`.
 
     Args:
         scenario: Scenario name or YAML path (the flights' tile, dt and truth models).
@@ -98,7 +98,7 @@ class FlightDataModule(pl.LightningDataModule):
         batch_size: Flights per optimiser step (None = all).
 
     The scenario and a log are read and checked here, before any run folder exists:
-    :func:`check_flights_fit_scenario`.
+    `check_flights_fit_scenario`.
 
     Raises:
         NeuralMapError: Counts < 1, a bad scenario or log, a log of another time step,

@@ -1,8 +1,8 @@
 """``train.py latent``: latent-grid maps, ``python train.py latent --config configs/latent_map.yaml``.
 
 It trains
-:class:`~neuralmap.training.latent_module.LatentFitModule` on
-:class:`~neuralmap.training.latent_datamodule.LatentDataModule` with the same CLI habits as
+`LatentFitModule` on
+`LatentDataModule` with the same CLI habits as
 the blockwise map fit (``--trainer.*``, ``--experiment``, ``--runs_dir``, ``--threads``,
 ``--ckpt_path``, TensorBoard in ``runs/<experiment>/version_N``). The last stdout line is
 the exported bitstream ``latent_map.nlat``, which ``load_map`` reads.

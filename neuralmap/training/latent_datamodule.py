@@ -1,7 +1,7 @@
 """LatentDataModule: one DEM tile for latent-grid map training (full-tile steps).
 
 A latent-grid map is fitted to the whole tile at every step (every node plus random
-between-node points, :class:`~neuralmap.terrain.latent.RateDistortion`), so an epoch is
+between-node points, `RateDistortion`), so an epoch is
 just ``steps_per_epoch`` step indices; validation is one item (the whole tile, quantised).
 """
 
@@ -40,7 +40,7 @@ class LatentDataModule(pl.LightningDataModule):
 
     Args:
         path: Sample name (``jacksboro``, ``synthetic``, ``synthetic:64x48``) or a DEM file
-            (:func:`neuralmap.dem.load_tile`); from Python also a :class:`DemTile`.
+            (`neuralmap.dem.load_tile`); from Python also a `DemTile`.
         spacing: Grid spacing in metres for files that do not carry it: one number or
             ``[dx, dy]`` (as ``train.py map``'s ``--data.spacing``).
         steps_per_epoch: Optimisation steps per epoch (each over the whole tile).

@@ -22,12 +22,12 @@ ARCHITECTURE_KEYS = ("levels", "hidden", "seed", "basis", "wavelet")
 
 
 class LatentFitModule(pl.LightningModule):
-    """Fits a :class:`~neuralmap.terrain.latent.LatentGrid` with ``D + lambda R``.
+    """Fits a `LatentGrid` with ``D + lambda R``.
 
-    Each step evaluates :class:`~neuralmap.terrain.latent.RateDistortion` on the whole tile:
+    Each step evaluates `RateDistortion` on the whole tile:
     node MSE, between-node MSE against bicubic of the DEM, and ``lambda`` times the rate in
     bits per node; the rounding is relaxed by noise, then straight-through for the last
-    ``ste_fraction`` of the steps (:func:`~neuralmap.terrain.latent.encode.quantizer_at`).
+    ``ste_fraction`` of the steps (`quantizer_at`).
 
     Logged: ``train/loss``, ``train/rate_bits``, ``train/rate_bytes``,
     ``train/bits_per_node``, ``train/node_rmse_m``, ``train/between_rmse_m``,
@@ -47,7 +47,7 @@ class LatentFitModule(pl.LightningModule):
         ste_fraction: Final fraction of steps with straight-through rounding.
         seed: Seed of the MLP weights and between-node points.
         exact_start: Start from latents that reproduce every node exactly
-            (:func:`~neuralmap.terrain.latent.latent_grid.exact_finest`); false keeps the
+            (`exact_finest`); false keeps the
             Laplacian-pyramid sweeps alone (pyramid basis).
         basis: ``"wavelet"`` (critically sampled subbands of a CDF wavelet transform of
             the B-spline coefficient grid) or ``"pyramid"`` (overcomplete B-spline levels).

@@ -23,15 +23,15 @@ LR_SCHEDULES = ("cosine", "onecycle", "none")
 
 
 class TerrainFitModule(pl.LightningModule):
-    """Fits a :class:`BlockwiseTerrainNet` to the nodes of a DEM tile.
+    """Fits a `BlockwiseTerrainNet` to the nodes of a DEM tile.
 
-    The network is built from the data module's tile in :meth:`configure_model` (seeded,
+    The network is built from the data module's tile in `configure_model` (seeded,
     so every DDP rank and a resumed run build the same one before weights are loaded).
 
     Loss (SEEDS 004's ``e``, normalised): ``L = mean((N(x_i, y_i) - h_i)^2) / s^2`` with
     ``s = net.height_scale`` the tile's height standard deviation, so the loss is unitless.
     When the data module also serves points between the nodes (``data.offnode_ratio > 0``,
-    targets from the bicubic DEM ``B``, :class:`~neuralmap.training.offnode.OffNodeSampler`),
+    targets from the bicubic DEM ``B``, `OffNodeSampler`),
     the loss fits the continuous surface too::
 
         L += offnode_weight * mean((N(p_j) - B(p_j))^2) / s^2
@@ -42,7 +42,7 @@ class TerrainFitModule(pl.LightningModule):
     it (between the nodes).
     Optimiser: Adam, or SGD with momentum (the paper's back-propagation with momentum).
     Stopping: optionally when the validation RMSE falls below ``target_rmse`` metres (the
-    paper stops at ``e < rho``; see :class:`neuralmap.training.callbacks.TargetRmseStopping`).
+    paper stops at ``e < rho``; see `neuralmap.training.callbacks.TargetRmseStopping`).
 
     Logged per epoch: ``train/loss``, ``train/lr``, ``val/rmse_m``, ``val/max_abs_m``,
     ``val/mean_m`` (metres) and ``val/slope_rmse`` (m/m, RMS norm of the slope error against
@@ -52,7 +52,7 @@ class TerrainFitModule(pl.LightningModule):
     ``val/offnode_rmse_m``, ``val/offnode_max_abs_m`` (the map against the bicubic DEM at
     fixed points between the nodes).
 
-    The network arguments default to :data:`neuralmap.terrain.blockwise.NET_DEFAULTS`
+    The network arguments default to `neuralmap.terrain.blockwise.NET_DEFAULTS`
     (the net's own defaults), so the module, the net and ``configs/train.yaml`` cannot drift.
 
     Args:
@@ -147,7 +147,7 @@ class TerrainFitModule(pl.LightningModule):
 
     # ------------------------------------------------------------------ model
     def net_kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of :meth:`BlockwiseTerrainNet.from_tile` from the hparams."""
+        """Keyword arguments of `BlockwiseTerrainNet.from_tile` from the hparams."""
         hp = self.hparams
         return {
             "block_nodes": hp.block_nodes,

@@ -1,8 +1,8 @@
 """``python train.py noise``: learn the TAN filter's Q and R from flights.
 
 ``python train.py noise --config configs/learn_noise.yaml`` trains
-:class:`~neuralmap.training.noise_module.NoiseLearningModule` on
-:class:`~neuralmap.training.flight_datamodule.FlightDataModule` with the same CLI habits as
+`NoiseLearningModule` on
+`FlightDataModule` with the same CLI habits as
 the map fit (``--trainer.*``, ``--experiment``, ``--runs_dir``, ``--threads``, TensorBoard
 in ``runs/<experiment>/version_N``, reserved atomically). The last stdout line is the
 learned scenario YAML, ready for ``python evaluate.py --scenario <that file>``. A run that

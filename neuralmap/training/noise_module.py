@@ -1,11 +1,11 @@
 """NoiseLearningModule: learn the TAN filter's Q and R from flights with Lightning.
 
 ``python train.py noise --config configs/learn_noise.yaml`` trains it on
-:class:`~neuralmap.training.flight_datamodule.FlightDataModule` (:mod:`neuralmap.training.noise_cli`).
+`FlightDataModule` (`neuralmap.training.noise_cli`).
 Each training batch of flights is cut into windows of ``tbptt_steps`` filter steps
 (truncated back-propagation through time, manual optimisation: one optimiser step per
 window, the filter state carried detached). The loss is the negative innovation
-log-likelihood per update (:func:`neuralmap.learning.likelihood.tan_log_likelihood`).
+log-likelihood per update (`neuralmap.learning.likelihood.tan_log_likelihood`).
 
 TensorBoard: ``train/nll``, ``val/nll`` (whole validation flights), ``val/nees`` (when the
 truth is known) and ``params/Q_<i>``, ``params/R`` beside ``truth/Q_<i>``, ``truth/R`` and
@@ -108,7 +108,7 @@ class NoiseLearningModule(pl.LightningModule):
 
         Raises:
             NeuralMapError: The data module's scenario has another tile or time step
-                (:func:`~neuralmap.training.flight_datamodule.check_same_world`).
+                (`check_same_world`).
         """
         data_scenario = getattr(getattr(self.trainer, "datamodule", None), "scenario", None)
         if data_scenario is not None:

@@ -3,8 +3,8 @@
 A map trained on the nodes alone is free between them, and that is where the filter
 samples it: a network can pass every node and still ripple or flatten inside the cells.
 The natural continuous surface a DEM stands for is its bicubic interpolant (Keys cubic
-convolution, :class:`~neuralmap.terrain.grid.GridTerrain`): it reproduces quadratics and
-is what a grid map answers between the nodes. :class:`OffNodeSampler` draws seeded
+convolution, `GridTerrain`): it reproduces quadratics and
+is what a grid map answers between the nodes. `OffNodeSampler` draws seeded
 uniform points inside the cells whose four corner nodes are valid and returns the bicubic
 heights and slopes there, so a trainer can fit the whole surface and the fit report can
 measure how far a map departs from it between the nodes.
@@ -27,7 +27,7 @@ class OffNodeSampler:
 
     Points are drawn uniformly over the *valid cells* (cells whose four corner nodes are
     valid): a cell is picked uniformly, then a uniform position inside it. Targets are the
-    bicubic interpolant of the DEM (float64, voids filled nearest by :class:`GridTerrain`;
+    bicubic interpolant of the DEM (float64, voids filled nearest by `GridTerrain`;
     cells touching a void are never sampled).
 
     Args:

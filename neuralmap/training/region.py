@@ -1,25 +1,25 @@
 """Region-scale fitting: memory-mapped heights, block shards, Lightning's DDP launcher.
 
-A region (a mosaic written by :func:`neuralmap.dem.write_mosaic`, the synthetic region of
-:func:`neuralmap.dem.region.synthetic_region`, any 2-D ``.npy``) is read through a memory
-map (:class:`RegionData`); nothing of the size of the area is ever held in memory.
+A region (a mosaic written by `neuralmap.dem.write_mosaic`, the synthetic region of
+`neuralmap.dem.region.synthetic_region`, any 2-D ``.npy``) is read through a memory
+map (`RegionData`); nothing of the size of the area is ever held in memory.
 
-**Blocks as shards.** The global block layout (the one :class:`BlockwiseTerrainNet` uses)
+**Blocks as shards.** The global block layout (the one `BlockwiseTerrainNet` uses)
 is cut into rectangles of ``shard_blocks`` blocks. Every block's network is fitted to the
 DEM over its own extended domain (core plus blending zone), with its own samples and its
 own seeded initial weights; the loss is the sum over blocks of each block's mean squared
 normalised error. The fit of a block is therefore the same whichever shard, process or
 machine trains it: shards are independent, and blending the independently fitted blocks
 with the global C2 partition of unity keeps the map seamless across shard borders
-(:class:`~neuralmap.terrain.sharded.ShardedTerrainMap`). Peak memory per process is one
+(`ShardedTerrainMap`). Peak memory per process is one
 shard's height window, its networks and Adam state, and one batch.
 
-**Processes.** :func:`fit_region` starts the processes with Lightning Fabric's launcher
+**Processes.** `fit_region` starts the processes with Lightning Fabric's launcher
 (``strategy="ddp_spawn"`` from Python, ``"ddp"`` from a script or under ``torchrun`` /
 SLURM for several nodes: ``num_nodes``). Rank ``r`` of ``W`` trains shards
 ``r, r + W, …``; no gradients are exchanged (shards share no parameters), only the end
 barrier and the timing gather. Each shard is written as an ordinary map file and rank 0
-writes the index that :func:`neuralmap.terrain.load_map` opens lazily.
+writes the index that `neuralmap.terrain.load_map` opens lazily.
 
 **Sampling.** The points of block ``g`` at step ``s`` are drawn by a counter-based hash
 (splitmix64 of ``seed``, ``g``, ``s`` and the point number): uniform nodes of the block's
@@ -130,12 +130,12 @@ def void_shards(data: RegionData, layout: BlockLayout,
     """Shards whose core area holds no finite height (read a band of rows at a time).
 
     Such a shard has nothing to fit; the region map stores it as void (queries there return
-    NaN, as a grid does over void nodes; :mod:`neuralmap.terrain.sharded`).
+    NaN, as a grid does over void nodes; `neuralmap.terrain.sharded`).
 
     Args:
         data: The region.
         layout: The global block layout.
-        ranges: Block ranges of the shards (:func:`~neuralmap.terrain.sharded.
+        ranges: Block ranges of the shards (`
             shard_block_ranges`).
         rows_per_chunk: Rows read at once.
 
@@ -238,7 +238,7 @@ class RegionData:
 
     @classmethod
     def from_tile(cls, tile: DemTile) -> RegionData:
-        """An in-memory region from a loaded tile (e.g. a :func:`load_mosaic` result)."""
+        """An in-memory region from a loaded tile (e.g. a `load_mosaic` result)."""
         return cls(heights=tile.heights, spacing=tile.spacing, origin=tile.origin,
                    name=tile.name, info=tile.describe())
 
@@ -384,7 +384,7 @@ def train_shard(
         lr: Peak learning rate.
         seed: Seed of the sampling and of the per-block initial weights.
         net_options: ``encoding``, ``n_frequencies``, ``frequency_scale``, ``hidden``,
-            ``depth``, ``activation`` of :class:`BlockwiseTerrainNet`.
+            ``depth``, ``activation`` of `BlockwiseTerrainNet`.
 
     Returns:
         ``(net, stats)``: the shard's network (its blocks in shard order) and
@@ -438,7 +438,7 @@ def train_shard(
 def plan_layout(data: RegionData, *, block_nodes: int | None = NET_DEFAULTS.block_nodes,
                 overlap_nodes: float = NET_DEFAULTS.overlap_nodes,
                 num_blocks: tuple[int, int] | None = None) -> BlockLayout:
-    """The global block layout of a region (as :meth:`BlockwiseTerrainNet.from_tile`)."""
+    """The global block layout of a region (as `BlockwiseTerrainNet.from_tile`)."""
     return layout_for_tile(data.shape, data.spacing, data.extent, block_nodes=block_nodes,
                            overlap_nodes=overlap_nodes, num_blocks=num_blocks)
 
@@ -501,13 +501,13 @@ def fit_region(
     """Fits a region shard by shard on ``devices × num_nodes`` CPU processes.
 
     A shard whose area holds no finite height is not trained: the index stores it as void
-    and the map returns NaN there, as a grid does over voids (:func:`void_shards`).
+    and the map returns NaN there, as a grid does over voids (`void_shards`).
 
     Writes into ``out_dir`` directly; to publish whole (as ``train.py region`` does), build
     inside ``with neuralmap.io.replacing_dir(out) as build: fit_region(data, build)``.
 
     Args:
-        data: The region (:meth:`RegionData.open` for a memory-mapped ``.npy``).
+        data: The region (`RegionData.open` for a memory-mapped ``.npy``).
         out_dir: Folder for ``map_index.json`` and ``shards/``.
         block_nodes, overlap_nodes, num_blocks: Global block layout (as the tile trainer).
         shard_blocks: ``(sbx, sby)`` blocks per shard.
@@ -521,7 +521,7 @@ def fit_region(
             on one node, ``"ddp"`` for several nodes.
         threads: Torch threads per process.
         shard_ids: Train only these shards (benchmarks); the index is then not written.
-        net_options: Architecture options of :class:`BlockwiseTerrainNet`.
+        net_options: Architecture options of `BlockwiseTerrainNet`.
         record_path: Region path recorded in the index (default ``data.path``; the command
             line gives the published path when it builds under a hidden name).
 
@@ -534,7 +534,7 @@ def fit_region(
         process would keep on a free core).
 
     Raises:
-        NeuralMapError: Bad settings (:func:`check_fit_options`), a region without any
+        NeuralMapError: Bad settings (`check_fit_options`), a region without any
             finite height, shard ids outside the layout.
     """
     from lightning.fabric import Fabric

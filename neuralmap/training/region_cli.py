@@ -4,8 +4,8 @@ The same command-line style as the map fit (jsonargparse, the parser LightningCL
 on): ``--config FILE`` (YAML), ``--data.*``, ``--model.*``, ``--trainer.*``, ``--threads``,
 ``--print_config``. ``--data.path`` is a 2-D ``.npy`` region (memory-mapped; spacing from
 its ``.json`` sidecar or ``--data.spacing``), one or more DEM files / globs (stitched with
-:func:`neuralmap.dem.write_mosaic` into ``OUT/region.npy``), or ``synthetic-region``
-(:func:`neuralmap.dem.region.synthetic_region`, the paper's 3610 × 1270 nodes at 100 m).
+`neuralmap.dem.write_mosaic` into ``OUT/region.npy``), or ``synthetic-region``
+(`neuralmap.dem.region.synthetic_region`, the paper's 3610 × 1270 nodes at 100 m).
 The map goes to ``OUT/map_index.json`` + ``OUT/shards/``; ``neuralmap.terrain.load_map(OUT)``
 opens it lazily.
 
@@ -14,7 +14,7 @@ Examples:
     python train.py region --config configs/train_region.yaml --out runs/paper_region
 
 Outputs are published whole: the run builds ``OUT`` under a hidden name beside it and puts
-it in place at the end (:func:`neuralmap.io.replacing_dir`), so a refused mosaic, a failed
+it in place at the end (`neuralmap.io.replacing_dir`), so a refused mosaic, a failed
 or interrupted run, or ``kill -9`` leaves the previous output (or nothing) untouched, and a
 second run into the same ``OUT`` while one runs is refused.
 

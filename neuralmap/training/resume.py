@@ -4,8 +4,8 @@ A Lightning checkpoint (``runs/<experiment>/version_N/checkpoints/last.ckpt``) h
 weights, optimiser and loop state. Three mistakes used to end in a raw traceback or in a
 run that silently trained and exported nothing: a truncated file, an exported
 ``neural_map.pt`` passed as ``--ckpt_path``, and ``--trainer.max_epochs`` not above the
-epochs the checkpoint has already trained. :func:`inspect_checkpoint` turns each into a
-:class:`NeuralMapError` before any run folder is created.
+epochs the checkpoint has already trained. `inspect_checkpoint` turns each into a
+`NeuralMapError` before any run folder is created.
 """
 
 from __future__ import annotations

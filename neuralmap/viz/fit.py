@@ -1,7 +1,7 @@
 """Figures of a terrain fit: residual map, hillshades, residual histogram and autocorrelation.
 
-All functions build a :class:`matplotlib.figure.Figure` without pyplot (safe in any
-backend and thread); :func:`figure_to_rgb` renders one for TensorBoard. Grids follow the
+All functions build a `matplotlib.figure.Figure` without pyplot (safe in any
+backend and thread); `figure_to_rgb` renders one for TensorBoard. Grids follow the
 DEM convention: row 0 is south (drawn with ``origin="lower"``).
 """
 

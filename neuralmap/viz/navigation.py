@@ -1,6 +1,6 @@
 """Navigation figures: error vs time with the PCRB, trajectories over a hillshade, histograms.
 
-Every function builds a :class:`matplotlib.figure.Figure` without pyplot (no global state,
+Every function builds a `matplotlib.figure.Figure` without pyplot (no global state,
 no display needed) and can save it atomically as PNG.
 """
 
@@ -21,7 +21,7 @@ from neuralmap.viz.hillshade import hillshade
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 120) -> Path:
-    """Saves a figure as PNG atomically (:func:`neuralmap.io.atomic_write_figure`)."""
+    """Saves a figure as PNG atomically (`neuralmap.io.atomic_write_figure`)."""
     return atomic_write_figure(path, fig, dpi=dpi)
 
 
@@ -80,7 +80,7 @@ def plot_error_vs_time(
 
     Each curve has its own colour and marker (the markers staggered along the time axis),
     so a curve lying on another stays visible; a curve equal to an earlier one is also
-    labelled "= <that one>" in the legend (:func:`coinciding_curves`).
+    labelled "= <that one>" in the legend (`coinciding_curves`).
 
     Args:
         t: ``(K+1,)`` seconds (or steps, with ``xlabel``).

@@ -2,7 +2,7 @@
 
 Tags: ``rmse_pos/<method>``, ``rmse_pos_converged/<method>``, ``rmse_vel/<method>`` and
 ``pcrb_pos`` against the time step; ``final_pos_error/<method>`` histograms;
-``summary/<metric>/<method>`` scalars (figures: :meth:`StudyOutputs.add_figure`).
+``summary/<metric>/<method>`` scalars (figures: `StudyOutputs.add_figure`).
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ def log_navigation(
     summary: Mapping[str, Mapping[str, object]] | None = None,
 ) -> None:
     """Writes the evaluation's curves, histograms and summary scalars into ``writer`` (the
-    study's one writer, :meth:`StudyOutputs.writer`; figures go through
-    :meth:`StudyOutputs.add_figure`).
+    study's one writer, `StudyOutputs.writer`; figures go through
+    `StudyOutputs.add_figure`).
 
     Non-finite values are skipped (TensorBoard cannot plot them).
 

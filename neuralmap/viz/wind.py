@@ -1,6 +1,6 @@
 """Wind-estimation figures (SEEDS 002, figures 2–5): estimates against truth, error bands.
 
-Every function builds a :class:`matplotlib.figure.Figure` without pyplot.
+Every function builds a `matplotlib.figure.Figure` without pyplot.
 """
 
 from __future__ import annotations

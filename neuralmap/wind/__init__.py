@@ -1,15 +1,15 @@
 """Wind-field estimation and track correction (SEEDS 002).
 
-* :mod:`.turbulence`, :mod:`.simulator`: batched wind simulator (random-walk mean wind
+* `.turbulence`, `.simulator`: batched wind simulator (random-walk mean wind
   plus exactly discretised first-order turbulence, shear steps, gusts);
-* :mod:`.measurement`, :mod:`.faults`: airspeed-derived wind with random-walk noise,
+* `.measurement`, `.faults`: airspeed-derived wind with random-walk noise,
   outlier patches and spikes;
-* :mod:`.tvar_model`, :mod:`.correlated`, :mod:`.filtering`: the paper's time-varying AR
+* `.tvar_model`, `.correlated`, `.filtering`: the paper's time-varying AR
   model with differenced measurements and a correlated-noise EKF; the LTI first-order
   Markov model for comparison;
-* :mod:`.track`: dead reckoning with and without the wind correction;
-* :mod:`.metrics`, :mod:`.comparison`: error metrics and filters compared on common draws
-  (the study is :mod:`neuralmap.studies.wind`).
+* `.track`: dead reckoning with and without the wind correction;
+* `.metrics`, `.comparison`: error metrics and filters compared on common draws
+  (the study is `neuralmap.studies.wind`).
 """
 
 from neuralmap.wind.comparison import WindFilterSpec, make_policy, run_filters

@@ -1,6 +1,6 @@
 """Scalar input checks of the wind package: variances, scales, factors, steps.
 
-Every check raises :class:`~neuralmap.exceptions.NeuralMapError` naming the value, where
+Every check raises `NeuralMapError` naming the value, where
 it was given and how to fix it.
 """
 

@@ -1,11 +1,11 @@
 """Wind filters compared on common draws: filter specifications and their runs.
 
-A :class:`WindFilterSpec` names one estimator: the wind model (``"tvar"``, the paper's
+A `WindFilterSpec` names one estimator: the wind model (``"tvar"``, the paper's
 time-varying AR model with differenced measurements and the correlated-noise EKF, or
 ``"lti"``, the first-order Markov model on raw measurements) and an optional
-robust/adaptive policy of the registry in :mod:`neuralmap.filters.policies`, looked up by
+robust/adaptive policy of the registry in `neuralmap.filters.policies`, looked up by
 name (``"sage_husa"``, ``"raf"``, ``"variational"``) and built with ``policy_args`` over
-the registry's defaults. :func:`run_filters` runs every spec on the same measurements.
+the registry's defaults. `run_filters` runs every spec on the same measurements.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ class WindFilterSpec:
     Attributes:
         name: Label in tables and plots ("KF", "Sage-Husa", "RAF", "VB", "LTI").
         model: ``"tvar"`` or ``"lti"``.
-        policy: Registry name of a policy (:data:`neuralmap.filters.policies.POLICIES`);
+        policy: Registry name of a policy (`neuralmap.filters.policies.POLICIES`);
             None = the classic Kalman filter.
         policy_args: Keyword arguments of the policy.
         correlated: TVAR only: handle the differencing cross-covariance (default).

@@ -15,11 +15,11 @@ whose new process noise ``u_k − J_k e_k`` has covariance ``Q_k − C_k R_k⁻�
 complement, positive semi-definite) and is uncorrelated with ``e_k``. One cycle is then a
 plain EKF cycle:
 
-* update with ``y_k``: :meth:`BatchedEKF.update <neuralmap.filters.ekf.BatchedEKF.update>`
+* update with ``y_k``: `BatchedEKF.update`
   (Joseph form, Cholesky solves, health flags, optional robust/adaptive policy);
 * decorrelated predict: ``x⁻ = f(x⁺) + J (y − h(x⁺))``, ``P⁻ = F* P⁺ F*ᵀ + Q*`` with
   ``F* = F − J A``, ``Q* = Q − J Cᵀ``, ``F = ∂f/∂x`` and ``A = ∂h/∂x`` at ``x⁺``
-  (:func:`decorrelate`; the covariance propagation is ``BatchedEKF.predict(F*, Q*)``).
+  (`decorrelate`; the covariance propagation is ``BatchedEKF.predict(F*, Q*)``).
 
 For a linear model this equals the one-step predictor ``K̄ = (F P⁻ Aᵀ + C) S⁻¹``,
 ``x⁻_{k+1} = F x⁻ + K̄ r``, ``P⁻_{k+1} = F P⁻ Fᵀ + Q − K̄ S K̄ᵀ`` (tested to 1e-10 against
@@ -88,7 +88,7 @@ def decorrelate(
         keep: ``(N,)`` bool, False where the update rejected the measurement.
 
     Returns:
-        :class:`DecorrelatedTransition` (``J`` by a Cholesky solve ``R Jᵀ = Cᵀ``).
+        `DecorrelatedTransition` (``J`` by a Cholesky solve ``R Jᵀ = Cᵀ``).
 
     Raises:
         NeuralMapError: ``R`` not positive definite or inconsistent shapes.
@@ -118,10 +118,10 @@ def decorrelate(
 class CorrelatedNoiseEKF:
     """N extended Kalman filters with correlated process and measurement noise.
 
-    A thin layer over :class:`~neuralmap.filters.ekf.BatchedEKF` (which holds ``x``
+    A thin layer over `BatchedEKF` (which holds ``x``
     ``(N, n)``, ``P`` ``(N, n, n)``, the health flags and runs the Joseph-form update and
     any robust/adaptive policy); the predict is the decorrelated one of
-    :func:`decorrelate`.
+    `decorrelate`.
 
     Args:
         x0: ``(N, n)`` initial states.
@@ -157,7 +157,7 @@ class CorrelatedNoiseEKF:
         mask: torch.Tensor | None = None,
         policy: FilterPolicy | None = None,
     ) -> UpdateDiagnostics:
-        """Measurement update (Joseph form): see :meth:`BatchedEKF.update`."""
+        """Measurement update (Joseph form): see `BatchedEKF.update`."""
         return self.ekf.update(residual, A, R, mask=mask, policy=policy)
 
     def predict(

@@ -1,8 +1,8 @@
 """Batched wind filters: the differenced TVAR-model EKF and the LTI-model Kalman filter.
 
-:func:`run_tvar_filter` (SEEDS 002, the paper's estimator): the first-order time-varying
-AR model of :mod:`.tvar_model` with the differenced measurement ``L_k = Z_{k+1} − Z_k``,
-filtered by the correlated-noise EKF of :mod:`.correlated`: for ``k = 0 … T−2``
+`run_tvar_filter` (SEEDS 002, the paper's estimator): the first-order time-varying
+AR model of `.tvar_model` with the differenced measurement ``L_k = Z_{k+1} − Z_k``,
+filtered by the correlated-noise EKF of `.correlated`: for ``k = 0 … T−2``
 
     update with L_k at x⁻_k   (residual L_k − h(x⁻_k), A_k = H F_k − H),
     decorrelated predict      (x⁻_{k+1} = f(x⁺_k) + J (L_k − h(x⁺_k)), J = C R_e⁻¹),
@@ -11,12 +11,12 @@ so ``x⁻_{k+1}`` is the estimate of the wind at ``k+1`` given ``Z_0 … Z_{k+1}
 differenced measurement is one sample late by construction). The start is
 ``x_0 = [Z_0, a0, 0]``.
 
-:func:`run_lti_filter`: the usual choice, a scalar Kalman filter of the first-order
+`run_lti_filter`: the usual choice, a scalar Kalman filter of the first-order
 Markov model on the raw measurement (white-noise assumption).
 
-Both take scalar series ``(N, T)`` (one wind axis per row; :func:`estimate_wind` folds
+Both take scalar series ``(N, T)`` (one wind axis per row; `estimate_wind` folds
 the two axes into the batch) and an optional
-:class:`~neuralmap.filters.policy.FilterPolicy` (robust / adaptive filtering: it may
+`FilterPolicy` (robust / adaptive filtering: it may
 reweight ``R``, scale ``P⁻`` and adapt ``Q`` at each step; for the TVAR filter it sees the
 decorrelated system ``F*``, ``Q*``).
 """
@@ -114,7 +114,7 @@ def run_tvar_filter(
             comparison only: the filter is then inconsistent when ``direct_noise``).
 
     Returns:
-        :class:`WindEstimate` with ``(N, T)`` tensors.
+        `WindEstimate` with ``(N, T)`` tensors.
     """
     where = "run_tvar_filter"
     model.validate()
@@ -168,7 +168,7 @@ def run_lti_filter(
         policy: Optional robust/adaptive filter policy (reset here).
 
     Returns:
-        :class:`WindEstimate` with ``(N, T)`` tensors (the filtered ``x⁺_k``).
+        `WindEstimate` with ``(N, T)`` tensors (the filtered ``x⁺_k``).
     """
     where = "run_lti_filter"
     model.validate()
@@ -208,12 +208,12 @@ def estimate_wind(
 
     Args:
         z: ``(N, T, 2)`` measured wind (east, north).
-        model: :class:`TVARWindModel` (the paper's estimator) or :class:`LTIWindModel`.
+        model: `TVARWindModel` (the paper's estimator) or `LTIWindModel`.
         policy: Optional robust/adaptive policy (sees the ``2N`` folded rows).
-        correlated: TVAR only; see :func:`run_tvar_filter`.
+        correlated: TVAR only; see `run_tvar_filter`.
 
     Returns:
-        :class:`WindEstimate` with ``(N, T, 2)`` tensors.
+        `WindEstimate` with ``(N, T, 2)`` tensors.
     """
     if not isinstance(z, torch.Tensor) or z.ndim != 3 or z.shape[-1] != 2:
         shape = tuple(z.shape) if isinstance(z, torch.Tensor) else type(z).__name__

@@ -4,8 +4,8 @@ The measured wind is the INS ground velocity minus the air velocity from airspee
 heading, ``Z_k = v_k + γ_k``. As in the paper, its error is a random walk,
 ``γ_{k+1} = γ_k + ν_{k+1}`` with ``ν`` white (variance ``walk_var``; physically the INS
 velocity error), ``γ_0 ~ N(0, init_var)``. Faults (outlier patches, spikes) from
-:mod:`.faults` are added on top. Differencing ``Z_{k+1} − Z_k`` turns the random walk into
-the white ``ν_{k+1}`` (see :mod:`.tvar_model`).
+`.faults` are added on top. Differencing ``Z_{k+1} − Z_k`` turns the random walk into
+the white ``ν_{k+1}`` (see `.tvar_model`).
 """
 
 from __future__ import annotations
@@ -78,7 +78,7 @@ def measure_wind(
         generator: Random generator.
 
     Returns:
-        :class:`WindMeasurement`.
+        `WindMeasurement`.
     """
     config.validate()
     wind = truth.wind

@@ -79,7 +79,7 @@ def wind_error_metrics(
 
     Args:
         truth: ``(N, T, 2)`` true wind.
-        estimate: The filter's :class:`WindEstimate` (``(N, T, 2)`` fields).
+        estimate: The filter's `WindEstimate` (``(N, T, 2)`` fields).
         outlier: ``(N, T)`` bool outlier samples (None = no patch metrics).
         divergence_threshold: Final-error RMS (m/s) above which a run counts as diverged.
         tail_fraction: Fraction of the run used for the divergence test.

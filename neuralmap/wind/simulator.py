@@ -7,7 +7,7 @@ SEEDS 002 (eqs. 30–31, reconstructed): per axis (east, north)
     v(k)     = v_m(k) + v_t(k) [+ gust(k)]
 
 with the paper's row ``[Σ_vm Σ σ L h v_m(0) v_t(0)] = [0.01 1 1.75 100 20 10 0]`` as the
-defaults of :class:`WindSimConfig`. Optional: a shear step (the mean wind jumps by a
+defaults of `WindSimConfig`. Optional: a shear step (the mean wind jumps by a
 vector at one sample) and a "1 − cos" discrete gust. All N runs are drawn at once from
 one seeded generator (loops only over time steps).
 """
@@ -104,7 +104,7 @@ class WindSimConfig:
         return self
 
     def turbulence(self) -> TurbulenceCoefficients:
-        """The exact AR(1) coefficients of the turbulence (see :mod:`.turbulence`)."""
+        """The exact AR(1) coefficients of the turbulence (see `.turbulence`)."""
         return turbulence_coefficients(intensity=self.intensity, scale=self.scale,
                                        step=self.step, driver_var=self.driver_var)
 
@@ -153,7 +153,7 @@ def simulate_wind(
         dtype: Floating dtype of the result.
 
     Returns:
-        :class:`WindTruth` with ``(N, T, 2)`` tensors.
+        `WindTruth` with ``(N, T, 2)`` tensors.
 
     Raises:
         NeuralMapError: Bad config, ``n_runs < 1`` or ``n_steps < 2``.

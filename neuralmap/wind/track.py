@@ -124,7 +124,7 @@ def dead_reckon(
         generator: Random generator of the sensor errors and fixes.
 
     Returns:
-        :class:`TrackResult`.
+        `TrackResult`.
 
     Raises:
         NeuralMapError: Bad config or shapes.

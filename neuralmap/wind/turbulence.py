@@ -57,7 +57,7 @@ def turbulence_coefficients(
         driver_var: Variance ``Σ`` of the white driver; paper 1.
 
     Returns:
-        :class:`TurbulenceCoefficients`.
+        `TurbulenceCoefficients`.
 
     Raises:
         NeuralMapError: A non-positive scale, step, intensity or variance.

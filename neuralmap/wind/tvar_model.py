@@ -28,7 +28,7 @@ coeff_var)``):
 
 So the differenced measurement noise is correlated with the process noise of the same
 transition ``x_k → x_{k+1}``; the filter handles it explicitly with the decorrelated
-predict of :mod:`.correlated` (``J = C R_e⁻¹``); dropping it roughly triples the error
+predict of `.correlated` (``J = C R_e⁻¹``); dropping it roughly triples the error
 on data from the model (tested). With ``direct_noise=False`` (the timing printed in
 SEEDS) the cross-covariance vanishes (``HΓ = 0``) and ``R_e = meas_var``; that is the
 same wind process with ``η`` relabelled one sample later (``η'_k = η_{k+1}``), so both

@@ -197,7 +197,7 @@ def test_read_only_output_is_refused(tmp_path: Path, drive, capsys,  # noqa: ANN
 
 def test_log_driver_reproduces_the_simulator_driven_filter() -> None:
     """Anchor: on the same measured IMU record (two IMU processes with one seed) and the same
-    GNSS record, the log driver and :func:`run_loosely_coupled` agree at the GNSS epochs to
+    GNSS record, the log driver and `run_loosely_coupled` agree at the GNSS epochs to
     3 mm in position and 2 mm/s in velocity (measured 1.1 mm, 0.6 mm/s; the errors themselves
     are 16 mm RMS). The only difference is the IMU input: increments as a constant rate per
     interval here, linear rates between samples there. P0 is tiny so that neither draws an

@@ -3,7 +3,7 @@
 The reference EM here is written from Shumway & Stoffer (1982; 2017, sections 6.2-6.3)
 in plain NumPy, one flight at a time, with their lag-one covariance smoother recursion
 (eq. 6.56) rather than the package's de Jong identity, so it also checks
-:mod:`neuralmap.learning.em`.
+`neuralmap.learning.em`.
 """
 
 from __future__ import annotations

@@ -16,8 +16,8 @@ def _plane_flight(tiny_scenario: Any, *, duration_s: float, config: Any,  # noqa
     linearizer (exact on a plane) is the Kalman filter, the reference.
 
     Returns:
-        ``(inputs, grid, linearizer, kalman)``: the :class:`TanInputs`, the bilinear plane,
-        its linearizer and the EKF's :class:`AcquisitionResult` under ``config``.
+        ``(inputs, grid, linearizer, kalman)``: the `TanInputs`, the bilinear plane,
+        its linearizer and the EKF's `AcquisitionResult` under ``config``.
     """
     from neuralmap.dem.tile import DemTile
     from neuralmap.linearize.factory import make_linearizer
@@ -44,5 +44,5 @@ def _plane_flight(tiny_scenario: Any, *, duration_s: float, config: Any,  # noqa
 
 @pytest.fixture(scope="session")
 def plane_flight() -> Any:  # noqa: ANN401 - the flight builder
-    """:func:`_plane_flight`: the tilted-plane flight for a given duration and config."""
+    """`_plane_flight`: the tilted-plane flight for a given duration and config."""
     return _plane_flight

@@ -2,7 +2,7 @@
 
 The clock is faked (every ``time.perf_counter`` call advances it 7 s), so each stage looks
 minutes long while the tiny run takes seconds; stdout is captured (not a terminal), so the
-progress is plain lines (:class:`neuralmap.progress.ProgressLines`).
+progress is plain lines (`neuralmap.progress.ProgressLines`).
 """
 
 from __future__ import annotations

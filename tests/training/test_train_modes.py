@@ -1,5 +1,5 @@
 """``train.py``'s mode: the first word, else the configs' ``learn:`` key read by the
-jsonargparse pre-parser (:func:`neuralmap.training.cli.mode_parser`), else ``map``."""
+jsonargparse pre-parser (`neuralmap.training.cli.mode_parser`), else ``map``."""
 
 from __future__ import annotations
 

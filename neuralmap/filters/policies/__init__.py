@@ -1,18 +1,18 @@
-"""Robust and adaptive update policies for :class:`~neuralmap.filters.ekf.BatchedEKF`.
+"""Robust and adaptive update policies for `BatchedEKF`.
 
 Pass one as ``ekf.update(residual, H, R, policy=...)`` (and ``ekf.predict(F, Q,
 policy=...)`` for the ones adapting Q). Families (one module each):
 
-* robust weights: :class:`IGG3` (SEEDS 002), :class:`Huber`, :class:`ChiSquareGate`;
-* adaptive factors on ``P⁻``: :class:`YangAdaptive` (SEEDS 002),
-  :class:`InnovationInflation` (SEEDS 003, the literal single-epoch form) and
-  :class:`WindowedInflation` (SEEDS 003 with a window of innovations, on a state block);
-* their composition :class:`RobustAdaptive` (SEEDS 002's RAF) and :class:`Compose`;
-* noise estimation: :class:`SageHusa` (SEEDS 002), :class:`QualityR` (SEEDS 003),
-  :class:`VariationalAdaptive` (Huang et al., IEEE TAC 2018).
+* robust weights: `IGG3` (SEEDS 002), `Huber`, `ChiSquareGate`;
+* adaptive factors on ``P⁻``: `YangAdaptive` (SEEDS 002),
+  `InnovationInflation` (SEEDS 003, the literal single-epoch form) and
+  `WindowedInflation` (SEEDS 003 with a window of innovations, on a state block);
+* their composition `RobustAdaptive` (SEEDS 002's RAF) and `Compose`;
+* noise estimation: `SageHusa` (SEEDS 002), `QualityR` (SEEDS 003),
+  `VariationalAdaptive` (Huang et al., IEEE TAC 2018).
 
-Configs, studies and benchmarks build policies by name through :func:`make_policy`
-(:data:`POLICIES`: name → label, builder and the papers' defaults), e.g.
+Configs, studies and benchmarks build policies by name through `make_policy`
+(`POLICIES`: name → label, builder and the papers' defaults), e.g.
 ``make_policy("raf")`` or ``make_policy("sage_husa", {"R_min": 1.0, "R_max": 1e4})``.
 
 The pure weight/factor functions (batched tensors in, tensors out) are exported too.

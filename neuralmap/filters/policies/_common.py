@@ -1,7 +1,7 @@
 """Shared helpers of the update policies: parameter checks and per-component statistics.
 
 Everything works batch first on the tensors of an
-:class:`~neuralmap.filters.policy.UpdateContext`: ``N`` samples, ``m`` measurement
+`UpdateContext`: ``N`` samples, ``m`` measurement
 components.
 """
 

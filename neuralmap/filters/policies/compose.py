@@ -78,8 +78,8 @@ class Compose(FilterPolicy):
             p.reset()
 
     def set_quality(self, values: object) -> None:
-        """Forwards quality indicators to the members that take them (:class:`QualityR`),
-        at any depth (a composition inside a composition, e.g. :class:`RobustAdaptive`)."""
+        """Forwards quality indicators to the members that take them (`QualityR`),
+        at any depth (a composition inside a composition, e.g. `RobustAdaptive`)."""
         takers = quality_members(self)
         if not takers:
             raise NeuralMapError(

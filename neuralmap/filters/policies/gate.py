@@ -3,7 +3,7 @@
 Per sample: reject the measurement when ``NIS = rᵀ S⁻¹ r`` exceeds the χ² quantile
 ``χ²_m(p)`` (m = number of kept components), ``S = H P⁻ Hᵀ + R``. Per component
 (``per_component=True``): reject component i when ``ṽ_i² = r_i² / S_ii > χ²_1(p)``.
-Quantiles from :func:`scipy.stats.chi2.ppf`.
+Quantiles from `scipy.stats.chi2.ppf`.
 """
 
 from __future__ import annotations

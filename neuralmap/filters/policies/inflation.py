@@ -16,7 +16,7 @@ epoch after epoch until, in float32, samples lose positive definiteness and the 
 freezes them (``healthy`` False), and long before that a float32 run departs from the
 float64 one. Run it in float64 (the default), or pass ``scope="observed"`` (the same gain,
 only the measured directions inflated), or use the windowed factor on the observed block,
-:class:`~neuralmap.filters.policies.WindowedInflation`.
+`WindowedInflation`.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ class InnovationInflation(FilterPolicy):
         c0: Threshold on λ (1–1.5 in SEEDS 003).
         scope: ``"full"`` (SEEDS 003's ``α Φ P Φᵀ + Q``), ``"observed"``: the same gain
             and state update with only the measured directions inflated
-            (:mod:`~neuralmap.filters.policies.observed`), which keeps ``P`` conditioned
+            (`observed`), which keeps ``P`` conditioned
             along a whole trajectory, in float32 too; or ``"auto"`` (default): ``"full"``
             in float64, ``"observed"`` in float32.
 

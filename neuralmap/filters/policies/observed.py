@@ -25,9 +25,9 @@ from neuralmap.filters.policy import UpdateContext
 __all__ = ["SCOPES", "check_scope", "observed_increase", "resolve_scope"]
 
 #: Where an adaptive factor on ``P⁻`` acts: ``"full"`` = every direction (the papers'
-#: literal form), ``"observed"`` = the measured directions only (:func:`observed_increase`),
+#: literal form), ``"observed"`` = the measured directions only (`observed_increase`),
 #: ``"auto"`` = ``"full"`` in float64 and ``"observed"`` in lower precision
-#: (:func:`resolve_scope`).
+#: (`resolve_scope`).
 SCOPES = ("auto", "full", "observed")
 
 
@@ -41,7 +41,7 @@ def resolve_scope(scope: str, dtype: torch.dtype) -> str:
 
 
 def check_scope(scope: str, where: str) -> str:
-    """``scope`` if it is one of :data:`SCOPES`, else a NeuralMapError naming the fix."""
+    """``scope`` if it is one of `SCOPES`, else a NeuralMapError naming the fix."""
     from neuralmap.exceptions import NeuralMapError
 
     if scope not in SCOPES:

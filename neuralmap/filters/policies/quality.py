@@ -19,7 +19,7 @@ printed membership functions are lost; the reconstruction implemented here:
   measurement outright when its membership reaches 1.
 
 For TAN the same mechanism reads the radar-altimeter quality: terrain roughness in the
-beam footprint, height above ground, and the lock flag (:meth:`QualityR.altimeter`).
+beam footprint, height above ground, and the lock flag (`QualityR.altimeter`).
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def quality_factor(memberships: torch.Tensor, weights: torch.Tensor) -> torch.Te
 
 @dataclass(frozen=True)
 class QualityIndicator:
-    """One observation-quality indicator of :class:`QualityR`.
+    """One observation-quality indicator of `QualityR`.
 
     Attributes:
         name: Indicator name (``"pdop"``, ``"fix_ratio"``, ``"roughness_m"``, ...).
@@ -110,11 +110,11 @@ class QualityIndicator:
 class QualityR(FilterPolicy):
     """Inflates R by ``ρ = 1 + Σ w_j μ_j(q_j)`` from per-epoch quality indicators.
 
-    Call :meth:`set_quality` with the epoch's indicators before every update (they are
+    Call `set_quality` with the epoch's indicators before every update (they are
     consumed by the update, so a stale epoch cannot be reused silently).
 
     Args:
-        indicators: The indicators, in the column order of :meth:`set_quality`.
+        indicators: The indicators, in the column order of `set_quality`.
 
     Reports ``rho`` ``(N,)``, ``membership`` ``(N, K)`` and ``rejected`` ``(N,)``.
 
@@ -151,7 +151,7 @@ class QualityR(FilterPolicy):
     ) -> QualityR:
         """Paper 003's GNSS indicators: PDOP (κ), fix ratio (η), satellites (ζ), σ (θ).
 
-        Columns of :meth:`set_quality`: ``pdop``, ``fix_ratio``, ``satellites``,
+        Columns of `set_quality`: ``pdop``, ``fix_ratio``, ``satellites``,
         ``sigma_m`` (the solution's reported position σ); each ``(good, bad)`` pair sets
         the membership levels.
         """
@@ -173,7 +173,7 @@ class QualityR(FilterPolicy):
     ) -> QualityR:
         """Radar-altimeter quality for TAN: roughness in the beam (κ), height (η), lock.
 
-        Columns of :meth:`set_quality`: ``roughness_m`` (terrain height spread in the
+        Columns of `set_quality`: ``roughness_m`` (terrain height spread in the
         beam footprint), ``height_agl_m`` (height above ground), ``lock`` (1 = locked,
         0 = loss of lock: the measurement is rejected).
         """
@@ -185,7 +185,7 @@ class QualityR(FilterPolicy):
 
     @property
     def names(self) -> list[str]:
-        """Indicator names (the column order of :meth:`set_quality`)."""
+        """Indicator names (the column order of `set_quality`)."""
         return [ind.name for ind in self.indicators]
 
     def reset(self) -> None:
@@ -196,7 +196,7 @@ class QualityR(FilterPolicy):
         """The indicators of the next update.
 
         Args:
-            values: ``(N, K)`` tensor (columns in :attr:`names` order) or a mapping from
+            values: ``(N, K)`` tensor (columns in `names` order) or a mapping from
                 every indicator name to an ``(N,)`` tensor.
 
         Raises:

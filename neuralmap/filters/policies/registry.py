@@ -1,7 +1,7 @@
 """Update policies by name: the one list that configs, studies and benchmarks use.
 
 A config names a policy as ``{policy: <name>, policy_args: {<option>: <value>}}``;
-:func:`make_policy` merges ``policy_args`` over the entry's defaults and builds a fresh
+`make_policy` merges ``policy_args`` over the entry's defaults and builds a fresh
 object (policies keep per-sample state, so every filter gets its own). The defaults are
 the papers' tunings (SEEDS 002 for IGG-III / RAF / Sage-Husa, SEEDS 003 for the quality
 R and the innovation inflation); "raf" is ``RobustAdaptive(k0=1.5, k1=4.5, c0=1.5,
@@ -110,7 +110,7 @@ POLICIES: dict[str, PolicyInfo] = {
                                "prior_dof": 3.0}),
 }
 
-#: Every name :func:`make_policy` accepts.
+#: Every name `make_policy` accepts.
 POLICY_NAMES: tuple[str, ...] = tuple(POLICIES)
 
 
@@ -125,7 +125,7 @@ def make_policy(name: str, policy_args: Mapping[str, Any] | None = None, *,
     """A fresh policy by registry name, its defaults overridden by ``policy_args``.
 
     Args:
-        name: One of :data:`POLICY_NAMES`.
+        name: One of `POLICY_NAMES`.
         policy_args: Options to override (a mapping; keys among the entry's defaults).
         where: What to name in error messages (a config key such as ``"--policies"`` or
             ``"filters[2]"``).

@@ -9,7 +9,7 @@ Per sample, at its k-th applied update (k = 0, 1, ...; SEEDS 002, reconstructed)
 ``ε_k`` is the innovation, ``P⁻ = Φ P_{k−1} Φᵀ + Q`` the prediction (so
 ``Φ P_{k−1} Φᵀ = P⁻ − Q`` with the Q used), ``P_k`` the updated covariance. R̂_k is used
 in the update of epoch k itself (as in PSINS' Sage-Husa filter); Q̂_k in the following
-predicts (through :meth:`SageHusa.process_noise`). d_0 = 1, so the first estimate forgets
+predicts (through `SageHusa.process_noise`). d_0 = 1, so the first estimate forgets
 the starting value.
 
 Clamps keep the estimates positive definite: by default (``diagonal=True``) each

@@ -1,7 +1,7 @@
 """Windowed, block-restricted adaptive factor on the predicted covariance (SEEDS 003).
 
 Paper 003 tunes the system noise by comparing the predicted-residual covariance with its
-theoretical value. Its literal single-epoch form (:class:`InnovationInflation`) takes one
+theoretical value. Its literal single-epoch form (`InnovationInflation`) takes one
 epoch's ``λ = rᵀr / tr(S)`` — a χ²-like ratio that exceeds c0 on a large share of clean
 epochs — and inflates all of ``P⁻``. The working forms of the literature estimate the
 residual covariance over a *window* of epochs (covariance matching: Mohamed & Schwarz,
@@ -17,7 +17,7 @@ so the block's variances are scaled by α, its cross-covariances with the other 
 √α, and the rest of ``P⁻`` is untouched (a congruence: positive definiteness is kept).
 ``Φ P Φᵀ = P⁻ − Q`` with the Q of the last predict (``context.process_noise``); without a
 known Q the policy scales ``P⁻`` itself (``D P⁻ D``). With ``window = 1``, the whole state
-as the block and no cap this is exactly :class:`InnovationInflation`.
+as the block and no cap this is exactly `InnovationInflation`.
 
 Float32 caution: like the literal form, inflating the block of a state that no
 measurement observes grows its variance without bound; use float64 (the default) for long
@@ -88,7 +88,7 @@ class WindowedInflation(FilterPolicy):
 
     Reports ``alpha`` ``(N,)``, ``lambda`` ``(N,)`` and ``window`` ``(N,)`` (epochs in
     the estimate). Per-sample state (the last W − 1 values ``r_jᵀ r_j``) belongs to one
-    filter: call :meth:`reset` before a new batch.
+    filter: call `reset` before a new batch.
 
     Raises:
         NeuralMapError: ``window`` not an integer >= 1, a repeated or negative block

@@ -21,7 +21,7 @@ epoch after epoch until, in float32, samples lose positive definiteness and the 
 freezes them (``healthy`` False), and long before that a float32 run departs from the
 float64 one. Run it in float64 (the default), or pass ``scope="observed"`` (the same gain,
 only the measured directions inflated), or use the windowed factor on the observed block,
-:class:`~neuralmap.filters.policies.WindowedInflation`.
+`WindowedInflation`.
 """
 
 from __future__ import annotations
@@ -100,7 +100,7 @@ class YangAdaptive(FilterPolicy):
     """Yang's adaptive factor: ``P⁻ ← P⁻ / α(Δ)``, ``Δ = sqrt(rᵀr / tr(H P⁻ Hᵀ + R))``.
 
     Sums run over the components still kept (after a robust policy in a composition);
-    ``R`` is the context's (the equivalent ``R̄`` inside :class:`RobustAdaptive`).
+    ``R`` is the context's (the equivalent ``R̄`` inside `RobustAdaptive`).
 
     Args:
         c0: First breakpoint (1.0–1.5 in SEEDS 002).
@@ -109,7 +109,7 @@ class YangAdaptive(FilterPolicy):
         floor: Smallest α (so ``1/α`` stays finite), default 1e-3.
         scope: ``"full"`` (SEEDS 002's ``P⁻/α`` in every direction), ``"observed"``: the
             same gain and state update with only the measured directions inflated
-            (:mod:`~neuralmap.filters.policies.observed`), which keeps ``P`` conditioned
+            (`observed`), which keeps ``P`` conditioned
             along a whole trajectory, in float32 too; or ``"auto"`` (default): ``"full"``
             in float64, ``"observed"`` in float32.
 

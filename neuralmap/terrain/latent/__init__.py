@@ -2,12 +2,12 @@
 
 The stored latents are the subbands of a CDF 9/7 wavelet transform of one cubic B-spline
 coefficient grid (critically sampled, the default) or a few latent grids at decreasing
-resolution (the Cool-chic / C3 / Instant-NGP line; :mod:`.basis`, :mod:`.wavelet`),
-upsampled with the cubic B-spline kernel (:mod:`.bspline`), mixed by a linear synthesis
-plus a tiny tanh MLP (:mod:`.synthesis`), and stored as range-coded integer latents under a
-factorized Laplace entropy model (:mod:`.entropy`, :mod:`.bitstream`). Training state:
-:class:`LatentGrid` with the rate-distortion objective :class:`RateDistortion`; the decoded
-map is :class:`LatentTerrainMap`, a :class:`~neuralmap.terrain.base.TerrainModel`.
+resolution (the Cool-chic / C3 / Instant-NGP line; `.basis`, `.wavelet`),
+upsampled with the cubic B-spline kernel (`.bspline`), mixed by a linear synthesis
+plus a tiny tanh MLP (`.synthesis`), and stored as range-coded integer latents under a
+factorized Laplace entropy model (`.entropy`, `.bitstream`). Training state:
+`LatentGrid` with the rate-distortion objective `RateDistortion`; the decoded
+map is `LatentTerrainMap`, a `TerrainModel`.
 """
 
 from neuralmap.terrain.latent.bitstream import (

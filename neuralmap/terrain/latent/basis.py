@@ -2,16 +2,16 @@
 the map's cubic B-spline coefficient grid.
 
 * ``pyramid``: an overcomplete stack of ``L`` B-spline levels, knots ``2^l`` nodes apart
-  (:mod:`.pyramid`); each level is one feature channel of the synthesis.
+  (`.pyramid`); each level is one feature channel of the synthesis.
 * ``wavelet``: critically sampled: the ``3 J + 1`` subbands of a ``J``-level biorthogonal
-  wavelet transform (:mod:`.wavelet`, CDF 9/7 or 5/3) of the node-lattice B-spline
+  wavelet transform (`.wavelet`, CDF 9/7 or 5/3) of the node-lattice B-spline
   coefficient grid ``(ny + 2, nx + 2)``; the inverse transform gives that grid, one
   feature channel. As many latents as coefficients, against about 4/3 of them for the
   pyramid, and a transform that decorrelates smooth relief as JPEG 2000's does.
 
-Both give ``(C, ny + 2, nx + 2)`` node-lattice coefficients (:meth:`LatentBasis.lattice`),
+Both give ``(C, ny + 2, nx + 2)`` node-lattice coefficients (`LatentBasis.lattice`),
 so the continuous surface, its analytic slope and the query path of
-:class:`~neuralmap.terrain.latent.map.LatentTerrainMap` are the same for both.
+`LatentTerrainMap` are the same for both.
 """
 
 from __future__ import annotations
@@ -106,7 +106,7 @@ def check_basis(name: str, wavelet: str = "cdf97") -> str:
 
 def make_basis(name: str, levels: int, shape: tuple[int, int], *, wavelet: str = "cdf97"
                ) -> LatentBasis:
-    """A checked :class:`LatentBasis` for a ``(ny, nx)`` tile.
+    """A checked `LatentBasis` for a ``(ny, nx)`` tile.
 
     Raises:
         NeuralMapError: Unknown basis or wavelet name, or too many levels for the tile.

@@ -18,10 +18,10 @@ Layout (all integers little-endian; sizes in bytes)::
                    storage order, each in C order with its Laplace(0, b) on [min, max]
     end-4   4      CRC32 (zlib) of every byte before it
 
-The basis (:mod:`~neuralmap.terrain.latent.basis`) fixes ``S``, ``C`` and the latent
+The basis (`basis`) fixes ``S``, ``C`` and the latent
 shapes from the tile shape and ``L``: the pyramid ``S = C = L`` levels (format 1, which
 had no ``basis`` key, reads as the pyramid), the wavelet ``S = 3 L + 1`` subbands, ``C = 1``. The file on disk is the map's
-stored size; :func:`read_latent_map` checks the magic, version, length and CRC before
+stored size; `read_latent_map` checks the magic, version, length and CRC before
 decoding, so a truncated or corrupted file is refused with a clear error.
 """
 
@@ -109,7 +109,7 @@ def _damaged(where: str, what: str) -> NeuralMapError:
 
 
 def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
-    """Decodes file bytes into a :class:`LatentTerrainMap` (checks magic, CRC, lengths).
+    """Decodes file bytes into a `LatentTerrainMap` (checks magic, CRC, lengths).
 
     Raises:
         NeuralMapError: Not a latent map, newer format, checksum mismatch (truncated or
@@ -170,10 +170,10 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
 
 
 def read_latent_map(path: str | os.PathLike[str]) -> LatentTerrainMap:
-    """Loads a latent map file written by :func:`write_latent_map` (eval mode).
+    """Loads a latent map file written by `write_latent_map` (eval mode).
 
     Raises:
-        NeuralMapError: Missing file, or see :func:`decode_latent_map`.
+        NeuralMapError: Missing file, or see `decode_latent_map`.
     """
     path = Path(path)
     if not path.is_file():

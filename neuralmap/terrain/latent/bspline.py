@@ -12,13 +12,13 @@ weights are ``((1-t)^3, 3t^3 - 6t^2 + 4, -3t^3 + 3t^2 + 3t + 1, t^3) / 6``.
 Two-scale relation (exact): ``B(x / 2) = sum_m h[m] B(x - m)`` with
 ``h = [1, 4, 6, 4, 1] / 8``, so a coarse level is *exactly* a finer-level spline whose
 coefficients are the coarse ones upsampled by two and filtered with ``h``
-(:func:`refine`). Refining every level to the node lattice gives one coefficient grid per
+(`refine`). Refining every level to the node lattice gives one coefficient grid per
 feature channel; querying it is a single 4 x 4 gather per point, whatever the number of
 levels (the multi-level sum is reproduced to float rounding; no map is sampled on a grid).
 
 Coefficient indexing along an axis with ``n`` nodes at level scale ``s = 2^l``: knots
 ``j = -1 .. ceil((n - 1) / s) + 1`` (stored at array index ``j + 1``), so
-:func:`coefficient_count` ``= ceil((n - 1) / s) + 3``; a point at ``u`` lies in cell
+`coefficient_count` ``= ceil((n - 1) / s) + 3``; a point at ``u`` lies in cell
 ``min(floor(u / s), ceil((n - 1) / s) - 1)`` and reads array indices ``cell .. cell + 3``.
 """
 
@@ -95,7 +95,7 @@ def refine(coeffs: torch.Tensor, target: tuple[int, int]) -> torch.Tensor:
     Args:
         coeffs: ``(..., n_y, n_x)`` coefficients at scale ``2s``.
         target: ``(m_y, m_x)`` coefficient counts at scale ``s``
-            (:func:`coefficient_count`).
+            (`coefficient_count`).
 
     Returns:
         ``(..., m_y, m_x)`` coefficients at scale ``s`` whose spline equals the input's on
@@ -164,7 +164,7 @@ def interpolating_coefficients(heights: torch.Tensor) -> torch.Tensor:
         heights: ``(ny, nx)`` node values (float64, no voids).
 
     Returns:
-        Coefficients with :func:`node_values` equal to ``heights`` (float64).
+        Coefficients with `node_values` equal to ``heights`` (float64).
     """
     ny, nx = heights.shape
     return interpolation_operator(ny) @ heights.double() @ interpolation_operator(nx).T

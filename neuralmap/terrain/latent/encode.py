@@ -1,7 +1,7 @@
 """Encoding a tile into a latent-grid map without Lightning (benchmarks, tests, scripts).
 
 The training recipe (shared with the Lightning module
-:class:`~neuralmap.training.latent_module.LatentFitModule`): Adam with a cosine learning
+`LatentFitModule`): Adam with a cosine learning
 rate; the rounding relaxed by additive noise for the first ``1 - ste_fraction`` of the
 steps, then straight-through rounding (Cool-chic's annealing from noise to the true
 quantiser, so the last steps optimise what is stored).
@@ -56,7 +56,7 @@ def fit_latent_map(
 
     Args:
         tile: The DEM tile.
-        rate_weight: ``lambda`` of :class:`RateDistortion` (m² per bit per node).
+        rate_weight: ``lambda`` of `RateDistortion` (m² per bit per node).
         steps: Adam steps.
         levels: Latent levels.
         hidden: MLP hidden units.
@@ -67,8 +67,8 @@ def fit_latent_map(
         ste_fraction: Final fraction of steps with straight-through rounding.
         init_sweeps: Correction sweeps of the Laplacian-pyramid start.
         seed: Seed of the MLP and of the between-node points.
-        exact_start: Start from latents that reproduce every node (:class:`LatentGrid`).
-        basis: Latent basis, ``"pyramid"`` or ``"wavelet"`` (:mod:`.basis`).
+        exact_start: Start from latents that reproduce every node (`LatentGrid`).
+        basis: Latent basis, ``"pyramid"`` or ``"wavelet"`` (`.basis`).
         wavelet: Wavelet of the wavelet basis.
 
     Returns:

@@ -9,8 +9,8 @@ Laplace family, as in Cool-chic's first version), so the rate of a level is
 
 evaluated during training at ``q + u``, ``u ~ U(-1/2, 1/2)`` (additive-noise relaxation)
 so that it is differentiable. The same discretised Laplace, in constriction's
-fixed-point form (:class:`constriction.stream.model.QuantizedLaplace`), drives a range
-coder (:class:`constriction.stream.queue.RangeEncoder`); the coded size is within a
+fixed-point form (`constriction.stream.model.QuantizedLaplace`), drives a range
+coder (`constriction.stream.queue.RangeEncoder`); the coded size is within a
 fraction of a percent of ``sum_l R_l`` (tested).
 """
 
@@ -93,13 +93,13 @@ def decode_levels(
     scales: list[float],
     ranges: list[tuple[int, int]],
 ) -> list[np.ndarray]:
-    """Inverse of :func:`encode_levels`.
+    """Inverse of `encode_levels`.
 
     Args:
         words: ``(W,)`` uint32 compressed words.
         shapes: Shape of every level's symbol array.
         scales: Laplace scale per level.
-        ranges: ``(min, max)`` symbol per level (:func:`symbol_range`).
+        ranges: ``(min, max)`` symbol per level (`symbol_range`).
 
     Returns:
         One int32 array per level, shaped as ``shapes``.

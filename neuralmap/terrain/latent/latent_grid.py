@@ -1,14 +1,14 @@
 """The trainable latent grid: continuous latents, learned quantisation, rate and distortion.
 
 Cool-chic-style training state of a latent-grid map (Ladune et al. 2023; C3, Kim et al.
-2024): per latent array ``l`` (a pyramid level or a wavelet subband, :mod:`.basis`)
+2024): per latent array ``l`` (a pyramid level or a wavelet subband, `.basis`)
 continuous latents ``z_l`` (metres), a learned quantisation step ``Delta_l`` and a Laplace
 scale ``b_l`` of the factorized entropy model, plus the
-:class:`~neuralmap.terrain.latent.synthesis.Synthesis`. The stored latents are the symbols
+`Synthesis`. The stored latents are the symbols
 ``q_l = round(z_l / Delta_l)`` and the decoded latents ``q_l Delta_l``. During training the
 rounding is relaxed, either by additive noise ``z / Delta + u``, ``u ~ U(-1/2, 1/2)``, or by
 straight-through rounding (forward rounds, backward is the identity); the rate is
-:func:`~neuralmap.terrain.latent.entropy.laplace_bits` of the relaxed symbols.
+`laplace_bits` of the relaxed symbols.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def gather_features(lattice: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> 
     """Spline features of a node-lattice coefficient grid at fractional node positions.
 
     Args:
-        lattice: ``(C, ny + 2, nx + 2)`` coefficients (:func:`node_lattice`).
+        lattice: ``(C, ny + 2, nx + 2)`` coefficients (`node_lattice`).
         u: ``(M,)`` east positions in node intervals.
         v: ``(M,)`` north positions in node intervals.
 
@@ -82,7 +82,7 @@ def exact_finest(heights: torch.Tensor, latents: list[torch.Tensor],
     """Minimum-norm finest-level correction that makes ``latents`` reproduce the nodes.
 
     Solves ``A_y c A_x^T = r`` for ``c`` with ``r`` the node residual of ``latents`` and
-    ``A`` the finest level's B-spline node operators (:func:`node_operator`), through their
+    ``A`` the finest level's B-spline node operators (`node_operator`), through their
     pseudo-inverses (float64; ``O(n^3)`` per axis).
 
     Args:
@@ -126,7 +126,7 @@ class LatentGrid(nn.Module):
         hidden: MLP hidden units (0 = linear synthesis only).
         init_step: Initial quantisation step, metres: every pyramid level's, or the node
             error scale of the wavelet subbands' steps ``init_step / sqrt(G_b)``
-            (:func:`node_gains`).
+            (`node_gains`).
         init_sweeps: Pyramid basis: correction sweeps per level of the Laplacian-pyramid start (12 brings
             the start to 0.07 m node RMSE on jacksboro, 3.9 m on topobathy; 2 left 1.1 m
             and 41 m, which 1000 Adam steps did not recover on topobathy).
@@ -139,7 +139,7 @@ class LatentGrid(nn.Module):
         basis: ``"pyramid"`` (overcomplete B-spline levels) or ``"wavelet"`` (the subbands
             of a ``levels``-level wavelet transform of the B-spline coefficient grid,
             started exactly from the coefficients that interpolate the nodes,
-            :func:`~neuralmap.terrain.latent.bspline.interpolating_coefficients`).
+            `interpolating_coefficients`).
         wavelet: ``"cdf97"`` or ``"cdf53"`` (wavelet basis).
 
     Raises:
@@ -266,7 +266,7 @@ class LatentGrid(nn.Module):
 
 
 def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None) -> Any:
-    """The :class:`~neuralmap.terrain.latent.map.LatentTerrainMap` of a trained grid,
+    """The `LatentTerrainMap` of a trained grid,
     exactly as its file stores it (symbols rounded, MLP weights in float16)."""
     from neuralmap.terrain.latent.bitstream import stored_latent_map
     from neuralmap.terrain.latent.map import LatentTerrainMap

@@ -1,11 +1,11 @@
-"""LatentTerrainMap: a decoded latent-grid neural map as a :class:`TerrainModel`.
+"""LatentTerrainMap: a decoded latent-grid neural map as a `TerrainModel`.
 
 Built from what the bitstream stores (integer symbols, quantisation steps, synthesis
 weights), it turns the latents into node-lattice B-spline coefficients once
-(:meth:`~neuralmap.terrain.latent.basis.LatentBasis.lattice`: the pyramid's levels refined
+(`lattice`: the pyramid's levels refined
 exactly, or the inverse wavelet transform) and folds the linear parts
 of the synthesis into ``K = 1 + H`` coefficient channels
-(:meth:`~neuralmap.terrain.latent.synthesis.Synthesis.folded`). A query is then one 4 x 4
+(`folded`). A query is then one 4 x 4
 gather of ``K``-vectors, the cubic B-spline weights, and ``H`` ``tanh``:
 
 ``h = b + g_0 + sum_k v_k tanh(g_k + a_k)``,  ``dh/dx = dg_0/dx + sum_k v_k (1 - tanh^2) dg_k/dx``
@@ -38,7 +38,7 @@ def _horner(r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
 
 
 def _horner_derivative(r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-    """``d/dt`` of :func:`_horner`: ``3 r[:, 0] t^2 + 2 r[:, 1] t + r[:, 2]``."""
+    """``d/dt`` of `_horner`: ``3 r[:, 0] t^2 + 2 r[:, 1] t + r[:, 2]``."""
     out = torch.addcmul(r[:, 1], r[:, 0], 1.5 * t)
     return torch.addcmul(r[:, 2], out, 2.0 * t)
 
@@ -71,18 +71,18 @@ def polynomial_table(coeffs: torch.Tensor, shape: tuple[int, int]) -> torch.Tens
 class LatentTerrainMap(TerrainModel):
     """A latent-grid neural map decoded from its stored form.
 
-    Points outside :attr:`extent` are clamped to the border (height of the nearest border
-    point, zero slope across the border), like :class:`~neuralmap.terrain.grid.GridTerrain`.
+    Points outside `extent` are clamped to the border (height of the nearest border
+    point, zero slope across the border), like `GridTerrain`.
 
     Args:
-        symbols: Integer latents per latent array, shapes :meth:`LatentBasis.shapes`.
+        symbols: Integer latents per latent array, shapes `LatentBasis.shapes`.
         steps: ``(S,)`` quantisation steps (metres).
         scales: ``(S,)`` Laplace scales of the entropy model (step units).
         synthesis: ``(C + 1 + H C + 2 H,)`` synthesis parameters over ``C`` feature
-            channels (:meth:`Synthesis.parameter_vector` order).
+            channels (`Synthesis.parameter_vector` order).
         feature_scale: ``(C,)`` feature scales of the synthesis.
         hidden: MLP hidden units ``H``.
-        tile_info: :meth:`DemTile.describe` of the tile the map was fitted to.
+        tile_info: `DemTile.describe` of the tile the map was fitted to.
         metrics: Fit metrics (stored in the file header).
         dtype: dtype of the coefficient buffer (float32 for speed; ``.double()`` works).
         basis: The latent basis (default: the pyramid of ``len(symbols)`` levels).
@@ -173,7 +173,7 @@ class LatentTerrainMap(TerrainModel):
                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Heights ``(M,)`` and optional slopes ``(M, 2)`` of ``(M, 2)`` points.
 
-        One row of the piecewise-polynomial table per point (:func:`polynomial_table`),
+        One row of the piecewise-polynomial table per point (`polynomial_table`),
         then Horner's rule in ``tu`` and ``tv`` over all channels at once (differentiable
         in ``xy``).
         """

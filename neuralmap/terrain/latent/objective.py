@@ -4,7 +4,7 @@
 mean squared error at random points between the nodes against bicubic interpolation of the
 DEM (the continuous surface the grid stands for, so the map is trained between the nodes
 and not only on them); ``R`` the rate in bits per node of the relaxed latents under the
-entropy model (:meth:`LatentGrid.relaxed`). ``lambda`` trades metres² for bits per node,
+entropy model (`LatentGrid.relaxed`). ``lambda`` trades metres² for bits per node,
 as in learned image compression (Ballé et al. 2018; Cool-chic).
 """
 
@@ -56,7 +56,7 @@ class ObjectiveTerms:
 
 
 class RateDistortion:
-    """Targets of one tile and the objective of its :class:`LatentGrid`.
+    """Targets of one tile and the objective of its `LatentGrid`.
 
     Args:
         tile: The DEM tile.
@@ -101,7 +101,7 @@ class RateDistortion:
 
     def __call__(self, grid: LatentGrid, quantizer: str,
                  generator: torch.Generator | None = None) -> ObjectiveTerms:
-        """The objective under a rounding relaxation (see :meth:`LatentGrid.relaxed`)."""
+        """The objective under a rounding relaxation (see `LatentGrid.relaxed`)."""
         decoded, bits = grid.relaxed(quantizer)
         nodes = grid.node_heights(decoded)
         err2 = (nodes - self.heights) ** 2

@@ -1,8 +1,8 @@
 """The latent pyramid: level shapes, refinement to the node lattice, Laplacian-pyramid start.
 
 Level ``l = 0 .. L-1`` is a cubic B-spline coefficient grid with knots ``2^l`` node
-intervals apart (:mod:`neuralmap.terrain.latent.bspline`). :func:`node_lattice` refines
-every level to the node lattice (one channel per level, exact); :func:`laplacian_init`
+intervals apart (`neuralmap.terrain.latent.bspline`). `node_lattice` refines
+every level to the node lattice (one channel per level, exact); `laplacian_init`
 starts the latents from a Laplacian pyramid of the DEM (Burt & Adelson 1983): the coarsest
 level carries a smoothed DEM, each finer level the residual the coarser ones leave.
 """
@@ -24,7 +24,7 @@ def node_lattice(latents: list[torch.Tensor], shape: tuple[int, int]) -> torch.T
     """Every level refined to the node lattice, one channel per level.
 
     Args:
-        latents: Level coefficient grids, finest first, shapes :func:`level_shapes`.
+        latents: Level coefficient grids, finest first, shapes `level_shapes`.
         shape: ``(ny, nx)`` nodes.
 
     Returns:

@@ -8,7 +8,7 @@ height
 (Cool-chic's synthesis reduced to one linear layer and a one-hidden-layer residual;
 ``sigma`` are fixed per-level feature scales). ``tanh`` is smooth, so the map stays C¹.
 Both inner maps are linear in ``f`` and ``f`` is linear in the latents, so
-:meth:`Synthesis.folded` turns the synthesis into ``1 + H`` coefficient channels; the query
+`Synthesis.folded` turns the synthesis into ``1 + H`` coefficient channels; the query
 then needs only ``H`` ``tanh`` per point (no matrix product).
 """
 
@@ -59,7 +59,7 @@ class Synthesis(nn.Module):
                           self.inner_bias.reshape(-1), self.outer.reshape(-1)])
 
     def load_parameter_vector(self, vector: torch.Tensor) -> None:
-        """Inverse of :meth:`parameter_vector`."""
+        """Inverse of `parameter_vector`."""
         sizes = [self.levels, 1, self.hidden * self.levels, self.hidden, self.hidden]
         parts = torch.split(torch.as_tensor(vector, dtype=torch.float32), sizes)
         with torch.no_grad():

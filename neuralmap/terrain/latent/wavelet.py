@@ -76,7 +76,7 @@ def analysis_1d(x: torch.Tensor, wavelet: str) -> tuple[torch.Tensor, torch.Tens
 
     Args:
         x: ``(..., n)`` samples, ``n >= 2``.
-        wavelet: A key of :data:`WAVELETS`.
+        wavelet: A key of `WAVELETS`.
 
     Returns:
         ``(low (..., ceil(n/2)), high (..., floor(n/2)))``.
@@ -94,7 +94,7 @@ def analysis_1d(x: torch.Tensor, wavelet: str) -> tuple[torch.Tensor, torch.Tens
 
 
 def synthesis_1d(s: torch.Tensor, d: torch.Tensor, wavelet: str) -> torch.Tensor:
-    """Inverse of :func:`analysis_1d`: ``(..., n)`` samples from ``low`` and ``high``."""
+    """Inverse of `analysis_1d`: ``(..., n)`` samples from ``low`` and ``high``."""
     n = s.shape[-1] + d.shape[-1]
     steps, (gs, gd) = WAVELETS[wavelet]
     s, d = s * (1.0 / gs), d * (1.0 / gd)
@@ -152,7 +152,7 @@ def forward_2d(x: torch.Tensor, levels: int, wavelet: str = "cdf97") -> list[tor
 
 
 def inverse_2d(bands: list[torch.Tensor], wavelet: str = "cdf97") -> torch.Tensor:
-    """Inverse of :func:`forward_2d` (differentiable in every subband)."""
+    """Inverse of `forward_2d` (differentiable in every subband)."""
     check_wavelet(wavelet)
     levels = (len(bands) - 1) // 3
     low = bands[-1]

@@ -27,7 +27,7 @@ SCALAR_LAYOUT: dict[str, dict[str, list]] = {
 
 
 class DashboardLayout(pl.Callback):
-    """Writes :data:`SCALAR_LAYOUT` to every TensorBoard logger at the start of the fit."""
+    """Writes `SCALAR_LAYOUT` to every TensorBoard logger at the start of the fit."""
 
     @rank_zero_only
     def on_fit_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:

@@ -16,12 +16,12 @@ METRICS_FILENAME = "metrics.json"
 
 
 def write_json(path: Path, payload: dict[str, Any]) -> Path:
-    """Writes strict JSON atomically (:func:`neuralmap.io.atomic_write_json`)."""
+    """Writes strict JSON atomically (`neuralmap.io.atomic_write_json`)."""
     return atomic_write_json(path, payload)
 
 
 def save_figure(figure: Figure, path: Path, *, dpi: int = 110) -> Path:
-    """Saves a figure as PNG atomically (:func:`neuralmap.io.atomic_write_figure`)."""
+    """Saves a figure as PNG atomically (`neuralmap.io.atomic_write_figure`)."""
     return atomic_write_figure(path, figure, dpi=dpi)
 
 
@@ -34,11 +34,11 @@ def export_map(
 ) -> Path:
     """Exports the fitted map and its metrics into ``run_dir``.
 
-    Writes ``neural_map.pt`` with :func:`neuralmap.terrain.export.save_map` (metrics
+    Writes ``neural_map.pt`` with `neuralmap.terrain.export.save_map` (metrics
     embedded; loadable with ``load_map`` without Lightning) and ``metrics.json`` beside it.
 
     Args:
-        net: The fitted :class:`BlockwiseTerrainNet`.
+        net: The fitted `BlockwiseTerrainNet`.
         run_dir: Run folder (created if needed).
         metrics: Final metrics (JSON-serialisable scalars).
         extra: Extra JSON-serialisable data stored in the export (hparams, data settings).

@@ -62,22 +62,22 @@ def _flat_hparams(params: dict[str, Any], prefix: str) -> dict[str, Any]:
 class FitReport(pl.Callback):
     """Final evaluation, dashboards and export at the end of training (rank 0 writes).
 
-    On every valid node of the tile (:func:`evaluate_fit`): RMSE, max |error|, mean and std
+    On every valid node of the tile (`evaluate_fit`): RMSE, max |error|, mean and std
     of the error (m), slope RMSE against the bicubic DEM slopes (m/m) and the lag-1
     residual autocorrelations. Then, into the run folder (the TensorBoard logger's
     ``version_N``, or ``<default_root_dir>/fast_dev_run`` when there is no log folder):
 
-    * TensorBoard: scalars ``final/*``, images :data:`IMAGE_TAGS` (residual map in a
+    * TensorBoard: scalars ``final/*``, images `IMAGE_TAGS` (residual map in a
       diverging colour map with symmetric limits, DEM vs fitted hillshade, residual
       histogram, residual autocorrelation vs lag in metres), histogram
-      :data:`HISTOGRAM_TAG`, and hparams with the final metrics;
+      `HISTOGRAM_TAG`, and hparams with the final metrics;
     * the same figures as PNG files;
-    * ``neural_map.pt`` (:func:`neuralmap.terrain.export.save_map`) and ``metrics.json``.
+    * ``neural_map.pt`` (`neuralmap.terrain.export.save_map`) and ``metrics.json``.
 
     Attributes:
         map_path: Path of the exported map on rank 0 after the fit (None elsewhere).
         metrics: Final metrics dict on rank 0.
-        evaluation: The :class:`FitEvaluation` on rank 0.
+        evaluation: The `FitEvaluation` on rank 0.
     """
 
     def __init__(self, *, max_lag: int = 40) -> None:

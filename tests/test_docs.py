@@ -18,6 +18,7 @@ import yaml
 from neuralmap.docs import check_page, config_sha256, read_stamp, update_page
 from neuralmap.docs.__main__ import main as docs_main
 from neuralmap.docs.stamp import TINY_NOTE, RunStamp
+from neuralmap.docs.trace import check_study_page, untraced_numbers
 from neuralmap.studies.outputs import SUMMARY_MARK, StudyOutputs
 
 REPO = Path(__file__).resolve().parents[1]
@@ -109,6 +110,39 @@ def test_a_damaged_stamp_is_named(tmp_path: Path) -> None:
     page.write_text('<!-- neuralmap-stamp: {"study": "wind" -->\n')
     (problem,) = check_page(page, tmp_path)
     assert "line 1: damaged run stamp" in problem
+
+
+# ----------------------------------------------------------------------------- traced numbers
+def test_every_study_page_quotes_only_numbers_of_its_stamped_page() -> None:
+    pages = sorted(p for p in (REPO / "docs" / "studies").glob("*.md") if p.name != "index.md")
+    assert len(pages) >= 9
+    problems = [problem for page in pages for problem in check_study_page(page, REPO)]
+    assert not problems, "\n".join(problems)
+
+
+def test_an_untraced_number_is_named_and_code_spans_are_not_checked() -> None:
+    stamped = "| neural | 20.9 | 1.16x |"
+    assert untraced_numbers("RMSE 20.9 m, 1.16× the PCRB", [stamped]) == []
+    assert untraced_numbers("RMSE 21.3 m and 21.3 m, 20.9 m", [stamped]) == ["21.3"]
+    assert untraced_numbers("the quantile `0.99999`, runs 1000, σ0 3 km", [stamped]) == []
+    assert untraced_numbers("```\nnice 0.5\n```\nversion 2.13.0", [stamped]) == []
+
+
+def test_a_study_page_without_a_stamped_page_or_with_a_hand_number_fails(
+        tmp_path: Path) -> None:
+    studies = tmp_path / "docs" / "studies"
+    studies.mkdir(parents=True)
+    page = studies / "wind.md"
+    page.write_text("Wind RMSE 1.43 m/s.\n")
+    (problem,) = check_study_page(page, tmp_path)
+    assert "no stamped results page" in problem
+    (tmp_path / "docs" / "results").mkdir()
+    (tmp_path / "docs" / "results" / "wind.md").write_text("| KF | 1.431 |\n")
+    (problem,) = check_study_page(page, tmp_path)
+    assert "1.43 not on the stamped page" in problem
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "wind.yaml").write_text("sigma: 1.43\n")
+    assert check_study_page(page, tmp_path) == []
 
 
 # ----------------------------------------------------------------------------- summary.md

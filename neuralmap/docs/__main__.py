@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from neuralmap.docs.stamp import check_page
+from neuralmap.docs.trace import check_study_page
 from neuralmap.docs.update import update_page
 from neuralmap.exceptions import NeuralMapError
 
@@ -24,7 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
     update.add_argument("--docs_dir", default="docs", help="documentation sources (docs)")
     update.add_argument("--configs_dir", default="configs", help="shipped configs (configs)")
     update.add_argument("--no_figures", action="store_true", help="do not copy the PNGs")
-    check = sub.add_parser("check", help="check every docs/results/*.md stamp")
+    check = sub.add_parser(
+        "check", help="check every docs/results/*.md stamp and the numbers of docs/studies/*.md")
     check.add_argument("--docs_dir", default="docs")
     check.add_argument("--repo_root", default=".")
     return parser
@@ -43,6 +45,9 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         problems = [p for page in sorted(Path(args.docs_dir, "results").glob("*.md"))
                     if page.name != "index.md" for p in check_page(page, args.repo_root)]
+        problems += [p for page in sorted(Path(args.docs_dir, "studies").glob("*.md"))
+                     if page.name != "index.md"
+                     for p in check_study_page(page, args.repo_root)]
         for problem in problems:
             print(problem)
         return 1 if problems else 0

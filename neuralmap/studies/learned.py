@@ -273,6 +273,13 @@ def _unflown_drift(correction: Any, flown: torch.Tensor, *, distance_m: float) -
 
 
 # ---------------------------------------------------------------------- run
+
+def _nees_text(nees: float | None, band: list[float] | None) -> str:
+    """``NEES 3.84, band [4.75, 5.25]`` (``n/a`` for a missing value)."""
+    nees_text = "n/a" if nees is None else f"{nees:.2f}"
+    band_text = "n/a" if not band else "[" + ", ".join(f"{b:.2f}" for b in band) + "]"
+    return f"NEES {nees_text}, band {band_text}"
+
 def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
     """Learns, refines, flies every configuration on the same draws and fills ``outputs``."""
 
@@ -474,8 +481,8 @@ def run(config: LearnedStudyConfig, outputs: StudyOutputs) -> None:
                       verdict(worst <= config.target_param_rel))
     nees_ok = metrics["learned"].get("nees_time_in_band")
     outputs.add_claim("toolkit target", "learned filter's time-averaged NEES in its 95 % band",
-                      f"NEES {metrics['learned'].get('nees_time_avg')}, band "
-                      f"{metrics['learned'].get('nees_time_band_runs')}",
+                      _nees_text(metrics["learned"].get("nees_time_avg"),
+                                 metrics["learned"].get("nees_time_band_runs")),
                       verdict(None if nees_ok is None else bool(nees_ok)), runs=learned_runs)
     outputs.add_claim("toolkit target", "gradient answer = EM fixed point "
                       f"(linear-Gaussian) to {config.target_em_rel:g} relative",

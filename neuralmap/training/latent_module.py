@@ -11,14 +11,20 @@ import torch
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.latent.basis import check_basis
-from neuralmap.terrain.latent.encode import make_optimizer, quantizer_at
-from neuralmap.terrain.latent.latent_grid import LatentGrid, export_map
+from neuralmap.terrain.latent.encode import (
+    RELAXATIONS,
+    make_optimizer,
+    quantizer_at,
+    soft_alpha,
+)
+from neuralmap.terrain.latent.latent_grid import LatentGrid, check_entropy, export_map
 from neuralmap.terrain.latent.map import LatentTerrainMap
 from neuralmap.terrain.latent.objective import RateDistortion, check_rate_weight
 from neuralmap.terrain.latent.quality import map_quality
 
 #: Hyperparameters that fix the latent grid's shape (must match on resume).
-ARCHITECTURE_KEYS = ("levels", "hidden", "seed", "basis", "wavelet")
+ARCHITECTURE_KEYS = ("levels", "hidden", "seed", "basis", "wavelet", "entropy",
+                     "context_hidden")
 
 
 class LatentFitModule(pl.LightningModule):
@@ -52,6 +58,14 @@ class LatentFitModule(pl.LightningModule):
         basis: ``"wavelet"`` (critically sampled subbands of a CDF wavelet transform of
             the B-spline coefficient grid) or ``"pyramid"`` (overcomplete B-spline levels).
         wavelet: ``"cdf97"`` or ``"cdf53"`` (wavelet basis).
+        entropy: ``"factorized"`` (one Laplace per subband) or ``"context"`` (the context
+            MLP of `neuralmap.terrain.latent.context_model`, stored in the file; wavelet
+            basis).
+        context_hidden: Hidden units of the context MLP.
+        relaxation: First-phase relaxation of the rounding: ``"noise"`` or ``"soft"``
+            (soft rounding annealed, `soft_alpha`).
+        rdoq: Choose the stored symbols by rate-distortion-optimised quantisation
+            (`neuralmap.terrain.latent.rdoq`) instead of rounding.
 
     Raises:
         NeuralMapError: ``rate_weight`` <= 0, or other out-of-range settings.
@@ -61,7 +75,9 @@ class LatentFitModule(pl.LightningModule):
                  between_weight: float = 0.5, between_points: int = 8192, lr: float = 0.01,
                  init_step: float = 1.0, ste_fraction: float = 0.2, seed: int = 0,
                  exact_start: bool = True, basis: str = "wavelet",
-                 wavelet: str = "cdf97") -> None:
+                 wavelet: str = "cdf97", entropy: str = "factorized",
+                 context_hidden: int = 12, relaxation: str = "noise",
+                 rdoq: bool = False) -> None:
         super().__init__()
         check_rate_weight(rate_weight)
         if not (math.isfinite(lr) and lr > 0):
@@ -69,6 +85,10 @@ class LatentFitModule(pl.LightningModule):
         if not 0.0 <= ste_fraction <= 1.0:
             raise NeuralMapError(f"--model.ste_fraction must be in [0, 1], got {ste_fraction}.")
         check_basis(basis, wavelet)
+        check_entropy(entropy, basis)
+        if relaxation not in RELAXATIONS:
+            raise NeuralMapError(f"--model.relaxation must be one of {list(RELAXATIONS)}, got "
+                                 f"{relaxation!r}.")
         self.save_hyperparameters()
         self.grid: LatentGrid | None = None
         self.objective: RateDistortion | None = None
@@ -85,7 +105,9 @@ class LatentFitModule(pl.LightningModule):
                                    init_step=hp.init_step, seed=hp.seed,
                                    exact_start=bool(hp.get("exact_start", True)),
                                    basis=str(hp.get("basis", "wavelet")),
-                                   wavelet=str(hp.get("wavelet", "cdf97")))
+                                   wavelet=str(hp.get("wavelet", "cdf97")),
+                                   entropy=str(hp.get("entropy", "factorized")),
+                                   context_hidden=int(hp.get("context_hidden", 12)))
             self.objective = RateDistortion(tile, rate_weight=hp.rate_weight,
                                             between_weight=hp.between_weight,
                                             between_points=hp.between_points)
@@ -108,9 +130,12 @@ class LatentFitModule(pl.LightningModule):
 
     def training_step(self, batch: torch.Tensor, batch_idx: int) -> torch.Tensor:
         assert self.grid is not None and self.objective is not None
-        quantizer = quantizer_at(int(self.global_step), self.total_steps(),
-                                 float(self.hparams.ste_fraction))
-        terms = self.objective(self.grid, quantizer, self._generator)
+        step, total = int(self.global_step), self.total_steps()
+        fraction = float(self.hparams.ste_fraction)
+        quantizer = quantizer_at(step, total, fraction,
+                                 str(self.hparams.get("relaxation", "noise")))
+        terms = self.objective(self.grid, quantizer, self._generator,
+                               soft_alpha(step, total, fraction))
         bits = terms.bits.detach()
         self.log_dict({
             "train/loss": terms.loss.detach(),
@@ -127,7 +152,8 @@ class LatentFitModule(pl.LightningModule):
     def stored_map(self, metrics: dict[str, Any] | None = None) -> LatentTerrainMap:
         """The map exactly as its file stores it."""
         assert self.grid is not None
-        return export_map(self.grid, metrics=metrics)
+        lam = float(self.hparams.rate_weight) if self.hparams.get("rdoq", False) else None
+        return export_map(self.grid, metrics=metrics, rdoq_rate_weight=lam)
 
     def validation_step(self, batch: torch.Tensor, batch_idx: int) -> None:
         assert self.tile is not None

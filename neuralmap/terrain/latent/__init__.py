@@ -5,7 +5,10 @@ coefficient grid (critically sampled, the default) or a few latent grids at decr
 resolution (the Cool-chic / C3 / Instant-NGP line; `.basis`, `.wavelet`),
 upsampled with the cubic B-spline kernel (`.bspline`), mixed by a linear synthesis
 plus a tiny tanh MLP (`.synthesis`), and stored as range-coded integer latents under a
-factorized Laplace entropy model (`.entropy`, `.bitstream`). Training state:
+factorized Laplace entropy model (`.entropy`, `.bitstream`) or under the context model
+(`.context_model`: a small stored MLP predicts each wavelet coefficient's Laplace location
+and scale from causal neighbours, parent and siblings; decoded wavefront by wavefront),
+the final symbols optionally chosen by RDOQ (`.rdoq`). Training state:
 `LatentGrid` with the rate-distortion objective `RateDistortion`; the decoded
 map is `LatentTerrainMap`, a `TerrainModel`.
 """

@@ -4,18 +4,22 @@ Layout (all integers little-endian; sizes in bytes)::
 
     offset  size   field
     0       8      magic b"NMLATENT"
-    8       2      format version (uint16), currently 2
+    8       2      format version (uint16): 2, or 3 with the context entropy model
     10      4      header length J (uint32)
     14      J      header, zlib-compressed UTF-8 JSON (format 1: uncompressed): {"tile_info": DemTile.describe(), "levels": L,
                    "hidden": H, "basis": "pyramid" | "wavelet", "wavelet": "cdf97",
-                   "ranges": [[min, max] per latent array], "metrics": {...}}
+                   "ranges": [[min, max] per latent array], "metrics": {...},
+                   format 3: "entropy": "context", "context_hidden": H_c}
     ..      8 S    float32 quantisation steps Delta_b, Laplace scales b_b (S latent arrays)
     ..      4 C    float32 feature scales (C synthesis channels)
     ..      4(C+1) float32 linear synthesis weights w and bias b_0
     ..      2 H(C+2) float16 MLP weights A (H x C, row-major), biases a, output weights v
+    ..      2 P    format 3 only: float16 context-MLP weights (P = `parameter_count(H_c)`)
     ..      4      number of range-coder words W (uint32)
-    ..      4 W    uint32 words of the range coder (constriction), latent arrays in
-                   storage order, each in C order with its Laplace(0, b) on [min, max]
+    ..      4 W    uint32 words of the range coder (constriction): format 2, latent arrays
+                   in storage order, each in C order with its Laplace(0, b) on [min, max];
+                   format 3, subbands in decoding order, each in wavefront order with the
+                   context model's Laplace(mu, b) per symbol (`.context_model`)
     end-4   4      CRC32 (zlib) of every byte before it
 
 The basis (`basis`) fixes ``S``, ``C`` and the latent
@@ -39,11 +43,19 @@ import numpy as np
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import atomic_write_bytes
 from neuralmap.terrain.latent.basis import basis_from_header
+from neuralmap.terrain.latent.context_model import (
+    CodingModel,
+    decode_context,
+    encode_context,
+    parameter_count,
+)
 from neuralmap.terrain.latent.entropy import decode_levels, encode_levels, symbol_range
 from neuralmap.terrain.latent.map import LatentTerrainMap
 
 MAGIC = b"NMLATENT"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: Version written for factorized maps (readers before the context model read them).
+FACTORIZED_VERSION = 2
 _FIXED = len(MAGIC) + 2 + 4
 
 
@@ -69,21 +81,36 @@ def encode_latent_map(latent_map: LatentTerrainMap) -> bytes:
         "ranges": ranges,
         "metrics": latent_map.metrics,
     }
+    context = latent_map.context
+    if context is not None:
+        header["entropy"] = "context"
+        header["context_hidden"] = latent_map.context_hidden
     header_bytes = zlib.compress(
         json.dumps(header, separators=(",", ":"), allow_nan=False).encode(), 9)
     synth = latent_map.synthesis_vector
     channels = latent_map.basis.channels
     linear = synth[: channels + 1]
     mlp = synth[channels + 1 :]
-    words = encode_levels(latent_map.symbols, [float(b) for b in latent_map.scales])
+    context_bytes = b""
+    if context is None:
+        words = encode_levels(latent_map.symbols, [float(b) for b in latent_map.scales])
+    else:
+        stored = np.asarray(context, "<f2")
+        context_bytes = stored.tobytes()
+        model = CodingModel(stored.astype(np.float32), latent_map.context_hidden,
+                            [tuple(s.shape) for s in latent_map.symbols], latent_map.levels,
+                            latent_map.steps, latent_map.scales)
+        words = encode_context(model, latent_map.symbols, [tuple(r) for r in ranges])
+    version = FACTORIZED_VERSION if context is None else FORMAT_VERSION
     parts = [
         MAGIC,
-        struct.pack("<HI", FORMAT_VERSION, len(header_bytes)),
+        struct.pack("<HI", version, len(header_bytes)),
         header_bytes,
         np.concatenate([latent_map.steps, latent_map.scales, latent_map.feature_scale])
         .astype("<f4").tobytes(),
         np.asarray(linear, "<f4").tobytes(),
         np.asarray(mlp, "<f2").tobytes(),
+        context_bytes,
         struct.pack("<I", words.size),
         words.astype("<u4").tobytes(),
     ]
@@ -149,6 +176,12 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
         n_mlp = hidden * (channels + 2)
         mlp = np.frombuffer(body, "<f2", n_mlp, pos).astype(np.float32)
         pos += 2 * n_mlp
+        context, context_hidden = None, 0
+        if version >= 3 and header.get("entropy") == "context":
+            context_hidden = int(header["context_hidden"])
+            n_ctx = parameter_count(context_hidden)
+            context = np.frombuffer(body, "<f2", n_ctx, pos).astype(np.float32)
+            pos += 2 * n_ctx
         (n_words,) = struct.unpack("<I", body[pos : pos + 4])
         pos += 4
         words = np.frombuffer(body, "<u4", n_words, pos)
@@ -157,7 +190,11 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
             raise ValueError(f"{len(body) - pos} trailing bytes")
         ranges = [(int(lo), int(hi)) for lo, hi in header["ranges"]]
         steps, scales, feature_scale = floats[:count], floats[count : 2 * count], floats[2 * count :]
-        symbols = decode_levels(words, shapes, [float(b) for b in scales], ranges)
+        if context is None:
+            symbols = decode_levels(words, shapes, [float(b) for b in scales], ranges)
+        else:
+            model = CodingModel(context, context_hidden, shapes, basis.levels, steps, scales)
+            symbols = decode_context(model, words, ranges)
     except NeuralMapError:
         raise
     except (KeyError, TypeError, ValueError, IndexError, struct.error,
@@ -166,6 +203,7 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
     return LatentTerrainMap(
         symbols, steps, scales, np.concatenate([linear, mlp]), feature_scale,
         hidden=hidden, tile_info=info, metrics=header.get("metrics") or {}, basis=basis,
+        context=context, context_hidden=context_hidden,
     )
 
 

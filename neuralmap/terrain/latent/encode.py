@@ -4,7 +4,10 @@ The training recipe (shared with the Lightning module
 `LatentFitModule`): Adam with a cosine learning
 rate; the rounding relaxed by additive noise for the first ``1 - ste_fraction`` of the
 steps, then straight-through rounding (Cool-chic's annealing from noise to the true
-quantiser, so the last steps optimise what is stored).
+quantiser, so the last steps optimise what is stored). With ``relaxation="soft"`` the first
+phase is C3's soft rounding plus noise, its sharpness annealed from `SOFT_ALPHA` [0] to [1]
+(`soft_alpha`). The final symbols are rounded, or chosen by rate-distortion-optimised
+quantisation (`.rdoq`, ``rdoq=True``).
 """
 
 from __future__ import annotations
@@ -15,14 +18,28 @@ from typing import Any
 import torch
 
 from neuralmap.dem.tile import DemTile
+from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.latent.latent_grid import LatentGrid, export_map
 from neuralmap.terrain.latent.map import LatentTerrainMap
 from neuralmap.terrain.latent.objective import RateDistortion
 
+#: Soft-rounding sharpness at the start and at the end of the soft phase.
+SOFT_ALPHA = (1.0, 12.0)
+#: First-phase relaxations (``model.relaxation``).
+RELAXATIONS = ("noise", "soft")
 
-def quantizer_at(step: int, total: int, ste_fraction: float) -> str:
-    """The relaxation used at ``step`` of ``total``: ``"noise"``, then ``"ste"``."""
-    return "ste" if step >= math.ceil((1.0 - ste_fraction) * total) else "noise"
+
+def quantizer_at(step: int, total: int, ste_fraction: float, relaxation: str = "noise") -> str:
+    """The relaxation used at ``step`` of ``total``: ``relaxation``, then ``"ste"``."""
+    return "ste" if step >= math.ceil((1.0 - ste_fraction) * total) else relaxation
+
+
+def soft_alpha(step: int, total: int, ste_fraction: float) -> float:
+    """Soft-rounding sharpness at ``step``: geometric from `SOFT_ALPHA` [0] to [1] over the
+    first ``1 - ste_fraction`` of the steps."""
+    span = max(1.0, math.ceil((1.0 - ste_fraction) * total))
+    frac = min(1.0, step / span)
+    return SOFT_ALPHA[0] * (SOFT_ALPHA[1] / SOFT_ALPHA[0]) ** frac
 
 
 def make_optimizer(grid: LatentGrid, lr: float, total: int
@@ -51,6 +68,10 @@ def fit_latent_map(
     exact_start: bool = True,
     basis: str = "wavelet",
     wavelet: str = "cdf97",
+    entropy: str = "factorized",
+    context_hidden: int = 12,
+    relaxation: str = "noise",
+    rdoq: bool = False,
 ) -> tuple[LatentTerrainMap, dict[str, Any]]:
     """Fits a latent-grid map to ``tile`` and returns it as its file stores it.
 
@@ -70,6 +91,10 @@ def fit_latent_map(
         exact_start: Start from latents that reproduce every node (`LatentGrid`).
         basis: Latent basis, ``"pyramid"`` or ``"wavelet"`` (`.basis`).
         wavelet: Wavelet of the wavelet basis.
+        entropy: ``"factorized"`` or ``"context"`` (`.context_model`).
+        context_hidden: Hidden units of the context MLP.
+        relaxation: First-phase relaxation, ``"noise"`` or ``"soft"``.
+        rdoq: Choose the final symbols by RDOQ (`.rdoq`) instead of rounding.
 
     Returns:
         ``(map, history)`` with the last step's loss terms in ``history``.
@@ -79,12 +104,17 @@ def fit_latent_map(
                                between_points=between_points)
     grid = LatentGrid(tile, levels=levels, hidden=hidden, init_step=init_step,
                       init_sweeps=init_sweeps, seed=seed, exact_start=exact_start,
-                      basis=basis, wavelet=wavelet)
+                      basis=basis, wavelet=wavelet, entropy=entropy,
+                      context_hidden=context_hidden)
+    if relaxation not in RELAXATIONS:
+        raise NeuralMapError(f"latent map: relaxation must be one of {list(RELAXATIONS)}, got "
+                             f"{relaxation!r}.")
     optimizer, scheduler = make_optimizer(grid, lr, steps)
     generator = torch.Generator().manual_seed(seed)
     terms = None
     for step in range(steps):
-        terms = objective(grid, quantizer_at(step, steps, ste_fraction), generator)
+        terms = objective(grid, quantizer_at(step, steps, ste_fraction, relaxation), generator,
+                          soft_alpha(step, steps, ste_fraction))
         optimizer.zero_grad(set_to_none=True)
         terms.loss.backward()
         optimizer.step()
@@ -93,5 +123,5 @@ def fit_latent_map(
     if terms is not None:
         history = {key: float(getattr(terms, key).detach())
                    for key in ("loss", "node_mse", "between_mse", "bits")}
-    latent_map = export_map(grid)
+    latent_map = export_map(grid, rdoq_rate_weight=rate_weight if rdoq else None)
     return latent_map, history

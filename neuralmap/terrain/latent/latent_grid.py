@@ -8,7 +8,10 @@ scale ``b_l`` of the factorized entropy model, plus the
 ``q_l = round(z_l / Delta_l)`` and the decoded latents ``q_l Delta_l``. During training the
 rounding is relaxed, either by additive noise ``z / Delta + u``, ``u ~ U(-1/2, 1/2)``, or by
 straight-through rounding (forward rounds, backward is the identity); the rate is
-`laplace_bits` of the relaxed symbols.
+`laplace_bits` of the relaxed symbols under the factorized model, or under the context
+model (`.context_model`, ``entropy="context"``, wavelet basis), which can also be trained
+with soft rounding (``"soft"``: C3's ``s_a(s_a(y) + u)``, Agustsson & Theis 2020, with the
+sharpness ``a`` annealed by the caller).
 """
 
 from __future__ import annotations
@@ -30,12 +33,34 @@ from neuralmap.terrain.latent.bspline import (
     interpolating_coefficients,
     node_values,
 )
+from neuralmap.terrain.latent.context_model import ContextModel
 from neuralmap.terrain.latent.entropy import laplace_bits
 from neuralmap.terrain.latent.pyramid import laplacian_init, level_shapes, node_lattice
 from neuralmap.terrain.latent.synthesis import Synthesis
 
 #: Relaxations of the rounding during training.
-QUANTIZERS = ("noise", "ste", "round")
+QUANTIZERS = ("noise", "ste", "round", "soft")
+#: Entropy models of the latents (``model.entropy``).
+ENTROPY_MODELS = ("factorized", "context")
+
+
+def soft_round(y: torch.Tensor, alpha: float) -> torch.Tensor:
+    """Soft rounding ``s_a(y) = floor(y) + 1/2 + tanh(a r) / (2 tanh(a / 2))``,
+    ``r = y - floor(y) - 1/2`` (Agustsson & Theis 2020, eq. 3): the identity as ``a -> 0``,
+    rounding as ``a -> inf``; differentiable (``floor`` has zero gradient)."""
+    m = torch.floor(y) + 0.5
+    return m + torch.tanh(alpha * (y - m)) / (2.0 * torch.tanh(torch.tensor(alpha / 2.0)))
+
+
+def check_entropy(entropy: str, basis: str) -> str:
+    """The entropy model name, or a clear error (unknown, or context without wavelets)."""
+    if entropy not in ENTROPY_MODELS:
+        raise NeuralMapError(f"latent map: unknown entropy model {entropy!r} (model.entropy); "
+                             f"use one of {list(ENTROPY_MODELS)}.")
+    if entropy == "context" and basis != "wavelet":
+        raise NeuralMapError("latent map: model.entropy: context needs model.basis: wavelet "
+                             f"(got basis {basis!r}).")
+    return entropy
 
 
 def gather_features(lattice: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -141,16 +166,20 @@ class LatentGrid(nn.Module):
             started exactly from the coefficients that interpolate the nodes,
             `interpolating_coefficients`).
         wavelet: ``"cdf97"`` or ``"cdf53"`` (wavelet basis).
+        entropy: ``"factorized"`` (one Laplace per latent array) or ``"context"`` (the
+            context MLP of `.context_model`; wavelet basis only).
+        context_hidden: Hidden units of the context MLP.
 
     Raises:
-        NeuralMapError: Unknown basis or wavelet, ``levels`` < 1 or too many for the
+        NeuralMapError: Unknown basis, wavelet or entropy model, ``levels`` < 1 or too many for the
             tile, ``hidden`` < 0, ``init_step`` <= 0.
     """
 
     def __init__(self, tile: DemTile, *, levels: int = 6, hidden: int = 0,
                  init_step: float = 1.0, init_sweeps: int = 12, seed: int = 0,
                  exact_start: bool = True, basis: str = "wavelet",
-                 wavelet: str = "cdf97") -> None:
+                 wavelet: str = "cdf97", entropy: str = "factorized",
+                 context_hidden: int = 12) -> None:
         super().__init__()
         ny, nx = tile.shape
         self.basis = make_basis(basis, levels, (int(ny), int(nx)), wavelet=wavelet)
@@ -182,6 +211,11 @@ class LatentGrid(nn.Module):
                                    seed=seed)
         # pyramid node-evaluation operators (sparse, not state): features_l = A_y c_l A_x^T
         shapes = level_shapes(self.shape, self.levels) if self.basis.name == "pyramid" else []
+        self.entropy = check_entropy(entropy, self.basis.name)
+        self.context: ContextModel | None = None
+        if self.entropy == "context":
+            self.context = ContextModel(self.basis.shapes(self.shape), self.levels,
+                                        hidden=context_hidden, seed=seed)
         self._node_ops = [
             (node_operator(ny, 2**level, shapes[level][0]),
              node_operator(nx, 2**level, shapes[level][1]))
@@ -199,12 +233,15 @@ class LatentGrid(nn.Module):
         """``(L,)`` Laplace scales ``b_l`` (quantisation-step units)."""
         return self.log_scale.exp()
 
-    def relaxed(self, quantizer: str) -> tuple[list[torch.Tensor], torch.Tensor]:
+    def relaxed(self, quantizer: str, alpha: float = 8.0
+                ) -> tuple[list[torch.Tensor], torch.Tensor]:
         """Decoded latents and total rate under a relaxation of the rounding.
 
         Args:
             quantizer: ``"noise"`` (additive uniform noise), ``"ste"`` (straight-through
-                rounding) or ``"round"`` (hard rounding, no gradient to the latents).
+                rounding), ``"round"`` (hard rounding, no gradient to the latents) or
+                ``"soft"`` (rate at ``s_a(y) + u``, decoded ``s_a(s_a(y) + u)``, C3).
+            alpha: Sharpness ``a`` of the soft rounding.
 
         Returns:
             ``(decoded latents (metres, finest first), rate in bits (scalar))``.
@@ -212,18 +249,26 @@ class LatentGrid(nn.Module):
         if quantizer not in QUANTIZERS:
             raise NeuralMapError(f"latent map: quantizer must be one of {QUANTIZERS}, got "
                                  f"{quantizer!r}.")
-        decoded, bits = [], []
+        decoded, relaxed, bits = [], [], []
         steps, scales = self.steps, self.scales
         for level, z in enumerate(self.latents):
             y = z / steps[level]
+            out = None
             if quantizer == "noise":
                 y = y + (torch.rand_like(y) - 0.5)
             elif quantizer == "ste":
                 y = y + (torch.round(y) - y).detach()
+            elif quantizer == "soft":
+                y = soft_round(y, alpha) + (torch.rand_like(y) - 0.5)
+                out = soft_round(y, alpha)
             else:
                 y = torch.round(y).detach()
-            decoded.append(y * steps[level])
-            bits.append(laplace_bits(y, scales[level]).sum())
+            decoded.append((y if out is None else out) * steps[level])
+            relaxed.append(y)
+            if self.context is None:
+                bits.append(laplace_bits(y, scales[level]).sum())
+        if self.context is not None:
+            return decoded, self.context.bits(relaxed, steps, self.log_scale)
         return decoded, torch.stack(bits).sum()
 
     def symbols(self) -> list[np.ndarray]:
@@ -261,21 +306,75 @@ class LatentGrid(nn.Module):
     def config(self) -> dict[str, Any]:
         """Constructor-level description stored in the bitstream header."""
         return {"levels": self.levels, "hidden": self.hidden, "shape": list(self.shape),
-                **self.basis.describe(),
+                **self.basis.describe(), "entropy": self.entropy,
                 "level_shapes": [list(s) for s in self.basis.shapes(self.shape)]}
 
 
-def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None) -> Any:
+def stored_context(grid: LatentGrid) -> np.ndarray | None:
+    """The context MLP's weights as the file stores them (float16 values), or None."""
+    if grid.context is None:
+        return None
+    with torch.no_grad():
+        return grid.context.parameter_vector().numpy().astype(np.float16).astype(np.float32)
+
+
+def rdoq_symbols(grid: LatentGrid, rate_weight: float) -> tuple[list[np.ndarray], dict]:
+    """RDOQ symbols of a trained grid (`.rdoq`) under its entropy model as stored.
+
+    Args:
+        grid: The trained grid (linear synthesis weight taken into the gains).
+        rate_weight: The objective's ``lambda``.
+    """
+    from neuralmap.terrain.latent.context_model import CodingModel, symbol_bits
+    from neuralmap.terrain.latent.rdoq import rdoq
+
+    with torch.no_grad():
+        steps = grid.steps.numpy().astype(np.float32)
+        scales = grid.scales.numpy().astype(np.float32)
+        y = [(z / s).double().numpy() for z, s in zip(grid.latents, grid.steps, strict=True)]
+        w = float(grid.synthesis.linear.detach().double().pow(2).mean())
+    gains = node_gains(grid.basis, grid.shape).numpy() * w
+    vector = stored_context(grid)
+
+    def bits_of(sym: list[np.ndarray]) -> list:
+        ranges = [(min(0, int(s.min())), max(0, int(s.max()))) if s.size else (0, 0)
+                  for s in sym]
+        if vector is None:
+            params = [(np.zeros(s.size), np.full(s.size, float(b)))
+                      for s, b in zip(sym, scales, strict=True)]
+        else:
+            model = CodingModel(vector, grid.context.hidden, grid.basis.shapes(grid.shape),
+                                grid.levels, steps, scales)
+            params = model.all_parameters(sym)
+        return [(lambda c, mu=mu, b=b, r=r: symbol_bits(c, mu, b, *r).reshape(c.shape))
+                for (mu, b), r in zip(params, ranges, strict=True)]
+
+    return rdoq(y, gains, steps, rate_weight, bits_of)
+
+
+def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
+               rdoq_rate_weight: float | None = None) -> Any:
     """The `LatentTerrainMap` of a trained grid,
-    exactly as its file stores it (symbols rounded, MLP weights in float16)."""
+    exactly as its file stores it (symbols rounded, MLP weights in float16).
+
+    Args:
+        grid: The trained grid.
+        metrics: Stored in the file header.
+        rdoq_rate_weight: When given, the symbols are chosen by RDOQ at this ``lambda``
+            (`rdoq_symbols`) instead of rounded.
+    """
     from neuralmap.terrain.latent.bitstream import stored_latent_map
     from neuralmap.terrain.latent.map import LatentTerrainMap
 
+    symbols = (grid.symbols() if rdoq_rate_weight is None
+               else rdoq_symbols(grid, rdoq_rate_weight)[0])
     with torch.no_grad():
         latent_map = LatentTerrainMap(
-            grid.symbols(), grid.steps.numpy(), grid.scales.numpy(),
+            symbols, grid.steps.numpy(), grid.scales.numpy(),
             grid.synthesis.parameter_vector().numpy(),
             grid.synthesis.feature_scale.numpy(), hidden=grid.hidden,
             tile_info=grid.tile_info, metrics=metrics, basis=grid.basis,
+            context=stored_context(grid),
+            context_hidden=grid.context.hidden if grid.context is not None else 0,
         )
     return stored_latent_map(latent_map)

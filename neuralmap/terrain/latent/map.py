@@ -86,6 +86,9 @@ class LatentTerrainMap(TerrainModel):
         metrics: Fit metrics (stored in the file header).
         dtype: dtype of the coefficient buffer (float32 for speed; ``.double()`` works).
         basis: The latent basis (default: the pyramid of ``len(symbols)`` levels).
+        context: ``(parameter_count(context_hidden),)`` weights of the context entropy
+            model (`.context_model`), or None for the factorized model.
+        context_hidden: Hidden units of the context MLP (0 without it).
 
     Raises:
         NeuralMapError: Inconsistent shapes.
@@ -108,6 +111,8 @@ class LatentTerrainMap(TerrainModel):
         metrics: dict[str, Any] | None = None,
         dtype: torch.dtype = torch.float32,
         basis: LatentBasis | None = None,
+        context: np.ndarray | None = None,
+        context_hidden: int = 0,
     ) -> None:
         super().__init__()
         self.tile_info = dict(tile_info)
@@ -131,6 +136,9 @@ class LatentTerrainMap(TerrainModel):
                 f"latent map: latent shapes {got} do not fit a {ny} x {nx} tile (expected "
                 f"{expected}); the file is damaged."
             )
+        self.context = None if context is None else np.asarray(context, np.float32).copy()
+        self.context_hidden = int(context_hidden) if context is not None else 0
+        self.entropy = "factorized" if context is None else "context"
         self.symbols = [np.ascontiguousarray(s, dtype=np.int32) for s in symbols]
         self.steps = np.asarray(steps, np.float32).copy()
         self.scales = np.asarray(scales, np.float32).copy()
@@ -151,7 +159,7 @@ class LatentTerrainMap(TerrainModel):
     def extra_repr(self) -> str:
         """Short description for ``print(model)``."""
         return (f"tile={self.tile_name!r}, shape={self.shape}, basis={self.basis.name}, "
-                f"levels={self.levels}, "
+                f"levels={self.levels}, entropy={self.entropy}, "
                 f"hidden={self.hidden}")
 
     @property

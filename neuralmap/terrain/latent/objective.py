@@ -100,9 +100,10 @@ class RateDistortion:
         return uv.float(), target.float()
 
     def __call__(self, grid: LatentGrid, quantizer: str,
-                 generator: torch.Generator | None = None) -> ObjectiveTerms:
-        """The objective under a rounding relaxation (see `LatentGrid.relaxed`)."""
-        decoded, bits = grid.relaxed(quantizer)
+                 generator: torch.Generator | None = None, alpha: float = 8.0) -> ObjectiveTerms:
+        """The objective under a rounding relaxation (see `LatentGrid.relaxed`; ``alpha``
+        is the soft-rounding sharpness of ``"soft"``)."""
+        decoded, bits = grid.relaxed(quantizer, alpha)
         nodes = grid.node_heights(decoded)
         err2 = (nodes - self.heights) ** 2
         node_mse = err2.mean() if self.all_valid else err2[self.valid].mean()

@@ -15,6 +15,7 @@ from neuralmap.terrain.latent.encode import (
     RELAXATIONS,
     make_optimizer,
     quantizer_at,
+    rdoq_rate_weight,
     soft_alpha,
 )
 from neuralmap.terrain.latent.latent_grid import LatentGrid, check_entropy, export_map
@@ -152,8 +153,12 @@ class LatentFitModule(pl.LightningModule):
     def stored_map(self, metrics: dict[str, Any] | None = None) -> LatentTerrainMap:
         """The map exactly as its file stores it."""
         assert self.grid is not None
-        lam = float(self.hparams.rate_weight) if self.hparams.get("rdoq", False) else None
-        return export_map(self.grid, metrics=metrics, rdoq_rate_weight=lam)
+        lam = (rdoq_rate_weight(float(self.hparams.rate_weight),
+                                float(self.hparams.between_weight))
+               if self.hparams.get("rdoq", False) else None)
+        assert self.objective is not None
+        return export_map(self.grid, metrics=metrics, rdoq_rate_weight=lam,
+                          rdoq_target=(self.objective.heights, self.objective.valid))
 
     def validation_step(self, batch: torch.Tensor, batch_idx: int) -> None:
         assert self.tile is not None

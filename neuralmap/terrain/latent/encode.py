@@ -42,6 +42,16 @@ def soft_alpha(step: int, total: int, ste_fraction: float) -> float:
     return SOFT_ALPHA[0] * (SOFT_ALPHA[1] / SOFT_ALPHA[0]) ** frac
 
 
+def rdoq_rate_weight(rate_weight: float, between_weight: float) -> float:
+    """``lambda`` of RDOQ for the objective ``D_nodes + mu D_between + lambda R``.
+
+    RDOQ's distortion counts the node error only; a latent's error shows about as much
+    between the nodes, so ``D_nodes + mu D_between ~ (1 + mu) D_nodes`` and the node-only
+    trade-off is ``lambda / (1 + mu)``.
+    """
+    return float(rate_weight) / (1.0 + float(between_weight))
+
+
 def make_optimizer(grid: LatentGrid, lr: float, total: int
                    ) -> tuple[torch.optim.Optimizer, torch.optim.lr_scheduler.LRScheduler]:
     """Adam over every parameter with a cosine decay to 0.1 ``lr`` over ``total`` steps."""
@@ -123,5 +133,6 @@ def fit_latent_map(
     if terms is not None:
         history = {key: float(getattr(terms, key).detach())
                    for key in ("loss", "node_mse", "between_mse", "bits")}
-    latent_map = export_map(grid, rdoq_rate_weight=rate_weight if rdoq else None)
+    latent_map = export_map(grid, rdoq_rate_weight=rdoq_rate_weight(rate_weight, between_weight)
+                            if rdoq else None, rdoq_target=(objective.heights, objective.valid))
     return latent_map, history

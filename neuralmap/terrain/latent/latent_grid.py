@@ -318,12 +318,18 @@ def stored_context(grid: LatentGrid) -> np.ndarray | None:
         return grid.context.parameter_vector().numpy().astype(np.float16).astype(np.float32)
 
 
-def rdoq_symbols(grid: LatentGrid, rate_weight: float) -> tuple[list[np.ndarray], dict]:
+def rdoq_symbols(grid: LatentGrid, rate_weight: float, heights: torch.Tensor,
+                 valid: torch.Tensor | None = None) -> tuple[list[np.ndarray], dict]:
     """RDOQ symbols of a trained grid (`.rdoq`) under its entropy model as stored.
 
     Args:
-        grid: The trained grid (linear synthesis weight taken into the gains).
-        rate_weight: The objective's ``lambda``.
+        grid: The trained grid.
+        rate_weight: ``lambda`` of the node-only trade-off (m² per bit per node).
+        heights: ``(ny, nx)`` target node heights (voids filled).
+        valid: ``(ny, nx)`` bool mask of the nodes that count (default: all).
+
+    Returns:
+        ``(symbols, info)`` as `rdoq` (``J`` in summed m²: ``n`` times the objective).
     """
     from neuralmap.terrain.latent.context_model import CodingModel, symbol_bits
     from neuralmap.terrain.latent.rdoq import rdoq
@@ -331,10 +337,12 @@ def rdoq_symbols(grid: LatentGrid, rate_weight: float) -> tuple[list[np.ndarray]
     with torch.no_grad():
         steps = grid.steps.numpy().astype(np.float32)
         scales = grid.scales.numpy().astype(np.float32)
-        y = [(z / s).double().numpy() for z, s in zip(grid.latents, grid.steps, strict=True)]
         w = float(grid.synthesis.linear.detach().double().pow(2).mean())
-    gains = node_gains(grid.basis, grid.shape).numpy() * w
+    curvature = node_gains(grid.basis, grid.shape).numpy() * w * steps.astype(np.float64) ** 2
     vector = stored_context(grid)
+    target = torch.as_tensor(heights, dtype=torch.float32)
+    mask = (torch.ones_like(target, dtype=torch.bool) if valid is None
+            else torch.as_tensor(valid, dtype=torch.bool))
 
     def bits_of(sym: list[np.ndarray]) -> list:
         ranges = [(min(0, int(s.min())), max(0, int(s.max()))) if s.size else (0, 0)
@@ -349,11 +357,21 @@ def rdoq_symbols(grid: LatentGrid, rate_weight: float) -> tuple[list[np.ndarray]
         return [(lambda c, mu=mu, b=b, r=r: symbol_bits(c, mu, b, *r).reshape(c.shape))
                 for (mu, b), r in zip(params, ranges, strict=True)]
 
-    return rdoq(y, gains, steps, rate_weight, bits_of)
+    def distortion_of(sym: list[np.ndarray]) -> tuple[float, list[np.ndarray]]:
+        with torch.enable_grad():  # also inside validation's no_grad
+            q = [torch.from_numpy(s.astype(np.float32)).requires_grad_(True) for s in sym]
+            decoded = [qi * float(d) for qi, d in zip(q, steps, strict=True)]
+            err = grid.node_heights(decoded) - target
+            sse = (err[mask] ** 2).sum()
+            grads = torch.autograd.grad(sse, q)
+        return float(sse.detach()), [g.double().numpy() for g in grads]
+
+    return rdoq(grid.symbols(), curvature, rate_weight, bits_of, distortion_of)
 
 
 def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
-               rdoq_rate_weight: float | None = None) -> Any:
+               rdoq_rate_weight: float | None = None,
+               rdoq_target: tuple[torch.Tensor, torch.Tensor] | None = None) -> Any:
     """The `LatentTerrainMap` of a trained grid,
     exactly as its file stores it (symbols rounded, MLP weights in float16).
 
@@ -362,12 +380,19 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
         metrics: Stored in the file header.
         rdoq_rate_weight: When given, the symbols are chosen by RDOQ at this ``lambda``
             (`rdoq_symbols`) instead of rounded.
+        rdoq_target: ``(heights (ny, nx), valid (ny, nx))`` node targets of RDOQ (needed
+            with ``rdoq_rate_weight``; `RateDistortion.heights` / ``.valid``).
+
+    Raises:
+        NeuralMapError: ``rdoq_rate_weight`` without ``rdoq_target``.
     """
+    if rdoq_rate_weight is not None and rdoq_target is None:
+        raise NeuralMapError("export_map: RDOQ needs the node targets (rdoq_target).")
     from neuralmap.terrain.latent.bitstream import stored_latent_map
     from neuralmap.terrain.latent.map import LatentTerrainMap
 
-    symbols = (grid.symbols() if rdoq_rate_weight is None
-               else rdoq_symbols(grid, rdoq_rate_weight)[0])
+    symbols = (grid.symbols() if rdoq_rate_weight is None or rdoq_target is None
+               else rdoq_symbols(grid, rdoq_rate_weight, *rdoq_target)[0])
     with torch.no_grad():
         latent_map = LatentTerrainMap(
             symbols, grid.steps.numpy(), grid.scales.numpy(),

@@ -1,20 +1,24 @@
 """Rate-distortion-optimised quantisation (RDOQ) of a latent map's final symbols.
 
-Rounding to the nearest integer minimises the distortion of each symbol, not the map's
-``J = D + lambda R``. RDOQ (as in HEVC encoders and trellis-quantised JPEG 2000) picks, per
-symbol, among ``round(y)``, one step towards zero and ``0`` the one with the least
+Rounding each latent to the nearest integer minimises neither the map's node error (after
+straight-through training a latent sits anywhere in its rounding cell) nor ``D + lambda R``.
+RDOQ (as in HEVC encoders and trellis-quantised JPEG 2000) moves symbols by one step or to
+``0`` where that lowers
 
-``n J_i = g_s Delta_s^2 (q - y)^2 + lambda bits(q)``
+``J = SSE_nodes + lambda' bits``  (summed squared node error, m²; ``lambda'`` in m² per bit),
 
-(``y`` the continuous latent in step units, ``g_s`` the squared node response of one unit
-latent of subband ``s`` times the squared linear synthesis weight: `node_gains`; ``n`` the
-node count, ``lambda`` the objective's rate weight in m² per bit per node). Under the
-context model ``bits(q)`` is taken with the contexts of the current symbols, so a pass is
-accepted only if the whole map's ``J`` (summed distortion estimate plus the exact ideal
-code length) goes down, and passes repeat until it does not. Where the model predicts a
-small scale (flat ground, calm sea) a non-zero symbol is dear and is zeroed; where it
-predicts a large one (rough relief) rounding is kept: a dead zone that follows the
-terrain, the non-stationary part of the rate allocation.
+each symbol's change ``dq`` priced to second order, exactly for a linear synthesis:
+
+``dSSE_i = g_i dq + G_s Delta_s^2 dq^2``,  ``g_i = dSSE / dq_i``
+
+(``g`` by one backward pass through the synthesis, ``G_s`` the squared node response of a
+unit latent of subband ``s`` times the squared synthesis weight, `node_gains`), and
+``bits`` under the entropy model with the contexts of the current symbols. Changes made
+together interact, so a pass is kept only if the whole map's exact ``J`` (decoded nodes,
+ideal code length) goes down; otherwise only the half of its changes with the largest
+predicted gains is tried, and so on. Where the model predicts a small scale (flat ground,
+calm sea) a non-zero symbol is dear and goes to zero; where it predicts a large one (rough
+relief) it stays: a dead zone that follows the terrain.
 """
 
 from __future__ import annotations
@@ -23,47 +27,64 @@ from collections.abc import Callable
 
 import numpy as np
 
-#: ``bits(symbols) -> per subband, a function giving -log2 P of candidate symbol arrays``.
+#: ``bits_of(symbols)``: per subband, a function of a candidate array giving its bits
+#: elementwise under the contexts of ``symbols``.
 BitsOf = Callable[[list[np.ndarray]], list[Callable[[np.ndarray], np.ndarray]]]
+#: ``distortion_of(symbols)``: ``(SSE, [dSSE/dq per subband])``.
+DistortionOf = Callable[[list[np.ndarray]], tuple[float, list[np.ndarray]]]
 
 
-def rdoq(y: list[np.ndarray], gains: np.ndarray, steps: np.ndarray, rate_weight: float,
-         bits_of: BitsOf, *, passes: int = 3) -> tuple[list[np.ndarray], dict[str, float]]:
-    """RDOQ of the symbols of continuous latents ``y`` (step units).
+def rdoq(symbols: list[np.ndarray], curvature: np.ndarray, rate_weight: float,
+         bits_of: BitsOf, distortion_of: DistortionOf, *, passes: int = 4,
+         halvings: int = 4) -> tuple[list[np.ndarray], dict[str, float]]:
+    """RDOQ starting from ``symbols`` (the rounded latents).
 
     Args:
-        y: Continuous latents per subband (step units), any shapes.
-        gains: ``(S,)`` distortion gains ``g_s`` (m² of summed squared node error per m²).
-        steps: ``(S,)`` quantisation steps ``Delta_s`` (m).
-        rate_weight: ``lambda`` (m² per bit per node).
-        bits_of: Given the current symbols, per subband a function of a candidate array
-            (same shape) returning its bits elementwise under the current contexts.
-        passes: Most passes.
+        symbols: Integer symbols per subband.
+        curvature: ``(S,)`` ``G_s Delta_s^2``: the SSE of a one-step change (m²).
+        rate_weight: ``lambda'`` (m² per bit).
+        bits_of: See `BitsOf`.
+        distortion_of: See `DistortionOf`.
+        passes: Most accepted passes.
+        halvings: Most halvings of a pass's change set before giving up.
 
     Returns:
-        ``(symbols (int32 per subband), {"j_round", "j_rdoq", "passes"})`` with ``J`` in
-        summed m² (``n`` times the objective's ``D + lambda R``, distortion estimated).
+        ``(symbols (int32), {"j_round", "j_rdoq", "passes"})`` with the exact ``J`` (m²).
     """
-    w = [float(g) * float(d) ** 2 for g, d in zip(gains, steps, strict=True)]
-
-    def total(sym: list[np.ndarray]) -> float:
-        dist = sum(wi * float(((s - yi) ** 2).sum()) for wi, s, yi in zip(w, sym, y, strict=True))
+    def total(sym: list[np.ndarray]) -> tuple[float, list[np.ndarray]]:
+        sse, grads = distortion_of(sym)
         rate = sum(float(f(s).sum()) for f, s in zip(bits_of(sym), sym, strict=True))
-        return dist + rate_weight * rate
+        return sse + rate_weight * rate, grads
 
-    sym = [np.round(yi).astype(np.int32) for yi in y]
-    best = j_round = total(sym)
-    done = 0
+    sym = [np.asarray(s, np.int32) for s in symbols]
+    best, grads = total(sym)
+    j_round, done = best, 0
     for _ in range(passes):
         fns = bits_of(sym)
-        trial = []
-        for wi, s, yi, f in zip(w, sym, y, fns, strict=True):
-            cands = [s, (s - np.sign(s)).astype(np.int32), np.zeros_like(s)]
-            cost = np.stack([wi * (c - yi) ** 2 + rate_weight * f(c) for c in cands])
+        picks, gains = [], []
+        for c2, s, g, f in zip(curvature, sym, grads, fns, strict=True):
+            base = rate_weight * f(s)
+            cands = [s, s - 1, s + 1, np.zeros_like(s)]
+            cost = np.stack([g * (c - s) + float(c2) * (c - s) ** 2 + rate_weight * f(c) - base
+                             for c in cands])
             pick = np.argmin(cost, axis=0)
-            trial.append(np.choose(pick, cands).astype(np.int32))
-        j = total(trial)
-        if not j < best:
+            picks.append(np.choose(pick, cands).astype(np.int32))
+            gains.append(-np.min(cost, axis=0))
+        order = np.sort(np.concatenate([x.ravel() for x in gains]))[::-1]
+        moved = int((order > 0).sum())
+        improved = False
+        for _ in range(halvings + 1):
+            if moved == 0:
+                break
+            cut = order[moved - 1]
+            trial = [np.where(gn >= cut, p, s) if moved < order.size else p
+                     for gn, p, s in zip(gains, picks, sym, strict=True)]
+            j, g_new = total(trial)
+            if j < best:
+                sym, best, grads, improved = trial, j, g_new, True
+                break
+            moved //= 2
+        if not improved:
             break
-        sym, best, done = trial, j, done + 1
+        done += 1
     return sym, {"j_round": j_round, "j_rdoq": best, "passes": float(done)}

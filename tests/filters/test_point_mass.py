@@ -193,3 +193,31 @@ def test_bad_input_raises() -> None:
         f.update(torch.zeros(2), torch.zeros(2, 8, 8), R=1.0)
     with pytest.raises(NeuralMapError, match="R must be > 0"):
         f.update(torch.zeros(2), torch.zeros(2, 16, 16), R=0.0)
+
+
+@pytest.mark.parametrize("half_len", [1, 3, 5, 12, 31])
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_separable_convolution_equals_scipy(half_len: int, dim: int, dtype: torch.dtype) -> None:
+    """Both paths of the prediction's convolution (shifted slices for short kernels, the
+    banded Toeplitz product for long ones) against scipy.ndimage.convolve1d per run; the
+    far tails are compared relative to each output (a direct sum, no FFT round-off)."""
+    from scipy.ndimage import convolve1d
+
+    from neuralmap.filters.point_mass import convolve_axis, gaussian_kernels
+
+    gen = torch.Generator().manual_seed(half_len)
+    n, c, g = 3, 2, 32
+    o = torch.arange(g, dtype=torch.float64) - 15.5
+    # a narrow peak: its tails span 100+ decades, which FFT round-off would bury
+    x = torch.exp(-0.5 * (o[:, None] ** 2 + o[None, :] ** 2) / 2.0).expand(n, c, g, g).clone()
+    x *= torch.rand(n, c, 1, 1, generator=gen, dtype=torch.float64) + 0.5
+    sigma = torch.tensor([0.5, 1.3, half_len / 4.0], dtype=torch.float64)
+    k = gaussian_kernels(sigma, half_len)
+    got = convolve_axis(x.to(dtype), k.to(dtype), half_len, dim).double()
+    for r in range(n):
+        want = convolve1d(x[r].numpy(), k[r].numpy()[::-1], axis=dim - 1, mode="constant")
+        want = torch.from_numpy(want)
+        big = want > 1e-30
+        rel = ((got[r] - want).abs()[big] / want[big]).max()
+        assert rel <= (1e-12 if dtype == torch.float64 else 1e-5), (r, float(rel))

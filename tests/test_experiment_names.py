@@ -16,7 +16,7 @@ def test_the_same_names_are_refused_everywhere(name: str) -> None:
     with pytest.raises(NeuralMapError) as study:
         TanStudyConfig(experiment=name).validate()
     assert str(study.value) == str(direct.value)
-    import neuralmap.training.cli_base as training_cli
+    import neuralmap.training.cli as training_cli
 
     assert training_cli.check_experiment_name is check_experiment_name  # one rule
 

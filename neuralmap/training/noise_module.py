@@ -1,7 +1,7 @@
 """NoiseLearningModule: learn the TAN filter's Q and R from flights with Lightning.
 
 ``python train.py noise --config configs/learn_noise.yaml`` trains it on
-`FlightDataModule` (`neuralmap.training.noise_cli`).
+`FlightDataModule` (`neuralmap.training.cli.NoiseMode`).
 Each training batch of flights is cut into windows of ``tbptt_steps`` filter steps
 (truncated back-propagation through time, manual optimisation: one optimiser step per
 window, the filter state carried detached). The loss is the negative innovation

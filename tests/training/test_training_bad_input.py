@@ -145,13 +145,13 @@ def test_runs_started_at_once_with_the_default_logger_get_their_own_folders(
 ) -> None:
     """Two trainers set up before either fits (two processes started together) used to pick
     the same lazily chosen TensorBoard ``version_0``; the folder is now reserved at setup."""
-    from neuralmap.training.cli import _build_cli, _trainer_callbacks
+    from neuralmap.training.cli import MapMode
 
     clis = []
     for _ in range(2):
-        callbacks, _report = _trainer_callbacks()
+        callbacks, _report = MapMode.callbacks()
         with redirect_stdout(io.StringIO()):
-            clis.append(_build_cli(_args(tile_path, tmp_path, "--trainer.max_epochs", "1"),
+            clis.append(MapMode.build(_args(tile_path, tmp_path, "--trainer.max_epochs", "1"),
                                    {}, callbacks))
     dirs = [Path(cli.trainer.logger.log_dir) for cli in clis]
     assert dirs == [tmp_path / "small" / "version_0", tmp_path / "small" / "version_1"]

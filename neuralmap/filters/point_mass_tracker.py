@@ -483,6 +483,15 @@ class PointMassTracker:
         self.centre = torch.where(m1, centre, self.centre)
         self.axes = torch.where(m2, axes, self.axes)
 
+    def _set_subset(self, mask: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> None:
+        """Runs ``mask (N,)`` restart from ``N(mean, cov)`` (``(N, d)``, ``(N, d, d)``); the
+        Gaussian lattice is built for those runs only (each run's is independent)."""
+        idx = mask.nonzero().reshape(-1)
+        gauss = self._gaussian_state(mean.index_select(0, idx), cov.index_select(0, idx))
+        state = tuple(t.index_copy(0, idx, g) for t, g in zip(self._state(), gauss,
+                                                              strict=True))
+        self._set(*state)
+
     def _state(self) -> tuple[torch.Tensor, ...]:
         return self.weights, self.lin_mean, self.lin_cov, self.centre, self.axes
 
@@ -776,7 +785,7 @@ class PointMassTracker:
             reacquire = widened & (self.widenings >= cfg.local_widenings)
             mean = torch.where(reacquire[:, None], self._open_mean, mean)
             infl = torch.where(reacquire[:, None, None], self._open_cov, infl)
-            self._set_rows(widened, *self._gaussian_state(mean, infl))
+            self._set_subset(widened, mean, infl)
             self.widenings += widened.long()
             self._nis_count = torch.where(widened, 0, self._nis_count)
             self.lost |= self.widenings > cfg.max_widenings
@@ -817,15 +826,20 @@ class PointMassTracker:
         move = move & _cholesky_ok(lm.cu)
         if not bool(move.any()):
             return move
+        every = bool(move.all())  # the common case while a posterior shrinks: no copies
         idx = move.nonzero().reshape(-1)
-        w_o, mu_o, P_o, c_o, a_o = (t.index_select(0, idx) for t in (w, mu, P, centre, axes))
-        u_o, cu_o = u.index_select(0, idx), k.index_select(0, idx)
-        czu_o, mz_o = lm.czu.index_select(0, idx), lm.mz.index_select(0, idx)
+
+        def rows(t: torch.Tensor) -> torch.Tensor:
+            return t if every else t.index_select(0, idx)
+
+        w_o, mu_o, P_o, c_o, a_o = (rows(t) for t in (w, mu, P, centre, axes))
+        u_o, cu_o = rows(u), rows(k)
+        czu_o, mz_o = rows(lm.czu), rows(lm.mz)
         ms = c_o + (a_o @ u_o[:, :, None]).squeeze(-1)
         css = _sym(a_o @ cu_o @ a_o.transpose(1, 2))
         czs = czu_o @ a_o.transpose(1, 2)
-        czz = _sym(P_o + lm.czz_b.index_select(0, idx))
-        c_n, a_n = self._lattice_for(ms, css, self._q_next.index_select(0, idx))
+        czz = _sym(P_o + rows(lm.czz_b))
+        c_n, a_n = self._lattice_for(ms, css, rows(self._q_next))
         # old cell coordinates of the new cells: o_old = A_o⁻¹ (c_n − c_o) + A_o⁻¹ A_n o
         ia_o = torch.linalg.inv(a_o)
         base = (ia_o @ (c_n - c_o)[:, :, None]).squeeze(-1)
@@ -854,9 +868,12 @@ class PointMassTracker:
         g_n = czs @ torch.linalg.solve(css, a_n)  # z-gain per new cell step
         mu_n = out[:, 1:] + mz_o[:, :, None, None] + self._affine(g_n, zero)
         new = self._matched((w_n, mu_n, P_o, c_n, a_n), ms, css, mz_o, czz, czs)
-        for name, value in zip(("weights", "lin_mean", "lin_cov", "centre", "axes"), new,
-                               strict=True):
-            getattr(self, name).index_copy_(0, idx, value)
+        if every:
+            self._set(*new)
+        else:
+            for name, value in zip(("weights", "lin_mean", "lin_cov", "centre", "axes"), new,
+                                   strict=True):
+                getattr(self, name).index_copy_(0, idx, value)
         self.regrids += move.long()
         return move
 
@@ -869,5 +886,5 @@ class PointMassTracker:
             eye = torch.eye(d, dtype=self.dtype, device=self.device)
             wide = eye.expand(self.n_runs, d, d) * max(self.config.widen_min_sigma, 1.0) ** 2
             zero = torch.zeros(self.n_runs, d, dtype=self.dtype, device=self.device)
-            self._set_rows(bad, *self._gaussian_state(zero, wide))
+            self._set_subset(bad, zero, wide)
             self.lost |= bad

@@ -770,11 +770,16 @@ class PointMassFilter:
             move = move & candidates
         if not bool(move.any()):
             return move
-        idx = move.nonzero().reshape(-1)
-        sub = self.take(idx)
-        sub._move(mean[idx], cov[idx], sigma[idx], spacing[idx], halfw[idx])
-        for name in ("weights", "scalar_mean", "scalar_var", "centre", "spacing"):
-            getattr(self, name).index_copy_(0, idx, getattr(sub, name))
+        if bool(move.all()):  # every run moves (a shrinking posterior): in place, no copies
+            pending = self._pending.clone()  # deferred process noise stays with the run
+            self._move(mean, cov, sigma, spacing, halfw)
+            self._pending.copy_(pending)
+        else:
+            idx = move.nonzero().reshape(-1)
+            sub = self.take(idx)
+            sub._move(mean[idx], cov[idx], sigma[idx], spacing[idx], halfw[idx])
+            for name in ("weights", "scalar_mean", "scalar_var", "centre", "spacing"):
+                getattr(self, name).index_copy_(0, idx, getattr(sub, name))
         self.regrids.add_(move.long())
         self._points_valid = False
         return move

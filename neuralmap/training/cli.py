@@ -564,15 +564,12 @@ def main(args: list[str] | None = None) -> Path | None:
     if argv and not argv[0].startswith("-"):
         argv = argv[1:]
         if mode not in MODES:
-            print(f"error: train.py mode {mode!r} is unknown; the first word is one of "
-                  f"{', '.join(MODES)} (or an option, for map).", file=sys.stderr, flush=True)
-            raise SystemExit(EXIT_BAD_INPUT)
+            raise _refuse(f"train.py mode {mode!r} is unknown; the first word is one of "
+                          f"{', '.join(MODES)} (or an option, for map).")
         learn = config_learn(argv)
         if learn is not None and learn != mode:
-            print(f"error: train.py {mode}: the config is written for `learn: {learn}`; run "
-                  f"`train.py {learn} ...` (or drop the mode word).", file=sys.stderr,
-                  flush=True)
-            raise SystemExit(EXIT_BAD_INPUT)
+            raise _refuse(f"train.py {mode}: the config is written for `learn: {learn}`; "
+                          f"run `train.py {learn} ...` (or drop the mode word).")
     return MODES[mode]().run(argv)
 
 

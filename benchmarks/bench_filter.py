@@ -54,6 +54,7 @@ if str(REPO_ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO_ROOT))
 
 from neuralmap.dem.tile import DemTile  # noqa: E402
+from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.exceptions import NeuralMapError  # noqa: E402
 
 
@@ -647,6 +648,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--latent_only", action="store_true", help="run benchmark (f) only")
     parser.add_argument("--latent_hidden", type=int, nargs="+", default=[0, 8],
                         help="MLP widths of the latent maps in (f)")
+    add_out_option(parser, "bench_filter")
     args = parser.parse_args(argv)
     if args.quick:
         args.n, args.n_neural, args.n_filterpy = 2000, 1000, 10
@@ -657,6 +659,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     """Runs the benchmarks and prints the markdown table."""
     args = parse_args(argv)
+    bench = start_bench(__file__, args, argv)
     previous = torch.get_num_threads()
     try:
         rows = run(args)
@@ -664,6 +667,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(previous)
     print()
     print(format_rows(rows))
+    bench.finish()
     return 0
 
 

@@ -52,6 +52,7 @@ if str(REPO_ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO_ROOT))
 
 from benchmarks.previous_code import load_previous  # noqa: E402
+from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.ins.gnss import simulate_gnss  # noqa: E402
 from neuralmap.ins.imu_model import ImuErrorProcess, imu_grade  # noqa: E402
 from neuralmap.ins.kernels import HAVE_NUMBA  # noqa: E402
@@ -190,11 +191,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--kfgins", type=str, default=None,
                         help="KF-GINS executable to time on the same log (--cli)")
     parser.add_argument("--repeats", type=int, default=3, help="runs per timing (--cli)")
+    add_out_option(parser, "bench_gins_log")
     args = parser.parse_args(argv)
+    bench = start_bench(__file__, args, argv)
     if args.cli:
         if args.quick:
             args.cli_duration, args.repeats = 10.0, 1
         cli_benchmark(args)
+        bench.finish()
         return
     if args.quick:
         args.duration, args.old_duration, args.n_runs = 6.0, 1.0, 3
@@ -243,6 +247,7 @@ def main(argv: list[str] | None = None) -> None:
     else:
         print(f"# target ratio >= 10: {'met' if min(ratios) >= 10 else 'NOT met'} "
               f"(min {min(ratios):.1f}x)")
+    bench.finish()
 
 
 if __name__ == "__main__":

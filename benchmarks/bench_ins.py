@@ -43,6 +43,7 @@ if str(REPO_ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO_ROOT))
 
 from benchmarks.previous_code import load_previous  # noqa: E402
+from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.ins.earth import WGS84_A, WGS84_E2, WGS84_OMEGA  # noqa: E402
 from neuralmap.ins.error_model import process_noise_density  # noqa: E402
 from neuralmap.ins.gnss import simulate_gnss  # noqa: E402
@@ -272,7 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=3,
                         help="interleaved timings of the block and per-sample filters (best of)")
     parser.add_argument("--quick", action="store_true", help="small sizes: a smoke test")
+    add_out_option(parser, "bench_ins")
     args = parser.parse_args(argv)
+    bench = start_bench(__file__, args, argv)
     if args.quick:
         args.n, args.duration, args.rate, args.repeats = 16, 4.0, 50.0, 1
     from neuralmap.ins.kernels import HAVE_NUMBA
@@ -382,6 +385,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"covariance propagation, one block of {args.n} runs x 20 points: "
               f"{times[0] * 1e3:.2f} ms (8-run lanes) vs {times[1] * 1e3:.2f} ms (run by run), "
               f"{times[1] / times[0]:.1f}x, bit-identical")
+    bench.finish()
     return 0
 
 

@@ -44,6 +44,7 @@ for path in (REPO_ROOT, REPO_ROOT / "benchmarks"):
 from bench_latent_rd import bd_rate, get_tile, jpeg2k_psnr_sweep, node_rmse  # noqa: E402
 
 from neuralmap.dem import load_tile  # noqa: E402
+from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.terrain.codecs import compress_grid  # noqa: E402
 from neuralmap.terrain.grid import GridTerrain  # noqa: E402
 from neuralmap.terrain.latent.bitstream import decode_latent_map, encode_latent_map  # noqa: E402
@@ -173,6 +174,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--skip_speed", action="store_true")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
+    add_out_option(parser, "bench_latent_context")
     args = parser.parse_args(argv)
     if args.quick:
         args.tiles, args.lambdas, args.steps = ["synthetic:64x64"], [1.0, 8.0], 30
@@ -182,6 +184,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    bench = start_bench(__file__, args, argv)
     torch.set_num_threads(args.threads)
     print(f"# bench_latent_context: torch {torch.__version__}, {torch.get_num_threads()} "
           f"thread(s); {args.steps} steps, {args.levels} levels, between weight "
@@ -191,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(decode_speed(args)), "\n", flush=True)
     for name in args.tiles:
         print("\n".join(run_tile(name, args)), "\n", flush=True)
+    bench.finish()
     return 0
 
 

@@ -48,6 +48,7 @@ if str(REPO_ROOT) not in sys.path:
 
 from neuralmap.dem import load_tile  # noqa: E402
 from neuralmap.dem.tile import DemTile  # noqa: E402
+from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.terrain.codecs import HEADER_BYTES, compress_grid  # noqa: E402
 from neuralmap.terrain.grid import GridTerrain  # noqa: E402
 from neuralmap.terrain.latent.bitstream import encode_latent_map  # noqa: E402
@@ -275,6 +276,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--n_between", type=int, default=20000)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
+    add_out_option(parser, "bench_latent_rd")
     args = parser.parse_args(argv)
     if args.quick:
         args.tiles, args.lambdas, args.steps = ["synthetic"], [1.0, 8.0], 30
@@ -284,6 +286,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    bench = start_bench(__file__, args, argv)
     torch.set_num_threads(args.threads)
     print(f"# bench_latent_rd: torch {torch.__version__}, {torch.get_num_threads()} thread(s); "
           f"{args.steps} steps, bases {args.bases} (wavelet {args.wavelet}, "
@@ -293,6 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.tiles:
         print(format_tile(run_tile(name, args)), flush=True)
         print()
+    bench.finish()
     return 0
 
 

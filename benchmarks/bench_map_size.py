@@ -39,6 +39,7 @@ for extra_path in (REPO_ROOT, REPO_ROOT / "benchmarks"):
 from bench_filter import Row, _rates, timed  # noqa: E402
 
 from neuralmap.dem.load import load_tile  # noqa: E402
+from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.linearize.autograd import AutogradLinearizer  # noqa: E402
 from neuralmap.terrain.bake import bake_to_grid  # noqa: E402
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet  # noqa: E402
@@ -127,10 +128,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--map", action="append", default=[], help="trained neural_map.pt")
     parser.add_argument("--quick", action="store_true", help="small smoke run")
+    add_out_option(parser, "bench_map_size")
     args = parser.parse_args(argv)
+    bench = start_bench(__file__, args, argv)
     if args.quick:
         args.n, args.repeats = min(args.n, 20_000), 2
     run(args)
+    bench.finish()
     return 0
 
 

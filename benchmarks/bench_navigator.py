@@ -34,6 +34,7 @@ import time
 import numpy as np
 import torch
 
+from neuralmap.docs.bench_run import add_out_option, start_bench
 from neuralmap.nav.navigator import Navigator
 from neuralmap.nav.scenario import load_scenario, scenario_tile
 from neuralmap.nav.simulator import simulate
@@ -142,7 +143,9 @@ def main() -> None:
     parser.add_argument("--batch_steps", type=int, default=30, help="epochs of the batch run")
     parser.add_argument("--latent_steps", type=int, default=60,
                         help="Adam steps of the latent map's fit")
+    add_out_option(parser, "bench_navigator")
     args = parser.parse_args()
+    bench = start_bench(__file__, args)
     if args.quick:
         args.vehicles, args.steps, args.batch_steps, args.latent_steps = 50, 40, 10, 5
     torch.set_num_threads(1)
@@ -183,6 +186,7 @@ def main() -> None:
     print(f"targets met: median {met[0]}, p99 {met[1]}, throughput {met[2]}")
     if not math.isfinite(rate):
         raise SystemExit(1)
+    bench.finish()
 
 
 if __name__ == "__main__":

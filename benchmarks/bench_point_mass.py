@@ -51,6 +51,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 if str(REPO_ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(REPO_ROOT))
 
+from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.exceptions import NeuralMapError  # noqa: E402
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter  # noqa: E402
 from neuralmap.nav.acquisition import lattice_bilinear  # noqa: E402
@@ -244,7 +245,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
+    add_out_option(parser, "bench_point_mass")
     args = parser.parse_args()
+    bench = start_bench(__file__, args)
     if args.quick:
         args.runs, args.steps, args.ref_runs, args.repeats = 50, 5, 1, 1
     torch.set_num_threads(args.threads)
@@ -319,6 +322,7 @@ def main() -> None:
               f"{rate * nbytes / bandwidth:9.2%}")
     print("target: the batched rows >= 10x the NumPy loop per cell-update (N = 1000, 32², "
           "one thread)")
+    bench.finish()
 
 
 if __name__ == "__main__":

@@ -41,6 +41,7 @@ for path in (REPO_ROOT, REPO_ROOT / "benchmarks"):
 
 from bench_latent_rd import get_tile, jpeg2k_psnr_sweep, node_rmse  # noqa: E402
 
+from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.studies.rate_distortion import (  # noqa: E402
     gaussian_rd_bytes,
     innovation_entropy_bits,
@@ -90,9 +91,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--psnr_levels", nargs="+", type=float, default=[60, 65, 70, 75, 80])
     parser.add_argument("--bounds", nargs="+", type=float, default=[1, 2, 4, 8])
     parser.add_argument("--rmse_range", nargs=2, type=float, default=[0.3, 5.0])
+    add_out_option(parser, "bench_rd_bound")
     args = parser.parse_args(argv)
+    bench = start_bench(__file__, args, argv)
     for name in args.tiles:
         print("\n".join(run_tile(name, args)), "\n", flush=True)
+    bench.finish()
     return 0
 
 

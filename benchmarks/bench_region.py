@@ -35,6 +35,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from neuralmap.docs.bench_run import add_out_option, start_bench
+
 REPO = Path(__file__).resolve().parents[1]
 AREAS = {"138k": (372, 372), "1M": (1000, 1000), "4.6M": (1270, 3610)}
 SRTM_1ARCSEC = (3601, 3601)
@@ -140,6 +142,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip_mc", action="store_true")
     parser.add_argument("--skip_train", action="store_true")
     parser.add_argument("--json", default=None, help="also write the numbers here")
+    add_out_option(parser, "bench_region")
     args = parser.parse_args(argv)
     if args.child is not None:
         job = json.loads(args.child)
@@ -147,6 +150,7 @@ def main(argv: list[str] | None = None) -> int:
             job["kind"]](job)
         print(json.dumps(out))
         return 0
+    bench = start_bench(__file__, args, argv)
     areas = {k: AREAS[k] for k in args.areas}
     steps, shards, mc_runs = args.steps, args.shards, args.mc_runs
     if args.quick:
@@ -203,6 +207,7 @@ def main(argv: list[str] | None = None) -> int:
               flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(numbers, indent=1))
+    bench.finish(numbers)
     return 0
 
 

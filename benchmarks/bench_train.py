@@ -23,6 +23,8 @@ import json
 import time
 from pathlib import Path
 
+from neuralmap.docs.bench_run import add_out_option, start_bench
+
 REPO = Path(__file__).resolve().parents[1]
 
 #: Benchmarked configurations: label -> extra ``train.py`` arguments.
@@ -48,7 +50,9 @@ def main(argv: list[str] | None = None) -> str:
     parser.add_argument("--quick", action="store_true", help="2 epochs per config")
     parser.add_argument("--tile", default="jacksboro", help="sample name or DEM path")
     parser.add_argument("--runs_dir", default="runs", help="where the runs are written")
+    add_out_option(parser, "bench_train")
     args, passthrough = parser.parse_known_args(argv)
+    bench = start_bench(__file__, args, argv)
 
     from neuralmap.training.cli import main as train_main
 
@@ -80,6 +84,7 @@ def main(argv: list[str] | None = None) -> str:
     print(f"\ntile: {args.tile}; torch threads: {torch.get_num_threads()}"
           f"{'; --quick' if args.quick else ''}\n")
     print(table)
+    bench.finish(markdown=table)
     return table
 
 

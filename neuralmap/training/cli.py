@@ -54,6 +54,7 @@ import json
 import os
 import shutil
 import sys
+import time
 import warnings
 from argparse import ArgumentError
 from contextlib import ExitStack
@@ -227,6 +228,20 @@ def _lightning_cli(cli_class: type[NeuralMapCLI], model: type, data: type, args:
             parser_kwargs=parser_kwargs, trainer_defaults={"callbacks": callbacks})
 
 
+def _write_summary(mode: str, args: list[str] | None, cli: Any, map_path: Path,
+                   metrics: dict[str, Any], start: float, defaults: list[str]) -> None:
+    """The run folder's stamped ``summary.md`` (`neuralmap.training.run_summary`)."""
+    from neuralmap.training.run_summary import write_train_summary
+
+    argv = list(sys.argv[1:] if args is None else args)
+    configs = defaults + _config_files(argv)
+    seed = cli.config.get("seed_everything")
+    write_train_summary(map_path.parent, mode=mode, argv=argv, configs=configs,
+                        metrics=metrics, seed=seed if isinstance(seed, int) else None,
+                        wall_s=time.perf_counter() - start,
+                        experiment=map_path.parent.parent.name)
+
+
 # ----------------------------------------------------------------------------- the modes
 class TrainMode:
     """One mode of ``train.py``: its name and how it parses, fits and exports.
@@ -291,6 +306,7 @@ class MapMode(TrainMode):
                               parser_kwargs, callbacks)
 
     def run(self, args: list[str] | None) -> Path | None:
+        start = time.perf_counter()
         default_config = default_config_path()
         parser_kwargs: dict[str, Any] = {
             "description": self.summary,
@@ -325,9 +341,12 @@ class MapMode(TrainMode):
                     file=sys.stderr, flush=True,
                 )
                 raise SystemExit(EXIT_NO_MAP)
+            _write_summary(self.name, args, cli, report.map_path, report.metrics, start,
+                           [str(default_config)] if default_config else [])
             sys.stderr.flush()
             print(os.fspath(report.map_path), flush=True)
         return report.map_path
+
 
 class NoiseMode(TrainMode):
     """``train.py noise``: learn the TAN filter's Q and R from flights
@@ -390,6 +409,7 @@ class LatentMode(TrainMode):
         from neuralmap.training.latent_datamodule import LatentDataModule
         from neuralmap.training.latent_module import LatentFitModule
 
+        start = time.perf_counter()
         report = LatentMapReport()
         checkpoint = ModelCheckpoint(save_last=True, save_top_k=0)
         try:
@@ -407,6 +427,7 @@ class LatentMode(TrainMode):
                       "completed). Check --trainer.max_epochs / max_steps.", file=sys.stderr,
                       flush=True)
                 raise SystemExit(EXIT_NO_MAP)
+            _write_summary(self.name, args, cli, report.map_path, report.metrics, start, [])
             sys.stderr.flush()
             print(os.fspath(report.map_path), flush=True)
         return report.map_path

@@ -242,3 +242,154 @@ def test_every_study_is_in_the_studies_table() -> None:
     table = (REPO / "docs" / "studies" / "index.md").read_text(encoding="utf-8")
     missing = [name for name in STUDIES if f"[`{name}`](" not in table]
     assert not missing, f"docs/studies/index.md lacks {missing}"
+
+
+# ----------------------------------------------------------------------------- benchmarks, training
+def _fake_bench(root: Path, body: str = "print('x')\n") -> Path:
+    script = root / "benchmarks" / "bench_fake.py"
+    script.parent.mkdir(parents=True, exist_ok=True)
+    script.write_text(body)
+    return script
+
+
+def test_benchmark_output_becomes_markdown_tables_and_text_blocks() -> None:
+    from neuralmap.docs.bench_run import markdown_of_output
+
+    out = markdown_of_output("# head 1.5\n\n| a | b |\n|---|---:|\n| x | 2.25 |\ntail 3.5\n")
+    assert out == ("```text\n# head 1.5\n```\n\n| a | b |\n|---|---:|\n| x | 2.25 |\n\n"
+                   "```text\ntail 3.5\n```\n")
+
+
+def test_a_benchmark_run_is_stamped_and_goes_stale_when_its_script_changes(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    from neuralmap.docs.bench_run import script_sha256, start_bench
+
+    script = _fake_bench(tmp_path)
+    args = argparse.Namespace(n=7, quick=False, out=str(tmp_path / "runs" / "bench_fake"))
+    run = start_bench(script, args, ["--n", "7"])
+    print("| what | rate |\n|---|---:|\n| fast | 4.271 |")
+    print("note 0.125")
+    folder = run.finish({"rate": 4.271})
+    assert folder == tmp_path / "runs" / "bench_fake" / "version_0"
+    assert capsys.readouterr().out.endswith(f"stamped run: {folder}\n")
+    first, _, body = (folder / "summary.md").read_text().partition("\n")
+    provenance = json.loads(first[len(SUMMARY_MARK):].removesuffix("-->"))
+    assert provenance["kind"] == "bench" and provenance["argv"] == ["--n", "7"]
+    assert provenance["script_sha256"] == script_sha256(script)
+    assert provenance["options"] == {"n": 7, "quick": False}
+    assert {"cpu", "cores", "torch_threads", "load_1min"} <= set(provenance["machine"])
+    assert "| fast | 4.271 |" in body and "```text\nnote 0.125\n```" in body
+    results = json.loads((folder / "results.json").read_text())
+    assert results["results"] == {"rate": 4.271} and "note 0.125" in results["output"]
+    assert not list((tmp_path / "runs" / "bench_fake").glob(".tmp-*"))  # published whole
+
+    page = update_page(folder, docs_dir=tmp_path / "docs", configs_dir=REPO / "configs")
+    assert page == tmp_path / "docs" / "results" / "bench_fake.md"
+    stamp = read_stamp(page)
+    assert stamp is not None and stamp.kind == "bench"
+    assert stamp.config == "benchmarks/bench_fake.py"
+    text = page.read_text()
+    assert "| fast | 4.271 |" in text and "`python benchmarks/bench_fake.py --n 7`" in text
+    warnings: list[str] = []
+    assert check_page(page, tmp_path, warnings=warnings) == [] and warnings == []
+    script.write_text("print('y')\n")  # the benchmark changed: the page is stale, a warning
+    assert check_page(page, tmp_path, warnings=warnings) == []
+    (warning,) = warnings
+    assert "stale" in warning and "rerun the benchmark" in warning
+    script.unlink()
+    assert "not in the repository" in check_page(page, tmp_path)[0]
+
+
+def test_a_quick_benchmark_run_is_stamped_only_with_out(tmp_path: Path,
+                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    import argparse
+
+    from neuralmap.docs.bench_run import start_bench
+
+    monkeypatch.chdir(tmp_path)
+    script = _fake_bench(tmp_path)
+    run = start_bench(script, argparse.Namespace(quick=True, out=None), ["--quick"])
+    print("smoke")
+    assert run.finish() is None and not (tmp_path / "runs").exists()
+
+
+def _train_run(tmp_path: Path, configs: list[Path], argv: list[str]) -> Path:
+    from neuralmap.training.run_summary import write_train_summary
+
+    run = tmp_path / "runs" / "jacksboro" / "version_0"
+    run.mkdir(parents=True)
+    write_train_summary(run, mode="map", argv=argv, configs=configs,
+                        metrics={"rmse_m": 0.7122, "epochs": 400, "tile": "jacksboro",
+                                 "tile_shape": [344, 403]}, seed=0, wall_s=309.25,
+                        experiment="jacksboro")
+    return run
+
+
+def test_a_training_run_is_stamped_with_its_config_and_overrides(tmp_path: Path) -> None:
+    run = _train_run(tmp_path, [REPO / "configs" / "train.yaml"],
+                     ["--runs_dir", "/x", "--experiment", "e", "--model.lr=0.01",
+                      "--trainer.max_epochs", "3"])
+    summary = (run / "summary.md").read_text()
+    assert summary.startswith(SUMMARY_MARK) and "| rmse_m | 0.7122 |" in summary
+    assert "tile_shape" not in summary  # scalars only
+    page = update_page(run, docs_dir=tmp_path / "docs", configs_dir=REPO / "configs")
+    assert page.name == "train_train.md"
+    stamp = read_stamp(page)
+    assert stamp is not None and stamp.kind == "train" and stamp.seed == 0
+    assert stamp.config == "configs/train.yaml"
+    assert stamp.overrides == {"model.lr": "0.01", "trainer.max_epochs": "3"}
+    text = page.read_text()
+    assert ("`python train.py --config configs/train.yaml --model.lr 0.01 "
+            "--trainer.max_epochs 3`") in text and "| wall_s" in text
+    assert check_page(page, REPO) == []
+
+
+def test_a_training_run_of_a_changed_or_unshipped_config_is_refused(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    configs = tmp_path / "configs"
+    configs.mkdir()
+    (configs / "train.yaml").write_text("seed_everything: 0\n")
+    run = _train_run(tmp_path, [configs / "train.yaml"], [])
+    (configs / "train.yaml").write_text("seed_everything: 1\n")
+    args = ["update", str(run), "--docs_dir", str(tmp_path / "docs"), "--configs_dir",
+            str(configs)]
+    assert docs_main(args) == 2
+    assert "changed since the run" in capsys.readouterr().err
+    (configs / "train.yaml").unlink()
+    assert docs_main(args) == 2
+    assert "not a file of" in capsys.readouterr().err
+    assert not (tmp_path / "docs").exists()
+
+
+def test_a_number_may_be_quoted_rounded_but_not_to_one_digit() -> None:
+    assert untraced_numbers("RMSE 0.71 m", ["| rmse_m | 0.7122 |"]) == ["0.71"]  # exact
+    assert untraced_numbers("RMSE 0.71 m, 0.712 m", ["| rmse_m | 0.7122 |"], rounded=True) == []
+    assert untraced_numbers("RMSE 0.72 m", ["| 0.7122 |"], rounded=True) == ["0.72"]
+    assert untraced_numbers("about 0.7 m", ["| 0.7122 |"], rounded=True) == ["0.7"]
+
+
+def test_a_linked_page_quotes_only_numbers_of_the_stamped_pages_it_links(
+        tmp_path: Path) -> None:
+    from neuralmap.docs.trace import check_linked_page
+
+    docs = tmp_path / "docs"
+    (docs / "results").mkdir(parents=True)
+    stamp = RunStamp(study="bench_fake", config="benchmarks/bench_fake.py",
+                     config_sha256="0" * 64, seed=None, commit=None, dirty=None,
+                     date="2026-01-01T00:00:00Z", kind="bench")
+    (docs / "results" / "bench_fake.md").write_text(stamp.line() + "\n| fast | 4.271 |\n")
+    (docs / "results" / "hand.md").write_text("| slow | 9.5 |\n")
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "train.yaml").write_text("lr: 0.003\n")
+    page = docs / "benchmarks.md"
+    page.write_text("Fast: 4.27 M/s ([run](results/bench_fake.md)), lr 0.003 "
+                    "(`configs/train.yaml`).\n")
+    assert check_linked_page(page, tmp_path) == []
+    page.write_text("Fast: 4.27 M/s, 4.31 M/s ([run](results/bench_fake.md#fast)).\n")
+    (problem,) = check_linked_page(page, tmp_path)
+    assert "4.31 on no stamped page" in problem
+    page.write_text("Slow: 9.5 ([hand](results/hand.md)).\n")
+    problems = check_linked_page(page, tmp_path)
+    assert "carries no run stamp" in problems[0] and "9.5" in problems[1]

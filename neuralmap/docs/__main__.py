@@ -1,6 +1,10 @@
-"""``python -m neuralmap.docs update RUN_DIR...``: stamped results pages from study runs.
+"""``python -m neuralmap.docs update RUN_DIR...``: stamped results pages from study,
+training and benchmark runs; ``python -m neuralmap.docs check``: every stamp and every
+quoted number.
 
-Exit codes: 0 done, 2 bad input (one ``error:`` line on stderr).
+Exit codes: 0 done (``check``: stale benchmark pages are printed as ``warning:`` lines and
+fail only with ``--strict``), 1 ``check`` found problems, 2 bad input (one ``error:`` line
+on stderr).
 """
 
 from __future__ import annotations
@@ -10,7 +14,7 @@ import sys
 from pathlib import Path
 
 from neuralmap.docs.stamp import check_page
-from neuralmap.docs.trace import check_study_page
+from neuralmap.docs.trace import TRACED_PAGES, check_linked_page, check_study_page
 from neuralmap.docs.update import update_page
 from neuralmap.exceptions import NeuralMapError
 
@@ -21,14 +25,18 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     update = sub.add_parser("update", help="copy runs' summary.md into docs/results/, stamped")
     update.add_argument("run_dirs", nargs="+", metavar="RUN_DIR",
-                        help="published study run folders (runs/<experiment>/version_N)")
+                        help="published run folders (runs/<experiment>/version_N) of a "
+                             "study, a training run or a benchmark")
     update.add_argument("--docs_dir", default="docs", help="documentation sources (docs)")
     update.add_argument("--configs_dir", default="configs", help="shipped configs (configs)")
     update.add_argument("--no_figures", action="store_true", help="do not copy the PNGs")
     check = sub.add_parser(
-        "check", help="check every docs/results/*.md stamp and the numbers of docs/studies/*.md")
+        "check", help="check every docs/results/*.md stamp and the numbers of docs/studies/*.md"
+                      f" and of {', '.join(TRACED_PAGES)}")
     check.add_argument("--docs_dir", default="docs")
     check.add_argument("--repo_root", default=".")
+    check.add_argument("--strict", action="store_true",
+                       help="a stale benchmark page (its script changed) fails too")
     return parser
 
 
@@ -43,14 +51,21 @@ def main(argv: list[str] | None = None) -> int:
                                    figures=not args.no_figures)
                 print(f"{run_dir} -> {page}", flush=True)
             return 0
+        warnings: list[str] = []
         problems = [p for page in sorted(Path(args.docs_dir, "results").glob("*.md"))
-                    if page.name != "index.md" for p in check_page(page, args.repo_root)]
+                    if page.name != "index.md"
+                    for p in check_page(page, args.repo_root, warnings=warnings)]
         problems += [p for page in sorted(Path(args.docs_dir, "studies").glob("*.md"))
                      if page.name != "index.md"
                      for p in check_study_page(page, args.repo_root)]
+        problems += [p for pattern in TRACED_PAGES
+                     for page in sorted(Path(args.docs_dir).glob(pattern))
+                     for p in check_linked_page(page, args.repo_root)]
         for problem in problems:
             print(problem)
-        return 1 if problems else 0
+        for warning in warnings:
+            print(f"warning: {warning}")
+        return 1 if problems or (args.strict and warnings) else 0
     except NeuralMapError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

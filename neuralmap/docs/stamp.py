@@ -1,7 +1,12 @@
 """The run stamp of a results page: which config, seed, commit and date its numbers are from.
 
 The stamp is the page's first line, an HTML comment holding JSON (invisible on the site);
-the page repeats it as a table for the reader.
+the page repeats it as a table for the reader. Three kinds of run are stamped: a study
+(``evaluate.py``; its config of ``configs/``), a training run (``train.py``; its config of
+``configs/``) and a benchmark (a script of ``benchmarks/``, whose SHA-256 is its config).
+A changed config fails the check; a changed benchmark script makes its page *stale*, a
+warning: benchmark numbers belong to a machine and a load, and a docstring edit of a
+script must not fail CI until someone reruns a benchmark of several minutes.
 """
 
 from __future__ import annotations
@@ -14,13 +19,17 @@ from typing import Any
 
 from neuralmap.io import load_yaml
 
-__all__ = ["STAMP_MARK", "TINY_NOTE", "RunStamp", "check_page", "config_sha256", "read_stamp"]
+__all__ = ["KINDS", "STAMP_MARK", "TINY_NOTE", "RunStamp", "check_page", "config_sha256",
+           "read_stamp"]
 
 #: First characters of a stamped results page.
 STAMP_MARK = "<!-- neuralmap-stamp:"
 
 #: Sentence every page stamped with a tiny config carries.
 TINY_NOTE = "tiny config: a smoke run, not the study's result"
+
+#: The kinds of stamped run: a study, a training run, a benchmark.
+KINDS = ("study", "train", "bench")
 
 
 def config_sha256(path: str | Path) -> str:
@@ -41,6 +50,10 @@ class RunStamp:
         dirty: Whether the run's working tree had uncommitted changes to tracked files.
         date: When the run finished (UTC, ISO 8601).
         overrides: Options the run set on top of the config file (name -> value).
+        kind: ``study``, ``train`` or ``bench`` (`KINDS`); for a benchmark ``study`` is its
+            name and ``config`` its script (``benchmarks/bench_filter.py``).
+        argv: The command-line words of a training run or benchmark.
+        machine: CPU model, cores, torch threads and load of a benchmark or training run.
     """
 
     study: str
@@ -51,6 +64,9 @@ class RunStamp:
     dirty: bool | None
     date: str
     overrides: dict[str, Any] = field(default_factory=dict)
+    kind: str = "study"
+    argv: list[str] | None = None
+    machine: dict[str, Any] | None = None
 
     @property
     def tiny(self) -> bool:
@@ -78,16 +94,19 @@ def read_stamp(page: str | Path) -> RunStamp | None:
         raise ValueError(f"{page}: line 1: damaged run stamp ({exc})") from exc
 
 
-def check_page(page: str | Path, repo_root: str | Path) -> list[str]:
+def check_page(page: str | Path, repo_root: str | Path, *,
+               warnings: list[str] | None = None) -> list[str]:
     """What is wrong with a results page's stamp (empty when it is sound).
 
     A page is sound when its first line is a stamp, the stamp's config file exists in the
-    repository with the same SHA-256, names the same study, and a page stamped with a tiny
-    config says so.
+    repository with the same SHA-256, names the same study (studies), and a page stamped
+    with a tiny config says so. A benchmark page whose script changed since the run is
+    sound but stale: the message goes to ``warnings``.
 
     Args:
-        page: A ``docs/results/<study>.md`` page.
+        page: A ``docs/results/<name>.md`` page.
         repo_root: The repository root the config path is relative to.
+        warnings: Where stale benchmark pages are reported (dropped when ``None``).
     """
     page = Path(page)
     try:
@@ -99,15 +118,23 @@ def check_page(page: str | Path, repo_root: str | Path) -> list[str]:
                 "`python -m neuralmap.docs update RUN_DIR`"]
     problems = []
     config = Path(repo_root) / stamp.config
+    if stamp.kind not in KINDS:
+        return [f"{page}: line 1: run stamp of unknown kind {stamp.kind!r} (one of {KINDS})"]
     if not config.is_file():
         return [f"{page}: stamped with {stamp.config}, which is not in the repository"]
+    if stamp.kind == "bench":
+        if config_sha256(config) != stamp.config_sha256 and warnings is not None:
+            warnings.append(f"{page}: stale: {stamp.config} changed since the run (sha256 "
+                            f"{stamp.config_sha256[:12]}, now {config_sha256(config)[:12]}); "
+                            "rerun the benchmark and update the page")
+        return []
     if config_sha256(config) != stamp.config_sha256:
         problems.append(f"{page}: stamped with {stamp.config} at sha256 "
                         f"{stamp.config_sha256[:12]}, but the file now hashes to "
                         f"{config_sha256(config)[:12]}; rerun the study with the current "
                         "config and update the page")
     data = load_yaml(config.read_text(encoding="utf-8"))
-    if not isinstance(data, dict) or data.get("study") != stamp.study:
+    if stamp.kind == "study" and (not isinstance(data, dict) or data.get("study") != stamp.study):
         problems.append(f"{page}: stamp says study {stamp.study!r} but {stamp.config} "
                         "names another")
     if stamp.tiny and TINY_NOTE not in page.read_text(encoding="utf-8"):

@@ -133,7 +133,9 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
             folder) of a sharded region map: then a
             `ShardedTerrainMap` that loads shards lazily,
             or a latent-grid map bitstream (recognised by its magic bytes): then a
-            `LatentTerrainMap`.
+            `LatentTerrainMap`, or a latent tileset's ``latent_tileset.json`` (or its
+            folder): then a `LatentTileset`
+            that decodes its tiles lazily.
 
     Returns:
         The terrain model; ``.tile_name``, ``.tile_fingerprint``, ``.extent`` and
@@ -144,6 +146,12 @@ def load_map(path: str | os.PathLike[str]) -> BlockwiseTerrainNet:
             or weights do not build the model (a damaged or hand-edited file), a
             quantised file lacks values or scales, or a weight or scale is not finite.
     """
+    from neuralmap.terrain.latent.tileset_index import is_tileset_index
+
+    if isinstance(path, (str, os.PathLike)) and is_tileset_index(path):
+        from neuralmap.terrain.latent.tileset import LatentTileset
+
+        return LatentTileset(path)  # type: ignore[return-value]
     if isinstance(path, (str, os.PathLike)) and is_sharded_index(path):
         index = Path(path)
         return ShardedTerrainMap(  # type: ignore[return-value]

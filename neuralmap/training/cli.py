@@ -26,6 +26,9 @@ The modes (`MODES`, one class each, sharing `TrainMode`):
   learned scenario YAML, ready for ``python evaluate.py --scenario <that file>``.
 - `LatentMode` (``latent``): fit a latent-grid map (``python train.py latent --config
   configs/latent_map.yaml``); the last stdout line is the bitstream ``latent_map.nlat``.
+  With ``--data.path 'tiles/*.hgt'`` (a glob or a list of DEM files) or
+  ``--data.tile_nodes N`` it fits a latent tileset, one map per tile with an overlap
+  (`neuralmap.training.latent_tileset`); the last stdout line is ``latent_tileset.json``.
 - `RegionMode` (``region``): fit a region-scale sharded map on several processes on
   Lightning Fabric (``python train.py region --config configs/train_region.yaml --out
   runs/paper_region``; ``--data.path`` a ``.npy`` region, DEM files / globs, or
@@ -69,7 +72,13 @@ from lightning.pytorch.cli import LightningArgumentParser, LightningCLI
 from lightning.pytorch.loggers import TensorBoardLogger
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.io import check_experiment_name, check_writable_dir, next_version_dir, replacing_dir
+from neuralmap.io import (
+    atomic_write_text,
+    check_experiment_name,
+    check_writable_dir,
+    next_version_dir,
+    replacing_dir,
+)
 from neuralmap.training.quiet import quiet_lightning, silence_lightning_notices
 from neuralmap.training.resume import inspect_checkpoint
 
@@ -416,6 +425,8 @@ class LatentMode(TrainMode):
             cli = _lightning_cli(_LatentCLI, LatentFitModule, LatentDataModule, args,
                                  {"description": self.summary},
                                  [checkpoint, report, EpochLines()])
+            if cli.datamodule.tileset_plan is not None:
+                return self.run_tileset(cli)
             with quiet_lightning():  # Lightning's tips and its torch deprecation warning
                 cli.trainer.fit(cli.model, datamodule=cli.datamodule,
                                 ckpt_path=cli.config.get("ckpt_path"))
@@ -431,6 +442,54 @@ class LatentMode(TrainMode):
             sys.stderr.flush()
             print(os.fspath(report.map_path), flush=True)
         return report.map_path
+
+
+    @staticmethod
+    def run_tileset(cli: NeuralMapCLI) -> Path:
+        """A tileset run (``--data.path`` a glob or list of DEM files, or
+        ``--data.tile_nodes``): every tile fitted with the run's ``--model.*`` settings for
+        ``max_epochs x steps_per_epoch`` steps (`neuralmap.training.latent_tileset`); the
+        tile bitstreams and ``latent_tileset.json`` go into the run folder, whose index path
+        is the last stdout line. A run that fails or is interrupted leaves no run folder.
+
+        Raises:
+            NeuralMapError: ``--ckpt_path`` (a tileset does not resume) or no step bound.
+        """
+        from neuralmap.training.latent_tileset import fit_options, fit_tileset
+
+        trainer = cli.trainer
+        run_dir = getattr(cli, "reserved_dir", None) or Path(trainer.default_root_dir)
+        try:
+            if cli.config.get("ckpt_path"):
+                raise NeuralMapError(
+                    "--ckpt_path: a tileset run does not resume from a checkpoint; run it "
+                    "again without --ckpt_path (each tile is fitted from scratch).")
+            epochs, max_steps = trainer.max_epochs, trainer.max_steps
+            steps = (epochs * cli.datamodule.steps_per_epoch
+                     if epochs is not None and epochs > 0 else None)
+            if max_steps is not None and max_steps > 0:
+                steps = max_steps if steps is None else min(steps, max_steps)
+            if steps is None:
+                raise NeuralMapError(
+                    "a tileset run needs --trainer.max_epochs >= 1 (or --trainer.max_steps): "
+                    "each tile is fitted for max_epochs x --data.steps_per_epoch steps.")
+            if trainer.is_global_zero:
+                run_dir.mkdir(parents=True, exist_ok=True)
+                atomic_write_text(run_dir / "config.yaml",
+                                  cli.parser.dump(cli.config, skip_none=False))
+            index = fit_tileset(cli.datamodule.tileset_plan, run_dir, steps=int(steps),
+                                options=fit_options(cli.model.hparams))
+        except NeuralMapError as error:
+            remove_orphan_run_dir(getattr(cli, "reserved_dir", None))
+            raise _refuse(error) from None
+        except KeyboardInterrupt:
+            remove_orphan_run_dir(getattr(cli, "reserved_dir", None))
+            print("error: interrupted; the tileset run folder was removed (no index was "
+                  "written). Run the command again to train.", file=sys.stderr, flush=True)
+            raise SystemExit(EXIT_NO_MAP) from None
+        sys.stderr.flush()
+        print(os.fspath(index), flush=True)
+        return index
 
 
 class RegionMode(TrainMode):

@@ -3,6 +3,11 @@
 A latent-grid map is fitted to the whole tile at every step (every node plus random
 between-node points, `RateDistortion`), so an epoch is
 just ``steps_per_epoch`` step indices; validation is one item (the whole tile, quantised).
+
+Several DEM files (a glob such as ``'tiles/*.hgt'`` or a list), or ``tile_nodes``, make a
+tileset run instead: `tileset_plan` holds the region and its tiles
+(`neuralmap.training.latent_tileset.plan_tileset`), which ``train.py latent`` fits tile by
+tile into a latent tileset.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from neuralmap.dem import load_tile
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.training.datamodule import spacing_argument
+from neuralmap.training.latent_tileset import TilesetPlan, is_tileset_source, plan_tileset
 
 
 class _Steps(Dataset):
@@ -40,24 +46,45 @@ class LatentDataModule(pl.LightningDataModule):
 
     Args:
         path: Sample name (``jacksboro``, ``synthetic``, ``synthetic:64x48``) or a DEM file
-            (`neuralmap.dem.load_tile`); from Python also a `DemTile`.
+            (`neuralmap.dem.load_tile`); from Python also a `DemTile`. A glob pattern or a
+            list of DEM files: a tileset, one tile per file.
         spacing: Grid spacing in metres for files that do not carry it: one number or
             ``[dx, dy]`` (as ``train.py map``'s ``--data.spacing``).
         steps_per_epoch: Optimisation steps per epoch (each over the whole tile).
+        overlap_nodes: Tileset: overlap margin and blend half-width at the seams, node
+            intervals (`neuralmap.terrain.latent.tileset_layout`).
+        tile_nodes: Tileset: cut the region (or one DEM) into tiles of this many node
+            intervals instead of one tile per file.
+
+    Attributes:
+        tileset_plan: The region and its tiles for a tileset run, else None.
 
     Raises:
-        NeuralMapError: Bad path / file, or ``steps_per_epoch`` < 1.
+        NeuralMapError: Bad path / file, or ``steps_per_epoch`` < 1; for a tileset an empty
+            glob, tiles that do not form a region, mismatched spacing / CRS.
     """
 
-    def __init__(self, path: str | Path = "jacksboro", spacing: float | list[float] | None = None,
-                 steps_per_epoch: int = 100) -> None:
+    def __init__(self, path: str | Path | list[str] = "jacksboro",
+                 spacing: float | list[float] | None = None, steps_per_epoch: int = 100,
+                 overlap_nodes: int = 4, tile_nodes: int | None = None) -> None:
         super().__init__()
         if int(steps_per_epoch) < 1:
             raise NeuralMapError(
                 f"--data.steps_per_epoch must be >= 1, got {steps_per_epoch}.")
         self.steps_per_epoch = int(steps_per_epoch)
+        self.tileset_plan: TilesetPlan | None = None
+        if not isinstance(path, DemTile) and (is_tileset_source(path) or tile_nodes is not None):
+            self.tileset_plan = plan_tileset(path, overlap_nodes=overlap_nodes,
+                                             tile_nodes=tile_nodes,
+                                             spacing=spacing_argument(spacing))
+            self.tile: DemTile = self.tileset_plan.region
+            rows, cols = self.tileset_plan.layout.grid
+            rank_zero_info(
+                f"tileset '{self.tile.name}': {self.tile.shape[0]} x {self.tile.shape[1]} nodes "
+                f"in {rows} x {cols} tiles, overlap {overlap_nodes} nodes")
+            return
         if isinstance(path, DemTile):
-            self.tile: DemTile = path
+            self.tile = path
         else:
             self.tile = load_tile(str(path), spacing=spacing_argument(spacing))  # type: ignore[arg-type]
         rank_zero_info(

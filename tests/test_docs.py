@@ -294,6 +294,12 @@ def test_a_benchmark_run_is_stamped_and_goes_stale_when_its_script_changes(
     assert "| fast | 4.271 |" in text and "`python benchmarks/bench_fake.py --n 7`" in text
     warnings: list[str] = []
     assert check_page(page, tmp_path, warnings=warnings) == [] and warnings == []
+    second = update_page(folder, docs_dir=tmp_path / "docs", configs_dir=REPO / "configs",
+                         page_name="bench_fake_n7")  # a second run of one benchmark
+    assert second.name == "bench_fake_n7.md" and read_stamp(second) == stamp
+    assert docs_main(["update", str(folder), "--docs_dir", str(tmp_path / "docs"),
+                      "--page", "tan"]) == 2
+    assert "--page 'tan'" in capsys.readouterr().err
     script.write_text("print('y')\n")  # the benchmark changed: the page is stale, a warning
     assert check_page(page, tmp_path, warnings=warnings) == []
     (warning,) = warnings

@@ -30,6 +30,9 @@ def build_parser() -> argparse.ArgumentParser:
     update.add_argument("--docs_dir", default="docs", help="documentation sources (docs)")
     update.add_argument("--configs_dir", default="configs", help="shipped configs (configs)")
     update.add_argument("--no_figures", action="store_true", help="do not copy the PNGs")
+    update.add_argument("--page", default=None, metavar="NAME",
+                        help="page name for one training or benchmark run (bench_gins_log_cli: "
+                             "a second run of a benchmark with other options)")
     check = sub.add_parser(
         "check", help="check every docs/results/*.md stamp and the numbers of docs/studies/*.md"
                       f" and of {', '.join(TRACED_PAGES)}")
@@ -45,10 +48,13 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         if args.command == "update":
+            if args.page is not None and len(args.run_dirs) != 1:
+                raise NeuralMapError(f"--page {args.page}: names the page of one run; got "
+                                     f"{len(args.run_dirs)} run folders")
             for run_dir in args.run_dirs:
                 page = update_page(run_dir, docs_dir=args.docs_dir,
                                    configs_dir=args.configs_dir,
-                                   figures=not args.no_figures)
+                                   figures=not args.no_figures, page_name=args.page)
                 print(f"{run_dir} -> {page}", flush=True)
             return 0
         warnings: list[str] = []

@@ -230,7 +230,8 @@ def _run_table(stamp: RunStamp, run_dir: Path) -> str:
 
 
 def update_page(run_dir: str | Path, *, docs_dir: str | Path = "docs",
-                configs_dir: str | Path = "configs", figures: bool = True) -> Path:
+                configs_dir: str | Path = "configs", figures: bool = True,
+                page_name: str | None = None) -> Path:
     """Writes a stamped ``<docs_dir>/results/`` page from one run: ``<study>.md`` for a
     study, ``train_<config>.md`` for a training run, ``bench_<name>.md`` for a benchmark.
 
@@ -239,13 +240,16 @@ def update_page(run_dir: str | Path, *, docs_dir: str | Path = "docs",
         docs_dir: The documentation sources.
         configs_dir: The repository's ``configs/`` (stamp paths are relative to its parent).
         figures: Also copy the run's PNG figures beside the page.
+        page_name: The page's name instead of the run's (``bench_gins_log_cli``: two runs
+            of one benchmark with different options); a training or benchmark run only.
 
     Returns:
         The page written.
 
     Raises:
         NeuralMapError: Not a run folder, no summary or config, or no config of the study;
-            a training run whose config is not shipped or changed since.
+            a training run whose config is not shipped or changed since; a bad
+            ``page_name``.
     """
     run_dir, docs_dir, configs_dir = Path(run_dir), Path(docs_dir), Path(configs_dir)
     if not run_dir.is_dir():
@@ -277,6 +281,13 @@ def update_page(run_dir: str | Path, *, docs_dir: str | Path = "docs",
         body = re.sub(r"\A\s*# [^\n]*\n", "", body)  # the page has its own title
     else:
         raise NeuralMapError(f"{run_dir / 'summary.md'}: line 1: unknown run kind {kind!r}")
+    if page_name is not None:
+        prefix = f"{kind}_"
+        if kind == "study" or not re.fullmatch(rf"{prefix}[a-z0-9_]+", page_name):
+            raise NeuralMapError(
+                f"--page {page_name!r}: a page name is for a training or benchmark run and "
+                f"reads {prefix}<letters, digits, _> (this run is a {kind} run)")
+        name = page_name
     out_dir = docs_dir / "results"
     out_dir.mkdir(parents=True, exist_ok=True)
     parts = [stamp.line(), title]

@@ -47,6 +47,12 @@ The masses are carried over by bilinear interpolation of the density; when the p
 is narrower than ``1.5`` old cells the Gaussian fit is used instead (too few cells to
 interpolate a shape). Grid tensors are allocated once; the hot loop reuses them except
 for the temporaries of the convolution and the update.
+
+Kernels: the convolution, the measurement update (the scalar part is the ``nz = 1``,
+``c = 1`` case of the per-cell Kalman update), the moments, the Gaussian masses and the
+bilinear resampling are those of `neuralmap.filters.lattice.kernels`, shared with the
+tracker (`neuralmap.filters.point_mass_tracker`); this module holds the lattice policy
+of acquisition (fixed or adaptive axis-aligned grid, deferred diffusion).
 """
 
 from __future__ import annotations
@@ -56,15 +62,27 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as nnf
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters.underflow import exp_or_zero, log_or_neg_inf
+from neuralmap.filters.lattice.kernels import (
+    BANDED_MIN_HALF_LEN,
+    blur,
+    cell_log_likelihood,
+    conditional_mean,
+    convolve_axis,
+    gaussian_kernels,
+    gaussian_log_density,
+    kalman_cells,
+    mass_moments,
+    normalised,
+    resample_bilinear,
+    toeplitz_kernels,
+    weight_update,
+)
 
-__all__ = ["PointMassConfig", "PointMassFilter", "PointMassUpdate", "convolve_axis",
-           "gaussian_kernels", "toeplitz_kernels"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
+# the kernels are those of `neuralmap.filters.lattice.kernels` (re-exported here)
+__all__ = ["BANDED_MIN_HALF_LEN", "PointMassConfig", "PointMassFilter", "PointMassUpdate",
+           "convolve_axis", "gaussian_kernels", "toeplitz_kernels"]
 
 #: Per-run state tensors (what `PointMassFilter.take` and ``extend`` carry).
 _STATE = ("weights", "scalar_mean", "scalar_var", "centre", "spacing", "recoveries", "regrids",
@@ -75,12 +93,6 @@ _STATE = ("weights", "scalar_mean", "scalar_var", "centre", "spacing", "recoveri
 #: variances add, so deferring it loses nothing but the blur of the interim steps.
 DIFFUSE_MIN_CELLS = 0.3
 
-#: Relative mass under which a cell's scalar mean is pulled to the run's mean (round-off).
-_RATIO_EPS = {torch.float32: 1e-13, torch.float64: 1e-13}
-
-#: Kernels with more than ``2 · BANDED_MIN_HALF_LEN + 1`` taps are applied as one banded
-#: Toeplitz product instead of shifted slices.
-BANDED_MIN_HALF_LEN = 4
 
 
 @dataclass
@@ -182,79 +194,6 @@ def _as_batch(value: object, shape: tuple[int, ...], name: str, dtype: torch.dty
         ) from exc
 
 
-def toeplitz_kernels(kernels: torch.Tensor, half_len: int, cells: int) -> torch.Tensor:
-    """``(N, G, G)`` banded Toeplitz matrices ``T[n, j, i] = k[n, j − i + half_len]`` (zero
-    outside the band): ``out = T x`` is the zero-padded convolution of ``x`` with ``k``.
-
-    Args:
-        kernels: ``(N, 2·half_len + 1)`` 1-D kernels.
-        half_len: Kernel half-length.
-        cells: Lattice cells ``G`` along the axis.
-    """
-    n = kernels.shape[0]
-    i = torch.arange(cells, device=kernels.device)
-    tap = i[:, None] - i[None, :] + half_len  # (G, G) tap index of out j, in i
-    tap = tap.masked_fill((tap < 0) | (tap > 2 * half_len), 2 * half_len + 1)
-    padded = torch.cat([kernels, kernels.new_zeros(n, 1)], 1)
-    return padded[:, tap]
-
-
-def convolve_axis(x: torch.Tensor, kernels: torch.Tensor, half_len: int,
-                  dim: int) -> torch.Tensor:
-    """Zero-padded 1-D convolution of ``x (N, C, G, G)`` along ``dim`` with per-run kernels.
-
-    ``kernels (N, 2·half_len + 1)``. Short kernels (``≤ 2·BANDED_MIN_HALF_LEN + 1`` taps): a
-    sum of shifted, scaled slices; longer ones: one batched product with the banded
-    Toeplitz matrix of the kernel (`toeplitz_kernels`; ``G`` multiply-adds per output,
-    one pass over ``x``) — the separable form of the convolution prediction of the
-    efficient point-mass filter (Matoušek, Duník et al.). On a lattice of ``G ≤ 128``
-    cells this beats an FFT (which needs a padded, complex float64 copy) several times
-    over and its round-off is that of a direct sum (relative to each output, not to the
-    peak: far tails stay exact).
-    """
-    g = x.shape[dim]
-    n = x.shape[0]
-    if half_len > BANDED_MIN_HALF_LEN:
-        t = toeplitz_kernels(kernels.to(x.dtype), half_len, g)
-        if dim == 3:  # out[..., j] = Σ_i T[j, i] x[..., i]
-            return torch.bmm(x.reshape(n, -1, g), t.transpose(1, 2)).reshape(x.shape)
-        return torch.matmul(t[:, None], x)  # rows: out[:, :, j] = Σ_i T[j, i] x[:, :, i]
-    out = torch.mul(x, kernels[:, half_len, None, None, None])
-    for t in range(2 * half_len + 1):
-        o = t - half_len  # out[j] += k[t] · x[j − o]
-        if o == 0 or abs(o) >= g:
-            continue
-        length = g - abs(o)
-        dst = out.narrow(dim, max(o, 0), length)
-        dst.addcmul_(x.narrow(dim, max(-o, 0), length), kernels[:, t, None, None, None])
-    return out
-
-
-def gaussian_kernels(sigma_cells: torch.Tensor, half_len: int) -> torch.Tensor:
-    """``(M, 2·half_len + 1)`` 1-D process-noise kernels of variance ``sigma_cells²`` (cells).
-
-    A sampled, normalised Gaussian for ``σ ≥ 0.7`` cells; the three-tap kernel
-    ``[σ²/2, 1 − σ², σ²/2]`` below (its variance is exactly ``σ²``, which a sampled
-    Gaussian narrower than a cell would not have).
-
-    Args:
-        sigma_cells: ``(M,)`` standard deviations in cells.
-        half_len: Kernel half-length (taps ``−half_len … half_len``, ``≥ 1``).
-    """
-    dtype, device = sigma_cells.dtype, sigma_cells.device
-    k = torch.arange(-half_len, half_len + 1, dtype=dtype, device=device)
-    s = sigma_cells.clamp_min(1e-6)[:, None]
-    gauss = torch.exp(-0.5 * (k / s) ** 2)
-    gauss = gauss / gauss.sum(1, keepdim=True)
-    var = s.squeeze(1) ** 2
-    tap = torch.zeros_like(gauss)
-    tap[:, half_len] = 1.0 - var.clamp_max(0.5)
-    if half_len >= 1:
-        tap[:, half_len - 1] = 0.5 * var.clamp_max(0.5)
-        tap[:, half_len + 1] = 0.5 * var.clamp_max(0.5)
-    return torch.where((sigma_cells >= 0.7)[:, None], gauss, tap)
-
-
 class PointMassFilter:
     """N point-mass filters over a 2-D state with a Rao-Blackwellised scalar, in lock-step.
 
@@ -303,6 +242,7 @@ class PointMassFilter:
         self.n_runs, self.cells = n, g
         self.half = 0.5 * (g - 1)
         self._offsets = torch.arange(g, dtype=dtype, device=self.device) - self.half
+        self._c1 = torch.ones(1, dtype=dtype, device=self.device)  # measurement row of a
         self.weights = torch.empty(n, g, g, dtype=dtype, device=self.device)
         self.scalar_mean = torch.empty_like(self.weights)
         self.scalar_var = torch.empty(n, dtype=dtype, device=self.device)
@@ -406,17 +346,11 @@ class PointMassFilter:
 
     def _gaussian_weights(self, mean: torch.Tensor, cov: torch.Tensor, centre: torch.Tensor,
                           spacing: torch.Tensor) -> torch.Tensor:
-        """Normalised masses of ``N(mean, cov)`` sampled on the grid ``(centre, spacing)``."""
-        off = self._offsets
-        dx = (centre[:, 0:1] - mean[:, 0:1] + spacing[:, 0:1] * off)[:, None, :]
-        dy = (centre[:, 1:2] - mean[:, 1:2] + spacing[:, 1:2] * off)[:, :, None]
-        a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
-        det = (a * c - b * b).clamp_min(torch.finfo(self.dtype).tiny)
-        ia, ib, ic = (c / det)[:, None, None], (-b / det)[:, None, None], (a / det)[:, None, None]
-        logw = -0.5 * (ia * dx * dx + 2.0 * ib * dx * dy + ic * dy * dy)
-        logw = logw - logw.amax(dim=(1, 2), keepdim=True)
-        w = exp_or_zero(logw, out_of_place=False)
-        return w / w.sum(dim=(1, 2), keepdim=True)
+        """Normalised masses of ``N(mean, cov)`` sampled on the grid ``(centre, spacing)``
+        (`gaussian_log_density` in cell units)."""
+        u = (mean - centre) / spacing
+        cu = cov / (spacing[:, :, None] * spacing[:, None, :])
+        return normalised(gaussian_log_density(self._offsets, u, cu))
 
     def take(self, index: torch.Tensor) -> PointMassFilter:
         """A new filter holding the runs ``index`` (copies; counters carried over).
@@ -427,6 +361,7 @@ class PointMassFilter:
         out = object.__new__(PointMassFilter)
         out.config, out.dtype, out.device = self.config, self.dtype, self.device
         out.cells, out.half, out._offsets = self.cells, self.half, self._offsets
+        out._c1 = self._c1
         out.n_runs = int(index.numel())
         out._points_valid = False
         for name in _STATE:
@@ -465,10 +400,8 @@ class PointMassFilter:
 
     def mean(self) -> torch.Tensor:
         """``(N, 2)`` posterior mean ``Σ w s``."""
-        w = self.weights
-        ux = (w.sum(1) * self._offsets).sum(1)
-        uy = (w.sum(2) * self._offsets).sum(1)
-        return self.centre + self.spacing * torch.stack([ux, uy], 1)
+        u, _ = mass_moments(self.weights, self._offsets)
+        return self.centre + self.spacing * u
 
     def cov(self) -> torch.Tensor:
         """``(N, 2, 2)`` posterior covariance ``Σ w (s − s̄)(s − s̄)ᵀ`` plus the process
@@ -477,15 +410,8 @@ class PointMassFilter:
 
     def _grid_cov(self) -> torch.Tensor:
         """``(N, 2, 2)`` covariance of the masses alone."""
-        w, off = self.weights, self._offsets
-        wx, wy = w.sum(1), w.sum(2)
-        ux, uy = (wx * off).sum(1), (wy * off).sum(1)
-        vxx = (wx * off * off).sum(1) - ux * ux
-        vyy = (wy * off * off).sum(1) - uy * uy
-        vxy = ((w * off[None, :, None]).sum(1) * off).sum(1) - ux * uy
-        dx, dy = self.spacing[:, 0], self.spacing[:, 1]
-        cxx, cyy, cxy = vxx * dx * dx, vyy * dy * dy, vxy * dx * dy
-        return torch.stack([torch.stack([cxx, cxy], 1), torch.stack([cxy, cyy], 1)], 1)
+        _, cu = mass_moments(self.weights, self._offsets)
+        return cu * (self.spacing[:, :, None] * self.spacing[:, None, :])
 
     def scalar_moments(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Mixture mean and variance ``(N,)`` of the scalar part over the grid."""
@@ -515,10 +441,6 @@ class PointMassFilter:
         return (w * g).sqrt().sum((1, 2))
 
     # ------------------------------------------------------------------ predict
-    def _kernels(self, sigma_cells: torch.Tensor, half_len: int) -> torch.Tensor:
-        """``(M, 2·half_len + 1)`` 1-D kernels of variance ``sigma_cells²`` (see module)."""
-        return gaussian_kernels(sigma_cells, half_len)
-
     def predict(
         self,
         *,
@@ -583,22 +505,15 @@ class PointMassFilter:
         """Convolves masses ``(M, G, G)`` with per-run Gaussians of ``sigma_cells (M, 2)``
         cells and mixes the scalar part (module docstring); returns new ``w, m, v``."""
         n, g = w.shape[0], self.cells
-        smax = float(sigma_cells.max())
-        half_len = min(max(1, int(math.ceil(4.0 * smax))), g - 1)
         second = (w * m * m).sum((1, 2))
         chans = torch.empty(n, 2, g, g, dtype=w.dtype, device=w.device) if buf is None else buf
         chans[:, 0].copy_(w)
         torch.mul(w, m, out=chans[:, 1])
-        kx = self._kernels(sigma_cells[:, 0], half_len)
-        ky = self._kernels(sigma_cells[:, 1], half_len)
-        chans = convolve_axis(chans, kx, half_len, dim=3)
-        chans = convolve_axis(chans, ky, half_len, dim=2)
+        chans = blur(chans, sigma_cells)
         w0 = chans[:, 0].clamp_(min=0.0)  # round-off can dip below 0
         total = w0.sum((1, 2), keepdim=True)
-        # regularised ratio: cells with mass near the round-off level get the run's mean
-        eps = _RATIO_EPS[self.dtype] * w0.amax((1, 2), keepdim=True)
-        m_mix = (w * m).sum((1, 2))[:, None, None]
-        m_new = (chans[:, 1] + eps * m_mix) / (w0 + eps)
+        m_mix = (w * m).sum((1, 2))[:, None]
+        m_new = conditional_mean(w0, chans[:, 1:], m_mix)[:, 0]
         ok = (total.reshape(n) > 0) & torch.isfinite(total.reshape(n))
         w_new = w0 / torch.where(ok[:, None, None], total, 1.0)
         second_new = (w_new * m_new * m_new).sum((1, 2))
@@ -653,50 +568,23 @@ class PointMassFilter:
         m, v = self.scalar_mean, self.scalar_var
         s_run = v + r  # (N,) innovation variance, the same in every cell
         nu = (y[:, None, None] - gval).sub_(m)
-        const = -0.5 * (_LOG_2PI + s_run.log())  # (N,) common to the run's cells
-        if cell_variance is None:
-            loglik = nu.square().mul_((-0.5 / s_run)[:, None, None])
-        else:
-            cv = torch.as_tensor(cell_variance).to(self.dtype).clamp_min(0.0)
-            s_cell = cv + s_run[:, None, None]
-            loglik = (nu.square() / s_cell).add_(
-                torch.log1p(cv / s_run[:, None, None]), alpha=1.0).mul_(-0.5)
-        p_out = self.config.outlier_prob
-        if p_out > 0.0:
-            log_out = math.log(p_out / self.config.outlier_width) - const[:, None, None]
-            log_in = loglik + math.log1p(-p_out)
-            mix = torch.logaddexp(log_in, log_out.expand_as(log_in))
-            resp = (log_in - mix).exp()  # inlier responsibility
-            loglik = mix
-        else:
-            resp = None
-        loglik = torch.nan_to_num(loglik, nan=-math.inf)
-        logw = log_or_neg_inf(self.weights).add_(loglik)
-        peak = logw.amax((1, 2), keepdim=True)
-        finite_peak = torch.isfinite(peak).reshape(n)
-        w = exp_or_zero(logw.sub_(torch.where(torch.isfinite(peak), peak, 0.0)),
-                        out_of_place=False)
-        total = w.sum((1, 2))
-        log_lik = torch.where(finite_peak, const + peak.reshape(n) + total.log(), -math.inf)
-        use = finite_peak & (total > 0) & torch.isfinite(total)
+        loglik, resp = cell_log_likelihood(nu, s_run, cell_variance,
+                                           outlier_prob=self.config.outlier_prob,
+                                           outlier_width=self.config.outlier_width)
+        upd = weight_update(self.weights, torch.nan_to_num(loglik, nan=-math.inf), s_run)
+        w, log_lik, use = upd.weights, upd.log_likelihood, upd.use
         recovered = ~use
         if mask is not None:
             recovered = recovered & mask
             use = use & mask
         self.recoveries.add_(recovered.long())
-        w.div_(torch.where(use, total, 1.0)[:, None, None])
         floor = self.config.weight_floor
         if floor > 0.0:  # keeps every cell alive; adds at most G² · floor of mass
             w.clamp_(min=floor)
-        gain = v / s_run  # (N,)
         nu = torch.nan_to_num(nu, nan=0.0, posinf=0.0, neginf=0.0)
-        if resp is None:
-            m_new = nu.mul_(gain[:, None, None]).add_(m)
-            v_new = v * r / s_run
-        else:  # inlier-weighted gain; the variance shrinks by the mean responsibility
-            m_new = torch.addcmul(m, resp * gain[:, None, None], nu)
-            rbar = (w * resp).sum((1, 2))
-            v_new = v * (1.0 - rbar * gain)
+        # the scalar part is the nz = 1, c = 1 case of the per-cell Kalman update
+        mu_new, p_new = kalman_cells(m[:, None], v[:, None, None], self._c1, nu, s_run, resp, w)
+        m_new, v_new = mu_new[:, 0], p_new[:, 0, 0]
         if bool(use.all()):
             self.weights.copy_(w)
             self.scalar_mean.copy_(m_new)
@@ -735,8 +623,7 @@ class PointMassFilter:
         py = anchor[:, 1, None, None] + a[:, 1, 0] * dx + a[:, 1, 1] * dy
         grid = torch.stack([(px - self.centre[:, 0, None, None]) / halfw[:, 0, None, None],
                             (py - self.centre[:, 1, None, None]) / halfw[:, 1, None, None]], -1)
-        out = nnf.grid_sample(chans, grid, mode="bilinear", padding_mode="zeros",
-                              align_corners=True)
+        out = resample_bilinear(chans, grid, padding="zeros")
         return out[:, 0].clamp_min(0.0), out
 
     def regrid(self, candidates: torch.Tensor | None = None, *,

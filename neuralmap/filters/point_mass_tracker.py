@@ -69,6 +69,13 @@ kilometres away). A run widened more than ``max_widenings`` times, or whose cova
 stops being finite, is flagged ``lost`` (counted and reported; its estimate is held,
 never NaN). A tracker started mid-flight gets the open-loop prior of the original prior
 from `PointMassTracker.set_open_loop`.
+
+Kernels: the convolution, the measurement update, the moments, the lattice Gaussian and
+the bilinear resampling are those of `neuralmap.filters.lattice.kernels`, shared with the
+acquisition grid (`neuralmap.filters.point_mass`); this module holds the lattice policy
+that follows the posterior (affine lattice, moment-exact prediction and regrid). The
+2 × 2 moment-correction map is computed in float64 in both dtypes: from a float32 eigh
+an elongated posterior's map could collapse the lattice.
 """
 
 from __future__ import annotations
@@ -79,15 +86,22 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as nnf
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters.point_mass import convolve_axis, gaussian_kernels
-from neuralmap.filters.underflow import exp_or_zero, log_or_neg_inf
+from neuralmap.filters.lattice.kernels import (
+    LatticeMoments,
+    affine_field,
+    blur,
+    cell_log_likelihood,
+    conditional_mean,
+    gaussian_log_density,
+    kalman_cells,
+    normalised,
+    resample_bilinear,
+    weight_update,
+)
 
 __all__ = ["PointMassTracker", "TrackerConfig", "TrackerUpdate"]
-
-_LOG_2PI = math.log(2.0 * math.pi)
 
 #: Transition noise below this many cells (1σ, every run and axis) is left to the moment
 #: correction alone (an affine stretch of the lattice) instead of a blur.
@@ -228,29 +242,8 @@ def _cholesky_ok(c: torch.Tensor) -> torch.Tensor:
     return finite & sym & (torch.linalg.cholesky_ex(safe.double()).info == 0)
 
 
-class _Moments:
-    """Moments of a lattice state in lattice coordinates (cheap separable sums).
-
-    Attributes: ``u (N, 2)`` mean cell coordinate, ``cu (N, 2, 2)`` its covariance (cells²),
-    ``mz (N, nz)``, ``czu (N, nz, 2)`` ``Cov_w(μ, o)``, ``czz_b (N, nz, nz)`` ``Cov_w(μ)``.
-    """
-
-    def __init__(self, w: torch.Tensor, mu: torch.Tensor, off: torch.Tensor) -> None:
-        n, nz = mu.shape[0], mu.shape[1]
-        wx, wy = w.sum(1), w.sum(2)  # along columns (x) and rows (y)
-        ux, uy = wx @ off, wy @ off
-        cxx = wx @ (off * off) - ux * ux
-        cyy = wy @ (off * off) - uy * uy
-        cxy = (w @ off) @ off - ux * uy
-        self.u = torch.stack([ux, uy], 1)
-        self.cu = torch.stack([torch.stack([cxx, cxy], 1), torch.stack([cxy, cyy], 1)], 1)
-        wmu = mu * w[:, None]
-        self.mz = wmu.sum((2, 3))
-        czx = wmu.sum(2) @ off - self.mz * ux[:, None]
-        czy = wmu.sum(3) @ off - self.mz * uy[:, None]
-        self.czu = torch.stack([czx, czy], 2)
-        second = torch.bmm(wmu.reshape(n, nz, -1), mu.reshape(n, nz, -1).transpose(1, 2))
-        self.czz_b = _sym(second - self.mz[:, :, None] * self.mz[:, None, :])
+#: Lattice moments (the shared kernel; the old private name kept for callers).
+_Moments = LatticeMoments
 
 
 class PointMassTracker:
@@ -440,30 +433,16 @@ class PointMassTracker:
 
     # ------------------------------------------------------------------ lattice helpers
     def _log_gauss(self, u: torch.Tensor, cu: torch.Tensor) -> torch.Tensor:
-        """``(N, G, G)`` ``log N(o; u, cu)`` (cell coordinates) up to a per-run constant.
-
-        ``cu``'s eigenvalues are floored at 1/12 cell² (the variance of one uniform cell: a
-        lattice cannot hold a narrower posterior), so a posterior collapsed onto one cell
-        or one line of cells stays invertible; wider posteriors are unchanged.
-        """
-        vals, vecs = torch.linalg.eigh(_sym(cu))
-        floored = vals.clamp_min(1.0 / 12.0)
-        inv = (vecs / floored[:, None, :]) @ vecs.transpose(1, 2)
-        dx = (self._off[None, :] - u[:, 0:1])[:, None, :]  # (N, 1, G) along columns
-        dy = (self._off[None, :] - u[:, 1:2])[:, :, None]  # (N, G, 1) along rows
-        a, b, c = (inv[:, i, j, None, None] for i, j in ((0, 0), (0, 1), (1, 1)))
-        return -0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy)
+        """``(N, G, G)`` ``log N(o; u, cu)`` in cell coordinates (`gaussian_log_density`)."""
+        return gaussian_log_density(self._off, u, cu)
 
     def _affine(self, g: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """``(N, nz, G, G)`` ``g · (o − u)`` for ``g (N, nz, 2)`` (cell coordinates)."""
-        dx = (self._off[None, :] - u[:, 0:1])[:, None, None, :]
-        dy = (self._off[None, :] - u[:, 1:2])[:, None, :, None]
-        return g[:, :, 0, None, None] * dx + g[:, :, 1, None, None] * dy
+        """``(N, nz, G, G)`` ``g · (o − u)`` for ``g (N, nz, 2)`` (`affine_field`)."""
+        return affine_field(self._off, g, u)
 
     @staticmethod
     def _normalised(logw: torch.Tensor) -> torch.Tensor:
-        w = exp_or_zero(logw - logw.amax((1, 2), keepdim=True), out_of_place=False)
-        return w / w.sum((1, 2), keepdim=True)
+        return normalised(logw)
 
     def _points(self, centre: torch.Tensor, axes: torch.Tensor) -> torch.Tensor:
         """``(N, G, G, 2)`` cell coordinates of lattices ``(centre, axes)``."""
@@ -513,7 +492,7 @@ class PointMassTracker:
         if (cached is not None and cached[0] is w and cached[1] is mu
                 and cached[2] == w._version and cached[3] == mu._version):
             return cached[4]
-        lm = _Moments(w, mu, self._off)
+        lm = LatticeMoments(w, mu, self._off)
         self._moments_cache = (w, mu, w._version, mu._version, lm)
         return lm
 
@@ -551,9 +530,12 @@ class PointMassTracker:
             w, mu, P, centre, axes = state
             lm = self._lattice_moments(w, mu)
         css = _sym(axes @ lm.cu @ axes.transpose(1, 2))
-        root = _sqrtm2(css)
-        iroot = _sqrtm2(css, inverse=True)
-        T = iroot @ _sqrtm2(root @ css_t @ root) @ iroot
+        # the 2 x 2 map in float64: a float32 eigh of an elongated posterior (condition ~1e4)
+        # returns a small eigenvalue at round-off level and T would collapse the lattice
+        c64, ct64 = css.double(), css_t.double()
+        root = _sqrtm2(c64)
+        iroot = _sqrtm2(c64, inverse=True)
+        T = (iroot @ _sqrtm2(root @ ct64 @ root) @ iroot).to(w.dtype)
         ok = torch.isfinite(T).flatten(1).all(1) & _cholesky_ok(css) & _cholesky_ok(_sym(css_t))
         eye = torch.eye(2, dtype=w.dtype, device=w.device).expand_as(T)
         T = torch.where(ok[:, None, None], T, eye)
@@ -645,17 +627,11 @@ class PointMassTracker:
         var_c = torch.diagonal(k_cells, dim1=1, dim2=2).clamp_min(0.0)  # (N, 2) x, y
         w_new, mu_new = w, mu
         if float(var_c.max()) >= BLUR_MIN_CELLS**2:
-            sig_c = var_c.sqrt()
-            half_len = min(max(1, int(math.ceil(4.0 * float(sig_c.max())))), self.cells - 1)
             affine = mz[:, :, None, None] + self._affine(gzu, lm.u)
-            chans = torch.cat([w[:, None], w[:, None] * (mu - affine)], 1)
-            chans = convolve_axis(chans, gaussian_kernels(sig_c[:, 0], half_len), half_len, dim=3)
-            chans = convolve_axis(chans, gaussian_kernels(sig_c[:, 1], half_len), half_len, dim=2)
-            w_new = chans[:, 0].clamp_min(0.0)
-            w_new = w_new / w_new.sum((1, 2), keepdim=True).clamp_min(torch.finfo(self.dtype).tiny)
-            eps = (1e-13 * chans[:, :1].amax((2, 3), keepdim=True)).clamp_min(
-                torch.finfo(self.dtype).tiny)
-            mu_new = chans[:, 1:] / (chans[:, :1].clamp_min(0.0) + eps) + affine
+            chans = blur(torch.cat([w[:, None], w[:, None] * (mu - affine)], 1), var_c.sqrt())
+            mass = chans[:, 0].clamp_min(0.0)
+            w_new = mass / mass.sum((1, 2), keepdim=True).clamp_min(torch.finfo(self.dtype).tiny)
+            mu_new = conditional_mean(mass, chans[:, 1:]) + affine
         if not self._f_identity:
             mu_new = torch.einsum("yz,nzij->nyij", F, mu_new)
         state = self._matched((w_new, mu_new, P, centre_new, axes_new), ms_t, css_t, mz_t,
@@ -716,33 +692,21 @@ class PointMassTracker:
             nu = torch.where(finite_cell, nu, 0.0)
         innov = y - yhat
         nis = innov * innov / s_y
-        if cell_variance is None:
-            loglik = nu * nu * (-0.5 / s_run)[:, None, None]
-        else:
-            s_cell = torch.as_tensor(cell_variance).to(**kw).clamp_min(0.0) + s_run[:, None, None]
-            loglik = -0.5 * (nu * nu / s_cell + torch.log(s_cell / s_run[:, None, None]))
+        loglik, _ = cell_log_likelihood(nu, s_run, cell_variance)
         if not all_finite:
             loglik = torch.where(finite_cell, loglik, -math.inf)
-        logw = log_or_neg_inf(w) + loglik
-        peak = logw.amax((1, 2), keepdim=True)
-        fin = torch.isfinite(peak).reshape(n)
-        wn = exp_or_zero(logw - torch.where(torch.isfinite(peak), peak, 0.0), out_of_place=False)
-        total = wn.sum((1, 2))
-        log_lik = torch.where(fin, -0.5 * (_LOG_2PI + s_run.log()) + peak.reshape(n)
-                              + total.log(), -math.inf)
-        use = fin & (total > 0) & torch.isfinite(total) & torch.isfinite(y)
+        upd = weight_update(w, loglik, s_run)
+        wn, log_lik = upd.weights, upd.log_likelihood
+        use = upd.use & torch.isfinite(y)
         active = use if mask is None else use & mask
         recovered = ~use & torch.isfinite(y)
         if mask is not None:
             recovered = recovered & mask
         self.recoveries += recovered.long()
-        wn = wn / torch.where(use, total, 1.0)[:, None, None]
         if self.config.weight_floor > 0:
             wn = wn.clamp_min(self.config.weight_floor * wn.amax((1, 2), keepdim=True))
             wn = wn / wn.sum((1, 2), keepdim=True)
-        gain = pc / s_run[:, None]  # (N, nz)
-        mu_new = mu + gain[:, :, None, None] * nu[:, None]
-        P_new = _sym(P - gain[:, :, None] * gain[:, None, :] * s_run[:, None, None])
+        mu_new, P_new = kalman_cells(mu, P, c, nu, s_run)
         if bool(active.all()):
             self.weights, self.lin_mean, self.lin_cov = wn, mu_new, P_new
         else:
@@ -860,8 +824,7 @@ class PointMassTracker:
                                  driver="gelsd").solution.transpose(1, 2)
         resid = mu_o - mz_o[:, :, None, None] - self._affine(gzu, u_o)
         chans = torch.cat([log_r[:, None], resid], 1)
-        out = nnf.grid_sample(chans, uv.to(chans.dtype), mode="bilinear", padding_mode="border",
-                              align_corners=True)
+        out = resample_bilinear(chans, uv, padding="border")
         cu_n = _sym(torch.linalg.inv(a_n) @ css @ torch.linalg.inv(a_n).transpose(1, 2))
         zero = torch.zeros_like(ms)
         w_n = self._normalised(out[:, 0] + self._log_gauss(zero, cu_n))

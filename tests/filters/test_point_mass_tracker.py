@@ -344,3 +344,34 @@ def test_restart_of_some_runs_equals_the_gaussian_lattice_of_all_runs() -> None:
                 assert float((got[r] - want[r]).abs().max() / scale) <= 1e-12
             else:
                 assert torch.equal(got[r], old[r])
+
+
+def test_float32_moment_correction_of_an_elongated_posterior_keeps_its_covariance() -> None:
+    # regression: a float32 tracker at 32 cells (benchmarks/bench_point_mass.py) stopped with
+    # "a lattice with zero or non-finite cells": the moment-correction map T of an elongated
+    # posterior (σ 9 m across, 720 m along: condition 7e3) from a float32 eigh had a small
+    # eigenvalue at round-off level, collapsed the lattice along one axis and the next refit
+    # found zero-width cells. The case below is that run's lattice (skewed cell steps, a
+    # Gaussian of ~7 cells² on it) and its target covariance: the matched covariance must
+    # keep the small eigenvalue (it was 39 % off before the fix; float32 round-off of the
+    # moments themselves is ~1e-4 here) and the cells must not shrink.
+    f32 = torch.float32
+    trk = PointMassTracker(torch.zeros(1, 3), torch.diag(torch.tensor([1e4, 1e4, 900.0])),
+                           E=torch.zeros(2, 1), F=torch.eye(1), c=torch.ones(1), dtype=f32)
+    axes = torch.tensor([[[-2.7282522, -143.47816], [-1.8297441, 213.89693]]])
+    cu = torch.tensor([[7.232, 0.916], [0.916, 7.895]], dtype=D)
+    inv = torch.linalg.inv(cu)
+    o = torch.arange(32, dtype=D) - 15.5
+    ox, oy = o[None, :], o[:, None]
+    logw = -0.5 * (inv[0, 0] * ox**2 + 2 * inv[0, 1] * ox * oy + inv[1, 1] * oy**2)
+    w = torch.exp(logw - logw.max())
+    trk.weights, trk.axes, trk.centre = (w / w.sum())[None].to(f32), axes, torch.zeros(1, 2)
+    mean, cov = trk.moments()
+    target = cov.clone()
+    target[:, :2, :2] = torch.tensor([[163307.0, -242566.375], [-242566.375, 360540.125]])
+    trk.match_moments(mean, target)
+    got = torch.linalg.eigvalsh(trk.moments()[1][0, :2, :2].double())
+    want = torch.linalg.eigvalsh(target[0, :2, :2].double())
+    torch.testing.assert_close(got, want, rtol=1e-3, atol=0.0)
+    assert float(torch.linalg.svdvals(trk.axes.double()).min()) > 0.5 * float(
+        torch.linalg.svdvals(axes.double()).min())

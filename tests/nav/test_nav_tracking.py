@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-import neuralmap.filters.point_mass_tracker as tracker_module
+import neuralmap.filters.lattice.kernels as tracker_module
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.nav.scenario import Scenario

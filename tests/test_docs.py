@@ -270,7 +270,7 @@ def test_a_benchmark_run_is_stamped_and_goes_stale_when_its_script_changes(
     args = argparse.Namespace(n=7, quick=False, out=str(tmp_path / "runs" / "bench_fake"))
     run = start_bench(script, args, ["--n", "7"])
     print("| what | rate |\n|---|---:|\n| fast | 4.271 |")
-    print("note 0.125")
+    print("note 0.125\n# a comment line")
     folder = run.finish({"rate": 4.271})
     assert folder == tmp_path / "runs" / "bench_fake" / "version_0"
     assert capsys.readouterr().out.endswith(f"stamped run: {folder}\n")
@@ -280,7 +280,7 @@ def test_a_benchmark_run_is_stamped_and_goes_stale_when_its_script_changes(
     assert provenance["script_sha256"] == script_sha256(script)
     assert provenance["options"] == {"n": 7, "quick": False}
     assert {"cpu", "cores", "torch_threads", "load_1min"} <= set(provenance["machine"])
-    assert "| fast | 4.271 |" in body and "```text\nnote 0.125\n```" in body
+    assert "| fast | 4.271 |" in body and "```text\nnote 0.125\n# a comment line\n```" in body
     results = json.loads((folder / "results.json").read_text())
     assert results["results"] == {"rate": 4.271} and "note 0.125" in results["output"]
     assert not list((tmp_path / "runs" / "bench_fake").glob(".tmp-*"))  # published whole
@@ -292,6 +292,7 @@ def test_a_benchmark_run_is_stamped_and_goes_stale_when_its_script_changes(
     assert stamp.config == "benchmarks/bench_fake.py"
     text = page.read_text()
     assert "| fast | 4.271 |" in text and "`python benchmarks/bench_fake.py --n 7`" in text
+    assert "\n# a comment line\n```" in text  # code lines are not headings to demote
     warnings: list[str] = []
     assert check_page(page, tmp_path, warnings=warnings) == [] and warnings == []
     second = update_page(folder, docs_dir=tmp_path / "docs", configs_dir=REPO / "configs",

@@ -96,8 +96,12 @@ def find_config(run_config: dict[str, Any], study: str,
 
 
 def _demote(markdown: str) -> str:
-    """Headings one level down (the page's own title is the only ``#``)."""
-    return re.sub(r"^(#+) ", r"#\1 ", markdown, flags=re.MULTILINE)
+    """Headings one level down (the page's own title is the only ``#``); the lines of
+    fenced code blocks (a benchmark's ``# comment`` lines) are left as they are."""
+    parts = re.split(r"(^```.*?^```[ \t]*$)", markdown, flags=re.MULTILINE | re.DOTALL)
+    return "".join(part if part.startswith("```")
+                   else re.sub(r"^(#+) ", r"#\1 ", part, flags=re.MULTILINE)
+                   for part in parts)
 
 
 def _stamp_table(stamp: RunStamp, run_dir: Path) -> str:

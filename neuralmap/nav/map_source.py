@@ -6,7 +6,8 @@
    SUPPORTED_EXTENSIONS`: GeoTIFF via rasterio, ``.asc``, ``.hgt``, ``.npy``/``.npz``):
    the DEM is navigated on its bicubic grid (`GridTerrain`);
 2. an existing trained map: the ``neural_map.pt`` of ``train.py``, a latent-grid map
-   bitstream or a sharded region map index (`neuralmap.terrain.export.load_map`);
+   bitstream, a sharded region map index or a latent tileset index
+   (``latent_tileset.json`` or its folder; `neuralmap.terrain.export.load_map`);
 3. an embedded tile name (``jacksboro``, ``topobathy``, ``synthetic[:N]``), on its bicubic
    grid.
 

@@ -160,6 +160,24 @@ def test_slope_is_the_derivative_of_height_everywhere(fitted: dict) -> None:
     assert blend.sum() > 300  # the blend zones are well sampled
 
 
+def test_off_region_empty_and_non_finite_points(fitted: dict) -> None:
+    """Off the region the border tile answers alone (clamped like one latent map); NaN
+    points give NaN without spoiling the others; an empty batch is empty."""
+    ts = LatentTileset(fitted["index"])
+    off = torch.tensor([[-100.0, 300.0], [300.0, 2100.0], [2100.0, 2100.0]],
+                       dtype=torch.float64)
+    h, s = ts.height_and_slope(off)
+    for k, tile in enumerate((0, 2, 3)):
+        h_k, s_k = ts.tile(tile).height_and_slope(off[k:k + 1])
+        assert h[k] == h_k[0] and torch.equal(s[k], s_k[0])
+    mixed = torch.tensor([[float("nan"), 300.0], [300.0, 300.0]], dtype=torch.float64)
+    h, s = ts.height_and_slope(mixed)
+    assert torch.isnan(h[0]) and torch.isnan(s[0]).all() and torch.isfinite(h[1])
+    assert h[1] == ts.tile(0)(mixed[1:])[0]
+    h, s = ts.height_and_slope(torch.zeros(0, 2, dtype=torch.float64))
+    assert h.shape == (0,) and s.shape == (0, 2)
+
+
 def test_tiles_decode_lazily_within_the_cache_bound(fitted: dict) -> None:
     ts = LatentTileset(fitted["index"], cache_tiles=2)
     assert ts.cache.decodes == 0 and len(ts.cache) == 0  # the index only
@@ -272,10 +290,18 @@ def test_layout_is_a_partition_of_unity_and_refuses_close_seams() -> None:
     assert layout.seams(0) == [300.0, 605.0]
     u = torch.linspace(-20.0, 1020.0, 5001, dtype=torch.float64, requires_grad=True)
     w = layout.axis_weights(u, 0)
-    torch.testing.assert_close(w.own_weight + w.other_weight, torch.ones_like(u))
-    (grad,) = torch.autograd.grad(w.own_weight.sum(), u)
-    torch.testing.assert_close(grad, w.own_slope, rtol=0, atol=1e-12)
-    assert ((w.other_weight > 0) == ((u - 300).abs() < 50) | ((u - 605).abs() < 50)).all()
+    assert set(w.lower.tolist()) == {0, 1}
+    weight, slope = w.weight()
+    (grad,) = torch.autograd.grad(weight.sum(), u)
+    torch.testing.assert_close(grad, slope, rtol=0, atol=1e-12)
+    mixed = (weight > 0) & (weight < 1)
+    assert (mixed == ((u - 300).abs() < 50) | ((u - 605).abs() < 50)).all()
+    assert (mixed == w.blending).all()
+    # the tile whose core holds u carries all the weight outside the blend zones
+    core = torch.searchsorted(torch.tensor([300.0, 605.0], dtype=torch.float64), u.detach(),
+                              right=True)
+    assert (w.own == core).all()
+    assert ((weight == 1) == (~w.blending & (w.offset > 0))).all()
     with pytest.raises(NeuralMapError, match="blend half-width of 20"):
         TilesetLayout(shape=(2, 101), spacing=(10.0, 10.0), origin=(0.0, 0.0),
                       columns=((0, 30), (30, 60), (60, 100)), rows=((0, 1),), overlap_nodes=20)

@@ -10,7 +10,9 @@ factorized Laplace entropy model (`.entropy`, `.bitstream`) or under the context
 and scale from causal neighbours, parent and siblings; decoded wavefront by wavefront),
 the final symbols optionally chosen by RDOQ (`.rdoq`). Training state:
 `LatentGrid` with the rate-distortion objective `RateDistortion`; the decoded
-map is `LatentTerrainMap`, a `TerrainModel`.
+map is `LatentTerrainMap`, a `TerrainModel`. A region of many tiles is a
+`LatentTileset` (`.tileset`: an index plus one bitstream per tile, decoded lazily into a
+bounded cache, blended C² across seams).
 """
 
 from neuralmap.terrain.latent.bitstream import (
@@ -21,10 +23,12 @@ from neuralmap.terrain.latent.bitstream import (
 from neuralmap.terrain.latent.latent_grid import LatentGrid, export_map
 from neuralmap.terrain.latent.map import LatentTerrainMap
 from neuralmap.terrain.latent.objective import RateDistortion, check_rate_weight
+from neuralmap.terrain.latent.tileset import LatentTileset
 
 __all__ = [
     "LatentGrid",
     "LatentTerrainMap",
+    "LatentTileset",
     "RateDistortion",
     "check_rate_weight",
     "export_map",

@@ -145,25 +145,39 @@ class LatentTileset(TerrainModel):
 
     def _pairs(self, flat: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """(point, tile, weight, d weight/dx, d weight/dy) of every pair with weight > 0,
-        sorted by tile."""
+        sorted by tile.
+
+        A point outside every blend zone has one pair, its own tile with weight 1 and no
+        weight gradient (``S' = 0`` there); only points in a blend zone get the four
+        candidates (lower / upper tile of the nearest seam on each axis), zero weights
+        dropped. On an axis of one tile its weight is 0 (``t`` is ``-inf``), so the lower
+        tile (the only one) keeps all of it.
+        """
         ax = self.layout.axis_weights(flat[:, 0], 0)
         ay = self.layout.axis_weights(flat[:, 1], 1)
         cols = len(self.layout.columns)
-        tile = torch.stack([ay.own * cols + ax.own, ay.own * cols + ax.other,
-                            ay.other * cols + ax.own, ay.other * cols + ax.other], dim=1)
-        weight = torch.stack([ay.own_weight * ax.own_weight, ay.own_weight * ax.other_weight,
-                              ay.other_weight * ax.own_weight,
-                              ay.other_weight * ax.other_weight], dim=1)
-        dwx = torch.stack([ay.own_weight * ax.own_slope, ay.own_weight * ax.other_slope,
-                           ay.other_weight * ax.own_slope, ay.other_weight * ax.other_slope],
-                          dim=1)
-        dwy = torch.stack([ay.own_slope * ax.own_weight, ay.own_slope * ax.other_weight,
-                           ay.other_slope * ax.own_weight, ay.other_slope * ax.other_weight],
-                          dim=1)
-        keep = (weight > 0).reshape(-1)
-        point = torch.arange(flat.shape[0], device=flat.device).repeat_interleave(4)[keep]
-        tile, weight = tile.reshape(-1)[keep], weight.reshape(-1)[keep]
-        dwx, dwy = dwx.reshape(-1)[keep], dwy.reshape(-1)[keep]
+        own = ay.own * cols + ax.own
+        blend = ax.blending | ay.blending
+        alone = torch.nonzero(~blend).squeeze(1)
+        mixed = torch.nonzero(blend).squeeze(1)
+        ones = torch.ones_like(flat[:, 0]).index_select(0, alone)
+        point, tile, weight, dwx, dwy = alone, own.index_select(0, alone), ones, ones * 0, ones * 0
+        if mixed.numel():
+            (wx, dx), (wy, dy) = ax.weight(mixed), ay.weight(mixed)
+            x0, y0 = ax.lower.index_select(0, mixed), ay.lower.index_select(0, mixed)
+            x1, y1 = x0 + int(len(self.layout.columns) > 1), y0 + int(len(self.layout.rows) > 1)
+            vx, vy = 1.0 - wx, 1.0 - wy  # weights of the lower tiles
+            tiles = torch.stack([y0 * cols + x0, y0 * cols + x1, y1 * cols + x0,
+                                 y1 * cols + x1], 1).reshape(-1)
+            weights = torch.stack([vy * vx, vy * wx, wy * vx, wy * wx], 1).reshape(-1)
+            keep = torch.nonzero(weights > 0).squeeze(1)
+            point = torch.cat([alone, mixed.repeat_interleave(4).index_select(0, keep)])
+            tile = torch.cat([tile, tiles.index_select(0, keep)])
+            weight = torch.cat([weight, weights.index_select(0, keep)])
+            dwx = torch.cat([dwx, torch.stack([-vy * dx, vy * dx, -wy * dx, wy * dx], 1
+                                              ).reshape(-1).index_select(0, keep)])
+            dwy = torch.cat([dwy, torch.stack([-dy * vx, -dy * wx, dy * vx, dy * wx], 1
+                                              ).reshape(-1).index_select(0, keep)])
         order = torch.argsort(tile, stable=True)
         return (point[order], tile[order], weight[order], dwx[order], dwy[order])
 
@@ -171,10 +185,13 @@ class LatentTileset(TerrainModel):
                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """Blended heights ``(M,)`` and optional slopes ``(M, 2)`` of ``(M, 2)`` points
         (module docstring; differentiable in ``xy`` without the slope)."""
+        if xy.shape[0] == 0:
+            return xy[:, 0] * 0, (xy * 0 if with_slope else None)
         finite = torch.isfinite(xy).all(-1)
+        all_finite = bool(finite.all())
         xmin, xmax, ymin, ymax = self.extent
         centre = xy.new_tensor([0.5 * (xmin + xmax), 0.5 * (ymin + ymax)])
-        flat = torch.where(finite.unsqueeze(-1), xy, centre)
+        flat = xy if all_finite else torch.where(finite.unsqueeze(-1), xy, centre)
         point, tile, weight, dwx, dwy = self._pairs(flat)
         ids, counts = torch.unique_consecutive(tile, return_counts=True)
         heights, slopes = [], []
@@ -190,16 +207,17 @@ class LatentTileset(TerrainModel):
                 h = model(pts)
             heights.append(h)
         h_pair = torch.cat(heights).to(xy.dtype)
-        nan = torch.full_like(xy[:, 0], float("nan"))
         height = torch.zeros_like(xy[:, 0]).index_add(0, point, weight * h_pair)
-        height = torch.where(finite, height, nan)
+        nan = float("nan")
+        height = height if all_finite else torch.where(finite, height, nan)
         if not with_slope:
             return height, None
         g_pair = torch.cat(slopes).to(xy.dtype)
         # grad h = sum phi_i grad h_i + sum h_i grad phi_i
         term = weight.unsqueeze(-1) * g_pair + h_pair.unsqueeze(-1) * torch.stack([dwx, dwy], -1)
         slope = torch.zeros_like(xy).index_add(0, point, term)
-        slope = torch.where(finite.unsqueeze(-1), slope, nan.unsqueeze(-1))
+        if not all_finite:
+            slope = torch.where(finite.unsqueeze(-1), slope, nan)
         return height, slope
 
     def forward(self, xy: torch.Tensor) -> torch.Tensor:

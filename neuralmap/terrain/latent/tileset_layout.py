@@ -71,23 +71,41 @@ def regular_ranges(nodes: int, tile_nodes: int) -> list[tuple[int, int]]:
 
 @dataclass(frozen=True)
 class AxisWeights:
-    """The (at most two) tiles along one axis that see each coordinate, with weights.
+    """The two tiles along one axis on either side of each coordinate's nearest seam.
 
     Attributes:
-        own: ``(P,)`` index of the tile whose core holds the coordinate.
-        own_weight: ``(P,)`` its weight ``psi``.
-        own_slope: ``(P,)`` ``d psi / du`` (per metre).
-        other: ``(P,)`` index of the neighbour across the nearest seam (clamped in range).
-        other_weight: ``(P,)`` its weight ``1 - psi`` (0 outside blend zones).
-        other_slope: ``(P,)`` its derivative per metre.
+        lower: ``(P,)`` index of the tile below (west / south of) the nearest seam.
+        offset: ``(P,)`` ``u - s_k``, metres from the nearest seam ``s_k`` (``inf`` when the
+            axis has a single tile).
+        half: Blend half-width ``w``, metres.
     """
 
-    own: torch.Tensor
-    own_weight: torch.Tensor
-    own_slope: torch.Tensor
-    other: torch.Tensor
-    other_weight: torch.Tensor
-    other_slope: torch.Tensor
+    lower: torch.Tensor
+    offset: torch.Tensor
+    half: float
+
+    @property
+    def upper(self) -> torch.Tensor:
+        """``(P,)`` index of the tile above the nearest seam."""
+        return self.lower + 1
+
+    @property
+    def own(self) -> torch.Tensor:
+        """``(P,)`` the tile whose core holds the coordinate (weight 1 off the blend zone)."""
+        return self.lower + (self.offset >= 0).long()
+
+    @property
+    def blending(self) -> torch.Tensor:
+        """``(P,)`` bool: inside the blend zone ``|u - s_k| < w`` (both tiles weigh)."""
+        return self.offset.abs() < self.half
+
+    def weight(self, index: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``S(t)``, the weight of the upper tile (the lower one has ``1 - S``), and
+        ``dS/du`` per metre, with ``t = (u - s_k) / 2w + 1/2``; at ``index`` only when given.
+        """
+        offset = self.offset if index is None else self.offset.index_select(0, index)
+        t = offset * (0.5 / self.half) + 0.5  # 0 -> 1 across [s - w, s + w]
+        return smoothstep(t), smoothstep_slope(t) * (0.5 / self.half)
 
 
 @dataclass(frozen=True)
@@ -190,38 +208,27 @@ class TilesetLayout:
                 max(0, c0 - ov * grow[2]), min(nx - 1, c1 + ov * grow[3]))
 
     def axis_weights(self, u: torch.Tensor, axis: int) -> AxisWeights:
-        """Blend weights of the tiles along one axis (differentiable in ``u``).
+        """The nearest seam of every coordinate along one axis (differentiable in ``u``).
+
+        The nearest seam ``s_k`` comes from the midpoints between seams (one
+        ``searchsorted``); `AxisWeights.weight` gives the blend weights. Off the region the
+        weights clamp to the border tile.
 
         Args:
             u: ``(P,)`` metric coordinates along ``axis`` (finite).
             axis: 0 (x, tile columns) or 1 (y, tile rows).
 
         Returns:
-            The two candidates per coordinate and their weights / derivatives.
+            The lower tile of the nearest seam and the offset from it.
         """
         seams = self.seams(axis)
-        n = len(seams) + 1
-        zero = torch.zeros_like(u)
-        if n == 1:
+        if not seams:
             idx = torch.zeros(u.shape, dtype=torch.long, device=u.device)
-            return AxisWeights(idx, torch.ones_like(u), zero, idx, zero, zero)
-        half = self.blend_width[axis]
+            return AxisWeights(idx, torch.full_like(u, -float("inf")), 1.0)
         s = torch.tensor(seams, dtype=u.dtype, device=u.device)
-        own = torch.searchsorted(s, u.detach().contiguous(), right=True)  # (P,) in [0, n-1]
-        lower = s.index_select(0, (own - 1).clamp(0, n - 2))
-        upper = s.index_select(0, own.clamp(0, n - 2))
-        inf = torch.full_like(u, float("inf"))
-        d_low = torch.where(own > 0, u - lower, inf)
-        d_up = torch.where(own < n - 1, upper - u, inf)
-        near_upper = d_up < d_low
-        seam = torch.where(near_upper, upper, lower)
-        t = (u - (seam - half)) / (2.0 * half)  # 0 -> 1 across [s - w, s + w]
-        s_up = smoothstep(t)  # weight of the tile above the seam
-        ds_up = smoothstep_slope(t) / (2.0 * half)
-        own_weight = torch.where(near_upper, 1.0 - s_up, s_up)
-        own_slope = torch.where(near_upper, -ds_up, ds_up)
-        other = torch.where(near_upper, own + 1, own - 1).clamp(0, n - 1)
-        return AxisWeights(own, own_weight, own_slope, other, 1.0 - own_weight, -own_slope)
+        mids = 0.5 * (s[1:] + s[:-1])
+        lower = torch.searchsorted(mids, u.detach().contiguous(), right=True)  # nearest seam
+        return AxisWeights(lower, u - s.index_select(0, lower), self.blend_width[axis])
 
     def describe(self) -> dict[str, Any]:
         """JSON-serialisable form (`from_description` reads it back)."""

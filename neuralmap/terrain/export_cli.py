@@ -4,9 +4,11 @@
 
     neuralmap-export runs/jacksboro/version_0/neural_map.pt            # DEM from the map file
     neuralmap-export neural_map.pt --dem N36W085.hgt --out qgis/ --layers [height,residual]
+    neuralmap-export runs/latent_tileset_N36W085_4/version_0      # a latent tileset, per tile
 
 Writes ``<out>/neural_map_<layer>.tif`` (default ``out``: a ``geotiff`` folder next to the
-map) in the source DEM's CRS, grid and no-data (`neuralmap.terrain.geotiff`). Bad input
+map; a latent tileset: ``<out>/latent_tileset_r000_c000_<layer>.tif`` per tile) in the
+source DEM's CRS, grid and no-data (`neuralmap.terrain.geotiff`). Bad input
 prints one ``error:`` line and exits 2.
 """
 
@@ -78,6 +80,10 @@ def export(args: object) -> dict[str, Path]:
         raise NeuralMapError(f"--layers: unknown or empty {unknown or args.layers}; choose "
                              f"from {list(LAYERS)}, e.g. --layers [height,slope].")
     terrain = load_map(args.map)
+    from neuralmap.terrain.latent.tileset import LatentTileset
+
+    if isinstance(terrain, LatentTileset):
+        return _export_tileset(terrain, args)
     info = getattr(terrain, "tile_info", {}) or {}
     dem = args.dem or info.get("source") or info.get("name")
     if isinstance(dem, str) and dem.startswith("sample:"):  # "sample:jacksboro (...)"
@@ -98,6 +104,44 @@ def export(args: object) -> dict[str, Path]:
     paths = write_map_geotiffs(terrain, tile, out, layers=tuple(args.layers))
     for name, path in paths.items():
         print(f"{PROG}: {name} -> {path}", flush=True)
+    return paths
+
+
+def _export_tileset(tileset: object, args: object) -> dict[str, Path]:
+    """A latent tileset: every tile's core grid, ``<out>/latent_tileset_r000_c000_<layer>.tif``
+    (`neuralmap.terrain.latent.tileset_geotiff`); the region's DEM (``--dem``, default the
+    files the index records) only for the residual layer."""
+    from neuralmap.dem import load_mosaic, load_tile
+    from neuralmap.io import check_writable_dir
+    from neuralmap.terrain.latent.tileset_geotiff import export_tileset_geotiffs
+
+    folder = Path(args.map) if Path(args.map).is_dir() else Path(args.map).parent
+    out = Path(args.out) if args.out else folder / "geotiff"
+    check_writable_dir(out, option="--out")
+    region = None
+    if "residual" in args.layers or args.dem:
+        info = tileset.tile_info  # type: ignore[attr-defined]
+        dem = args.dem or info.get("source")
+        if not dem:
+            raise NeuralMapError(f"tileset '{args.map}' records no source DEM; give it with "
+                                 "--dem, or --layers [height,slope] for the map alone.")
+        files = dem.split(";") if ";" in dem else dem
+        try:
+            if isinstance(files, list) or any(c in files for c in "*?["):
+                region = load_mosaic(files, units=args.units, nodata=args.nodata)
+            else:
+                region = load_tile(files, spacing=args.spacing or tuple(info.get("spacing") or ())
+                                   or None, units=args.units, nodata=args.nodata)
+        except NeuralMapError as exc:
+            raise NeuralMapError(f"--dem {dem}: {_cli_option_names(str(exc))} (or pass "
+                                 "--layers [height,slope] to export the map alone)") from None
+    written = export_tileset_geotiffs(tileset, out, region=region,  # type: ignore[arg-type]
+                                      layers=tuple(args.layers))
+    paths: dict[str, Path] = {}
+    for (row, col), layers in written.items():
+        for name, path in layers.items():
+            paths[f"r{row:03d}_c{col:03d}_{name}"] = path
+            print(f"{PROG}: tile r{row} c{col} {name} -> {path}", flush=True)
     return paths
 
 

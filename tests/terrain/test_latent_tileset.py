@@ -356,3 +356,40 @@ def test_train_py_latent_fits_a_tileset_from_a_glob(tmp_path: Path, capsys) -> N
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("error: --data.path") and "matches no file" in err[-1]
+
+
+def test_geotiff_tiles_train_and_export_through_the_clis(tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """GeoTIFF tiles -> train.py latent -> neuralmap-export of the tileset folder: per-tile
+    GeoTIFFs in the tiles' CRS, the residual against the recorded source files."""
+    rasterio = pytest.importorskip("rasterio")
+    from rasterio.transform import from_origin
+
+    from neuralmap.terrain.export_cli import main as export_main
+    from neuralmap.training.cli import main
+
+    heights = synthetic_tile((SIDE, SIDE), CELL, seed=6).heights
+    (tmp_path / "tif").mkdir()
+    for i in range(2):
+        for j in range(2):
+            part = heights[HALF * i:HALF * i + HALF + 1, HALF * j:HALF * j + HALF + 1]
+            west = E0 + HALF * CELL * j - CELL / 2
+            north = N0 + HALF * CELL * i + HALF * CELL + CELL / 2
+            with rasterio.open(tmp_path / "tif" / f"t{i}{j}.tif", "w", driver="GTiff",
+                               height=HALF + 1, width=HALF + 1, count=1, dtype="float32",
+                               crs="EPSG:32616", transform=from_origin(west, north, CELL, CELL),
+                               nodata=-32768.0) as dst:
+                dst.write(np.flipud(part).astype(np.float32), 1)
+    index = main(["latent", "--config", str(CONFIGS / "latent_map.yaml"), "--config",
+                  str(CONFIGS / "latent_tileset_tiny.yaml"), "--runs_dir", str(tmp_path / "runs"),
+                  "--data.path", str(tmp_path / "tif" / "*.tif"), "--data.tile_nodes", "null"])
+    assert index is not None
+    export_main([str(index.parent)])
+    out = capsys.readouterr().out
+    assert "tile r1 c1 residual ->" in out
+    files = sorted((index.parent / "geotiff").glob("*.tif"))
+    assert len(files) == 12
+    with rasterio.open(index.parent / "geotiff" / "latent_tileset_r001_c001_residual.tif") as res:
+        assert res.crs.to_epsg() == 32616 and res.shape == (HALF + 1, HALF + 1)
+        residual = res.read(1)
+    ts = LatentTileset(index)
+    assert np.sqrt(np.mean(residual.astype(np.float64) ** 2)) <= 3.0 * ts.metrics["rmse_m"]

@@ -13,8 +13,9 @@ Definitions (the report quotes them; ``e`` is the error of the corrected estimat
   Final: the RMSE at the last sample.
 - Divergence: `DIVERGENCE_RULE`. Numerical failures (the filter's covariance became
   non-finite or lost positive definiteness: ``n_unhealthy``) are counted apart from
-  estimate divergence. "Converged" runs are the included runs that neither diverged nor
-  failed numerically.
+  estimate divergence; a run the filter declared lost (the point-mass tracker's
+  ``lost`` flag, `FilterRun.lost`) counts as diverged. "Converged" runs are the included
+  runs that neither diverged nor failed numerically.
 - ``sigma_pos_m`` (the papers' 1σ): ``sqrt(var(e_x) + var(e_y))`` with the sample variance
   (about the mean, ddof = 1) pooled over the converged runs and the last-half samples;
   ``sigma_vel_mps`` likewise for the velocity.
@@ -51,7 +52,8 @@ from neuralmap.nav.monte_carlo import FilterRun
 DIVERGENCE_RULE = (
     "A run diverged when its final horizontal position error exceeds {pcrb}x the final PCRB "
     "position bound sqrt(J^-1_xx + J^-1_yy), or exceeds {sigma}x the filter's own final 1-sigma "
-    "horizontal bound sqrt(P_xx + P_yy), or when its estimate left the map. A run whose "
+    "horizontal bound sqrt(P_xx + P_yy), or when its estimate left the map, or when the "
+    "filter declared it lost (the point-mass tracker's lost flag). A run whose "
     "filter failed numerically (covariance non-finite or not positive definite) is counted "
     "apart as a numerical failure. Neither counts as converged. Runs whose truth left the "
     "map are excluded from every metric and counted as off-map."
@@ -159,6 +161,7 @@ def diverged_runs(
     pcrb_final: float | None,
     pcrb_factor: float = 5.0,
     divergence_sigma: float = 9.0,
+    lost: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The divergence rule (`divergence_rule`) per run.
 
@@ -172,6 +175,9 @@ def diverged_runs(
         pcrb_final: Final PCRB position bound, m (None: only the 1σ test).
         pcrb_factor: Threshold in final PCRBs.
         divergence_sigma: Threshold in the filter's own 1σ.
+        lost: ``(N,)`` runs the filter declared lost (`FilterRun.lost`): diverged whatever
+            their final error (a lost run's held estimate may end near the truth by
+            chance); None = none.
 
     Returns:
         ``(N,)`` bool, True where the run diverged.
@@ -179,7 +185,8 @@ def diverged_runs(
     too_far = final_err > divergence_sigma * final_sigma
     if pcrb_final is not None:
         too_far = too_far | (final_err > pcrb_factor * pcrb_final)
-    return included & healthy & (too_far | est_left)
+    diverged = included & healthy & (too_far | est_left)
+    return diverged if lost is None else diverged | (included & lost)
 
 
 def nees(err: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
@@ -298,10 +305,12 @@ def navigation_metrics(
     bound1 = (P[:, -1, 0, 0] + P[:, -1, 1, 1]).clamp(min=0.0).sqrt()
     pcrb_final = float(pcrb_pos[-1])
     est_left = ~run.est_on_map.detach().cpu().bool().all(dim=1)
-    failed = included & ~healthy
+    lost = None if getattr(run, "lost", None) is None else run.lost.detach().cpu().bool()
     diverged = diverged_runs(final_e, bound1, included=included, healthy=healthy,
                              est_left=est_left, pcrb_final=pcrb_final,
-                             pcrb_factor=pcrb_factor, divergence_sigma=divergence_sigma)
+                             pcrb_factor=pcrb_factor, divergence_sigma=divergence_sigma,
+                             lost=lost)
+    failed = included & ~healthy & ~diverged
     converged = included & ~diverged & ~failed
     n_included, n_conv = int(included.sum()), int(converged.sum())
 

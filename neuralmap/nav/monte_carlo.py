@@ -48,6 +48,9 @@ class FilterRun:
         off_map: ``(N,)`` bool, the truth left the map at some step (run excluded).
         healthy: ``(N,)`` bool, the filter stayed healthy (finite, positive definite).
         elapsed_s: Wall-clock time of the filter loop, s.
+        lost: ``(N,)`` bool, runs the filter itself declared lost (the point-mass tracker's
+            ``lost`` flag: widened beyond recovery); they count as diverged
+            (`neuralmap.nav.metrics.diverged_runs`). None: the filter declares none.
     """
 
     method: str
@@ -61,6 +64,7 @@ class FilterRun:
     off_map: torch.Tensor
     healthy: torch.Tensor
     elapsed_s: float = 0.0
+    lost: torch.Tensor | None = None
 
     @property
     def n_runs(self) -> int:

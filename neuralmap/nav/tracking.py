@@ -238,5 +238,5 @@ def run_tracker(truth: Any, terrain: Any, *, P0: torch.Tensor, Q: torch.Tensor, 
     finite = torch.isfinite(err).flatten(1).all(1) & torch.isfinite(P_hist).flatten(1).all(1)
     run = FilterRun(method=method, t=truth.t, err=err, P=P_hist, nis=nis, residual=residual,
                     updated=updated, est_on_map=est_on_map, off_map=~truth.on_map.all(dim=1),
-                    healthy=finite & ~lost.to(device), elapsed_s=elapsed)
+                    healthy=finite, elapsed_s=elapsed, lost=lost.to(device))
     return TrackerResult(run=run, lost=lost, cell_updates=cell_updates, **counters)

@@ -171,17 +171,21 @@ class BenchRun:
         self.out = Path(out or Path("runs") / "bench" / self.name)
         self.sha256 = script_sha256(self.script)
         self.machine_start = machine()
+        self._origin = run_provenance(argparse.Namespace(study=self.name, experiment="bench",
+                                                         seed=self.options.get("seed")))
         self._tee = _Tee(sys.stdout)
         self._stdout = sys.stdout
         if self.active:
             sys.stdout = self._tee
 
     def provenance(self) -> dict[str, Any]:
-        """The ``summary.md`` first-line JSON of this run."""
+        """The ``summary.md`` first-line JSON of this run (the commit and working-tree
+        state when it started, the date when it ended)."""
         base = run_provenance(argparse.Namespace(study=self.name, experiment="bench",
                                                  seed=self.options.get("seed")))
         end = machine()
-        return {**base, "kind": BENCH_KIND, "bench": self.name,
+        return {**base, "commit": self._origin["commit"], "dirty": self._origin["dirty"],
+                "kind": BENCH_KIND, "bench": self.name,
                 "script": f"benchmarks/{self.script.name}", "script_sha256": self.sha256,
                 "argv": self.argv, "options": self.options,
                 "machine": {**self.machine_start, "load_1min_end": end["load_1min"]}}

@@ -119,8 +119,12 @@ class LatentTileset(TerrainModel):
         return tile
 
     def tile(self, tile_id: int) -> LatentTerrainMap:
-        """The decoded tile (through the cache)."""
-        return self.cache.get(int(tile_id))  # type: ignore[return-value]
+        """The decoded tile (through the cache), on the tileset's device (``.to(device)``
+        moves the tileset; tiles decode on the CPU and follow it when used)."""
+        model = self.cache.get(int(tile_id))
+        if model.coeffs.device != self.frame.device:
+            model.to(self.frame.device)
+        return model  # type: ignore[return-value]
 
     def verify(self) -> None:
         """Checks every tile file against the index's SHA-256 (reads, does not decode).

@@ -84,6 +84,10 @@ def test_plan_is_the_files_grid(fitted: dict) -> None:
     assert plan.layout.window(0, 0) == (0, HALF + OVERLAP + 1, 0, HALF + OVERLAP + 1)
     assert plan.region.projected is not None and plan.region.projected.x_offset == E0
     assert Path(plan.sources[1]).name == "t01.asc"  # row 0 (south), column 1 (east)
+    files = [str(fitted["root"] / "tiles" / f"t{k}.asc") for k in ("11", "00", "10", "01")]
+    listed = plan_tileset(files, overlap_nodes=OVERLAP)  # a list, in any order
+    assert listed.layout == plan.layout and listed.sources == plan.sources
+    assert listed.region.fingerprint() == plan.region.fingerprint()
 
 
 def test_seams_agree_with_a_single_tile_fit(fitted: dict) -> None:

@@ -4,7 +4,8 @@ One synthetic region (``--side`` nodes a side, 30 m) is fitted twice with the sa
 settings and ``--steps`` steps (query speed does not depend on the fit's quality): as one
 `LatentTerrainMap` of the whole region, and as a tileset of tiles ``--tile_nodes`` node
 intervals wide with a ``--overlap`` node blend (`neuralmap.training.latent_tileset`). In the
-same run, height and slope (``height_and_slope``, float64 points, one thread) of:
+same run (best of ``--repeats``, the methods interleaved in every repeat), height and slope
+(``height_and_slope``, float64 points, one thread) of:
 
 * the tileset, every tile resident (warm cache), at uniform random points of the region,
   and at points inside the blend zones only (two or four tiles per point: the worst case);
@@ -46,15 +47,18 @@ from neuralmap.terrain.latent.tileset import LatentTileset  # noqa: E402
 from neuralmap.training.latent_tileset import fit_tileset, plan_tileset  # noqa: E402
 
 
-def rate(fn, xy: torch.Tensor, repeats: int) -> float:  # noqa: ANN001
-    """Best-of-``repeats`` points per second of ``fn(xy)``."""
-    fn(xy[:1024])  # warm-up
-    best = float("inf")
+def rates(fns: dict, xy: dict, repeats: int) -> dict[str, float]:  # noqa: ANN001
+    """Best-of-``repeats`` points per second of every ``fns[name](xy[name])``, the methods
+    interleaved within each repeat (a load change on a shared machine hits them alike)."""
+    best = dict.fromkeys(fns, float("inf"))
+    for name, fn in fns.items():
+        fn(xy[name][:1024])  # warm-up
     for _ in range(repeats):
-        start = time.perf_counter()
-        fn(xy)
-        best = min(best, time.perf_counter() - start)
-    return xy.shape[0] / best
+        for name, fn in fns.items():
+            start = time.perf_counter()
+            fn(xy[name])
+            best[name] = min(best[name], time.perf_counter() - start)
+    return {name: xy[name].shape[0] / best[name] for name in fns}
 
 
 def main() -> None:
@@ -64,7 +68,7 @@ def main() -> None:
     parser.add_argument("--overlap", type=int, default=4, help="Blend half-width, nodes.")
     parser.add_argument("--steps", type=int, default=20, help="Fit steps (speed only).")
     parser.add_argument("--points", type=int, default=200_000, help="Query points.")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--quick", action="store_true", help="129 x 129, 2 x 2 tiles.")
     add_out_option(parser, "bench_tileset")
     args = parser.parse_args()
@@ -101,15 +105,16 @@ def main() -> None:
         per_tile = decoded_bytes(warm.tile(0))
         window = warm.tiles[0].window
         raw_tile = 4 * (window[1] - window[0] + 1) * (window[3] - window[2] + 1)
-        results = {
-            "tileset (warm), uniform": rate(warm.height_and_slope, uniform, args.repeats),
-            "tileset (warm), blend zones": rate(warm.height_and_slope, blend, args.repeats),
-            "tileset (2-tile cache), uniform": rate(
-                lambda p: [small.height_and_slope(c) for c in p.split(8192)], uniform, 1),
-            "single LatentTerrainMap, uniform": rate(single.height_and_slope, uniform,
-                                                     args.repeats),
-            "GridTerrain bicubic, uniform": rate(grid.height_and_slope, uniform, args.repeats),
+        fns = {
+            "tileset (warm), uniform": warm.height_and_slope,
+            "tileset (warm), blend zones": warm.height_and_slope,
+            "tileset (2-tile cache), uniform":
+                lambda p: [small.height_and_slope(c) for c in p.split(8192)],
+            "single LatentTerrainMap, uniform": single.height_and_slope,
+            "GridTerrain bicubic, uniform": grid.height_and_slope,
         }
+        points = {name: blend if "blend" in name else uniform for name in fns}
+        results = rates(fns, points, args.repeats)
         bitstream = sum(t.bytes for t in warm.tiles)
         single_bytes = len(encode_latent_map(single))
     grid_rate = results["GridTerrain bicubic, uniform"]

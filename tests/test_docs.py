@@ -292,6 +292,7 @@ def test_a_benchmark_run_is_stamped_and_goes_stale_when_its_script_changes(
     assert stamp.config == "benchmarks/bench_fake.py"
     text = page.read_text()
     assert "| fast | 4.271 |" in text and "`python benchmarks/bench_fake.py --n 7`" in text
+    assert stamp.overrides == {"n": 7, "quick": False} and "`n=7`, `quick=false`" in text
     assert "\n# a comment line\n```" in text  # code lines are not headings to demote
     warnings: list[str] = []
     assert check_page(page, tmp_path, warnings=warnings) == [] and warnings == []

@@ -49,7 +49,8 @@ class RunStamp:
         commit: The git commit the run's code came from (``None`` if unknown).
         dirty: Whether the run's working tree had uncommitted changes to tracked files.
         date: When the run finished (UTC, ISO 8601).
-        overrides: Options the run set on top of the config file (name -> value).
+        overrides: Options the run set on top of the config file (name -> value); for a
+            benchmark, every option it parsed.
         kind: ``study``, ``train`` or ``bench`` (`KINDS`); for a benchmark ``study`` is its
             name and ``config`` its script (``benchmarks/bench_filter.py``).
         argv: The command-line words of a training run or benchmark.

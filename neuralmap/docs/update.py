@@ -10,7 +10,8 @@
   ``configs/`` with the SHA-256 the run recorded; its other command-line words are the
   overrides.
 - A benchmark run (`neuralmap.docs.bench_run`) goes to ``bench_<name>.md``, stamped with
-  its script and the script's SHA-256 at the run.
+  its script and the script's SHA-256 at the run; its parsed options are the stamp's
+  overrides.
 """
 
 from __future__ import annotations
@@ -178,8 +179,9 @@ def _bench_stamp(provenance: dict[str, Any], summary: Path) -> tuple[RunStamp, s
         study=provenance["bench"], config=provenance["script"],
         config_sha256=provenance["script_sha256"], seed=provenance.get("seed"),
         commit=provenance.get("commit"), dirty=provenance.get("dirty"),
-        date=provenance.get("date", ""), kind="bench",
-        argv=list(provenance.get("argv") or []), machine=provenance.get("machine"))
+        date=provenance.get("date", ""), overrides=dict(provenance.get("options") or {}),
+        kind="bench", argv=list(provenance.get("argv") or []),
+        machine=provenance.get("machine"))
     return stamp, f"bench_{provenance['bench'].removeprefix('bench_')}"
 
 
@@ -230,6 +232,9 @@ def _run_table(stamp: RunStamp, run_dir: Path) -> str:
             ("run folder", f"`{run_dir.parent.name}/{run_dir.name}`")]
     if stamp.kind == "train":
         rows.insert(4, ("overrides", ", ".join(f"`{k}`" for k in stamp.overrides) or "none"))
+    else:
+        rows.insert(4, ("options", ", ".join(f"`{k}={json.dumps(v)}`"
+                                             for k, v in stamp.overrides.items()) or "none"))
     return "| run stamp | |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
 
 

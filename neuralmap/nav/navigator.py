@@ -221,10 +221,7 @@ class _TrackerFilter:
         trk = self.tracker
         E = self.E_nominal if dt == self._T else torch.tensor(
             [[0.0, dt, 0.0], [0.0, 0.0, dt]], dtype=self.dtype)
-        trk.E = E
-        A = torch.eye(N_STATES, dtype=self.dtype)
-        A[:2, 2:] = E
-        trk._open_transition = A
+        trk.E = E  # the open-loop transition [[I, E], [0, F]] follows from it
         self._dt = dt
 
     def predict(self, dt: float, scale: float) -> None:

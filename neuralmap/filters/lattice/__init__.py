@@ -1,9 +1,13 @@
-"""The point-mass lattice filter's one set of kernels (`neuralmap.filters.lattice.kernels`):
-prediction by separable convolution, the log-domain Rao-Blackwellised measurement update,
-bilinear regrid and lattice moments. Both lattice policies — the fixed / adaptive grid of
-acquisition (`neuralmap.filters.point_mass.PointMassFilter`) and the lattice that follows
-the posterior (`neuralmap.filters.point_mass_tracker.PointMassTracker`) — run on them."""
+"""The one point-mass lattice filter (`neuralmap.filters.lattice.filter.LatticeFilter`: the
+state, the measurement update and the moments) with its lattice policy as an object: the
+fixed / adaptive grid of acquisition (`neuralmap.filters.lattice.grid_policy.GridLattice`;
+configuration `neuralmap.filters.point_mass.PointMassFilter`) or the lattice that follows
+the posterior (`neuralmap.filters.lattice.follow_policy.FollowLattice`; configuration
+`neuralmap.filters.point_mass_tracker.PointMassTracker`), all on one set of kernels
+(`neuralmap.filters.lattice.kernels`: prediction by separable convolution, the log-domain
+Rao-Blackwellised update, bilinear regrid and lattice moments)."""
 
+from neuralmap.filters.lattice.filter import LatticeFilter, LatticeUpdate
 from neuralmap.filters.lattice.kernels import (
     LatticeMoments,
     WeightUpdate,
@@ -22,7 +26,7 @@ from neuralmap.filters.lattice.kernels import (
     weight_update,
 )
 
-__all__ = ["LatticeMoments", "WeightUpdate", "affine_field", "blur", "cell_log_likelihood",
+__all__ = ["LatticeFilter", "LatticeMoments", "LatticeUpdate", "WeightUpdate", "affine_field", "blur", "cell_log_likelihood",
            "conditional_mean", "convolve_axis", "gaussian_kernels", "gaussian_log_density",
            "kalman_cells", "mass_moments", "normalised", "resample_bilinear",
            "toeplitz_kernels", "weight_update"]

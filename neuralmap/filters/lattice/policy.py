@@ -1,16 +1,18 @@
 """Lattice policies of the point-mass filter: how the lattice moves, by registry name.
 
-Every policy runs on the one set of kernels (`neuralmap.filters.lattice.kernels`); what
-differs is the lattice rule:
+Every policy is an object held by the one `neuralmap.filters.lattice.filter.LatticeFilter`
+(one state, one measurement update, one set of kernels); what differs is the lattice rule:
 
 * ``fixed`` — a regular axis-aligned grid sized once from the prior (acquisition of a wide
   prior: every mode stays on the grid); deferred diffusion, scalar Rao-Blackwellised part
-  (`neuralmap.filters.point_mass.PointMassFilter` with ``adaptive=False``);
+  (`neuralmap.filters.lattice.grid_policy.GridLattice`; the configuration
+  `neuralmap.filters.point_mass.PointMassFilter` with ``adaptive=False``);
 * ``adaptive`` — the same grid, re-centred and re-sized as the posterior moves and
   shrinks (``adaptive=True``);
 * ``follow`` — an affine lattice that follows the posterior (principal axes, moment-exact
   prediction and regrid, an ``nz``-D Kalman part per cell, lost-track test and open-loop
-  re-acquisition; `neuralmap.filters.point_mass_tracker.PointMassTracker`).
+  re-acquisition; `neuralmap.filters.lattice.follow_policy.FollowLattice`, the
+  configuration `neuralmap.filters.point_mass_tracker.PointMassTracker`).
 
 ``make_lattice_filter(name, mean, cov, ...)`` builds one from a Gaussian prior over
 ``[s, z]`` (``s``: the 2-D lattice state, ``z``: the conditionally linear part; the grid

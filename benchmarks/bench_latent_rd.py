@@ -28,6 +28,8 @@ Usage:
     python benchmarks/bench_latent_rd.py --tiles synthetic --steps 400
     python benchmarks/bench_latent_rd.py --starts sweeps exact  # both pyramid starts
     python benchmarks/bench_latent_rd.py --bases wavelet        # the wavelet basis only
+    python benchmarks/bench_latent_rd.py --bases wavelet --regions 0 4  # with / without
+                                                                # per-region steps
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ import argparse
 import sys
 import time
 import types
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -109,29 +113,88 @@ def jpeg2k_bounded_sweep(tile: DemTile, bounds: list[float]) -> list[dict[str, A
     return out
 
 
-def bd_rate(test: list[tuple[float, float]], ref: list[tuple[float, float]],
-            lo: float = RMSE_RANGE[0], hi: float = RMSE_RANGE[1]) -> float:
+@dataclass(frozen=True)
+class BDRate:
+    """A Bjøntegaard delta rate and the node-RMSE range it was computed over.
+
+    Attributes:
+        percent: BD-rate in % (NaN only when it cannot be computed; ``note`` says why).
+        lo_m, hi_m: Node-RMSE range of the average (m; NaN when none).
+        note: Empty when the range is the overlap of the curves inside the requested
+            window; otherwise what was done instead, or why there is no value.
+    """
+
+    percent: float
+    lo_m: float
+    hi_m: float
+    note: str = ""
+
+
+def _log_curve(points: list[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(log rmse, log bytes)`` sorted by RMSE, one point per RMSE (the fewest bytes), only
+    finite points with bytes > 0 and RMSE > 0; and how many points were dropped."""
+    best: dict[float, float] = {}
+    for b, r in points:
+        if np.isfinite(b) and np.isfinite(r) and b > 0 and r > 0:
+            best[float(r)] = min(float(b), best.get(float(r), np.inf))
+    keys = sorted(best)
+    return (np.log(np.array(keys)), np.log(np.array([best[k] for k in keys])),
+            len(points) - len(keys))
+
+
+def bd_rate_span(test: list[tuple[float, float]], ref: list[tuple[float, float]],
+                 lo: float = RMSE_RANGE[0], hi: float = RMSE_RANGE[1]) -> BDRate:
     """Bjøntegaard delta rate of ``test`` vs ``ref`` (lists of ``(bytes, rmse)``), in %.
 
-    Fits ``log(bytes)`` as a polynomial of ``log(rmse)`` per curve (degree ≤ 3, < points)
-    and averages the difference over the overlap of both RMSE ranges within ``[lo, hi]``.
-    NaN when the curves do not overlap there.
-    """
-    def fit(points: list[tuple[float, float]]) -> tuple[np.ndarray, float, float]:
-        pts = sorted((np.log(r), np.log(b)) for b, r in points if r > 0)
-        x, y = np.array([p[0] for p in pts]), np.array([p[1] for p in pts])
-        return np.polyfit(x, y, min(3, len(x) - 1)), float(x.min()), float(x.max())
+    Fits ``log(bytes)`` as a polynomial of ``log(rmse)`` per curve (degree <= 3, < its
+    distinct points) and averages the difference of the fits over the overlap of both
+    RMSE ranges within ``[lo, hi]``:
 
-    if len(test) < 2 or len(ref) < 2:
-        return float("nan")
-    pt, tlo, thi = fit(test)
-    pr, rlo, rhi = fit(ref)
-    a, b = max(tlo, rlo, np.log(lo)), min(thi, rhi, np.log(hi))
+    ``BD = exp( 1/(b - a) int_a^b (p_test(x) - p_ref(x)) dx ) - 1``.
+
+    Points with RMSE 0 (lossless) or non-finite values cannot lie on the log axis and are
+    dropped (said in ``note``). When the curves overlap only outside ``[lo, hi]`` (a flat
+    tile whose every point is under 0.5 m) the average is taken over their whole overlap
+    and ``note`` says so. When they do not overlap at all, or a curve has fewer than two
+    usable points, ``percent`` is NaN and ``note`` says why.
+    """
+    xt, yt, dt = _log_curve(test)
+    xr, yr, dr = _log_curve(ref)
+    dropped = (f"; {dt + dr} point(s) with RMSE 0 or non-finite left out"
+               if dt + dr else "")
+    if xt.size < 2 or xr.size < 2:
+        return BDRate(float("nan"), float("nan"), float("nan"),
+                      f"needs >= 2 points of distinct RMSE > 0 per curve (test {xt.size}, "
+                      f"reference {xr.size}){dropped}")
+    a, b = max(xt[0], xr[0]), min(xt[-1], xr[-1])
     if not b > a:
-        return float("nan")
+        return BDRate(float("nan"), float("nan"), float("nan"),
+                      f"the curves do not overlap in node RMSE (test "
+                      f"{np.exp(xt[0]):.3g}-{np.exp(xt[-1]):.3g} m, reference "
+                      f"{np.exp(xr[0]):.3g}-{np.exp(xr[-1]):.3g} m){dropped}")
+    wa, wb = max(a, np.log(lo)), min(b, np.log(hi))
+    note = dropped.lstrip("; ")
+    if wb > wa:
+        a, b = wa, wb
+    else:
+        note = (f"no overlap inside {lo:g}-{hi:g} m: over the curves' whole overlap "
+                f"{np.exp(a):.3g}-{np.exp(b):.3g} m" + dropped)
+    pt = np.polyfit(xt, yt, min(3, xt.size - 1))
+    pr = np.polyfit(xr, yr, min(3, xr.size - 1))
     it, ir = np.polyint(pt), np.polyint(pr)
     diff = (np.polyval(it, b) - np.polyval(it, a) - np.polyval(ir, b) + np.polyval(ir, a)) / (b - a)
-    return float((np.exp(diff) - 1.0) * 100.0)
+    return BDRate(float((np.exp(diff) - 1.0) * 100.0), float(np.exp(a)), float(np.exp(b)),
+                  note)
+
+
+def bd_rate(test: list[tuple[float, float]], ref: list[tuple[float, float]],
+            lo: float = RMSE_RANGE[0], hi: float = RMSE_RANGE[1]) -> float:
+    """`bd_rate_span`'s percentage. NaN only when it cannot be computed, and then with a
+    `RuntimeWarning` saying why (never silently)."""
+    result = bd_rate_span(test, ref, lo, hi)
+    if not np.isfinite(result.percent):
+        warnings.warn(f"BD-rate not computed: {result.note}", RuntimeWarning, stacklevel=2)
+    return result.percent
 
 
 def gaussian_rd(tile: DemTile, rmses: list[float]) -> list[dict[str, Any]]:
@@ -187,10 +250,12 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
     rms = lambda a: float(np.sqrt(np.mean((a - truth) ** 2)))  # noqa: E731
     bicubic_dem = rms(bicubic_of(tile, tile.heights, xy))
     rows: list[dict[str, Any]] = []
-    variants = [(basis, start) for basis in args.bases
-                for start in (args.starts if basis == "pyramid" else ["exact"])]
-    latent_kinds = [f"latent {basis} ({start} start)" for basis, start in variants]
-    for (basis, start), kind in zip(variants, latent_kinds, strict=True):
+    variants = [(basis, start, regions) for basis in args.bases
+                for start in (args.starts if basis == "pyramid" else ["exact"])
+                for regions in args.regions]
+    latent_kinds = [f"latent {basis} ({start} start{f', {r} x {r} regions' if r else ''})"
+                    for basis, start, r in variants]
+    for (basis, start, regions), kind in zip(variants, latent_kinds, strict=True):
         for lam in args.lambdas:
             clock = time.perf_counter()
             latent_map, _ = fit_latent_map(
@@ -198,7 +263,7 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
                 levels=args.wavelet_levels if basis == "wavelet" else args.levels,
                 init_sweeps=args.init_sweeps, exact_start=start == "exact",
                 between_weight=args.between_weight, basis=basis, wavelet=args.wavelet,
-                init_step=args.init_step)
+                init_step=args.init_step, regions=regions)
             nodes = latent_map.node_heights().numpy()
             with torch.no_grad():
                 own = latent_map(torch.from_numpy(xy).float()).double().numpy()
@@ -270,6 +335,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--starts", nargs="+", choices=["sweeps", "exact"], default=["exact"],
                         help="latent starts to compare: pyramid sweeps only, or + exact nodes")
     parser.add_argument("--between_weight", type=float, default=0.5)
+    parser.add_argument("--regions", nargs="+", type=int, default=[0],
+                        help="region grid sides R to compare (0 = one step per subband; "
+                             "neuralmap.terrain.latent.regions)")
     parser.add_argument("--psnr_levels", nargs="+", type=float,
                         default=[40, 45, 50, 55, 60, 65, 70, 75, 80, 85, 90])
     parser.add_argument("--bounds", nargs="+", type=float, default=[1, 2, 4, 8, 16])

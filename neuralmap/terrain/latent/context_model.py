@@ -237,13 +237,16 @@ class ContextModel(nn.Module):
         load_into(self, vector)
 
     def parameters_of(self, symbols: list[torch.Tensor], steps: torch.Tensor,
-                      log_scales: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+                      log_scales: torch.Tensor, offsets: list[torch.Tensor] | None = None
+                      ) -> list[tuple[torch.Tensor, torch.Tensor]]:
         """``(mu, b)`` of every symbol of every subband (storage order, C-order flat).
 
         Args:
             symbols: Relaxed or integer symbols per subband (step units), ``(H_s, W_s)``.
             steps: ``(S,)`` quantisation steps.
             log_scales: ``(S,)`` scale offsets ``beta_s``.
+            offsets: Per subband ``(H_s W_s,)`` per-region offsets of ``log b``
+                (`.regions`), or None.
 
         Returns:
             Per subband ``(mu (H_s W_s,), b (H_s W_s,))``.
@@ -260,15 +263,19 @@ class ContextModel(nn.Module):
             x = torch.cat([ctx, plog2(1.0 + ctx.abs())], dim=-1)
             h = torch.relu(x @ self.w1 + self.b1)
             o = h @ self.w2 + self.b2
-            log_b = (o[:, 1] + log_scales[band]).clamp(*LOG_SCALE_RANGE)
+            t = o[:, 1] + log_scales[band]
+            if offsets is not None:
+                t = t + offsets[band]
+            log_b = t.clamp(*LOG_SCALE_RANGE)
             out.append((o[:, 0], log_b.exp()))
         return out
 
     def bits(self, symbols: list[torch.Tensor], steps: torch.Tensor,
-             log_scales: torch.Tensor) -> torch.Tensor:
+             log_scales: torch.Tensor, offsets: list[torch.Tensor] | None = None
+             ) -> torch.Tensor:
         """Total rate (bits) of the (relaxed) symbols under the context model."""
         total = steps.new_zeros(())
-        for y, (mu, b) in zip(symbols, self.parameters_of(symbols, steps, log_scales),
+        for y, (mu, b) in zip(symbols, self.parameters_of(symbols, steps, log_scales, offsets),
                               strict=True):
             if y.numel():
                 total = total + laplace_bits(y.reshape(-1) - mu, b).sum()
@@ -304,10 +311,13 @@ class CodingModel:
         levels: Wavelet levels ``J``.
         steps: ``(S,)`` stored quantisation steps (float32 values).
         scales: ``(S,)`` stored scale offsets ``exp(beta_s)`` (float32 values).
+        offsets: Per subband ``(H_s, W_s)`` per-region offsets of ``log b`` (float64,
+            `.regions.RegionCodes.log_scale_offsets`), or None.
     """
 
     def __init__(self, vector: np.ndarray, hidden: int, shapes: list[tuple[int, int]],
-                 levels: int, steps: np.ndarray, scales: np.ndarray) -> None:
+                 levels: int, steps: np.ndarray, scales: np.ndarray,
+                 offsets: list[np.ndarray] | None = None) -> None:
         v = np.asarray(vector, np.float64)
         h = int(hidden)
         if v.size != parameter_count(h):
@@ -322,9 +332,13 @@ class CodingModel:
         st = np.asarray(steps, np.float64)
         self.ratios = [[float(st[k] / st[b]) for k in range(st.size)] for b in range(st.size)]
         self.log_offsets = np.log(np.asarray(scales, np.float64))
+        self.offsets = (None if offsets is None
+                        else [np.asarray(o, np.float64) for o in offsets])
 
-    def mlp(self, ctx: list[np.ndarray], band: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(mu, b)`` on the coding grids from the context columns (elementwise, fixed order)."""
+    def mlp(self, ctx: list[np.ndarray], band: int, rows: np.ndarray | None = None,
+            cols: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``(mu, b)`` on the coding grids from the context columns (elementwise, fixed order;
+        ``rows, cols`` locate the symbols for the per-region offsets)."""
         x = ctx + [plog2(1.0 + np.abs(c)) for c in ctx]
         h = np.broadcast_to(self.b1, (x[0].size, self.b1.size)).copy()
         for k, col in enumerate(x):
@@ -336,6 +350,8 @@ class CodingModel:
             mu += h[:, k] * self.w2[k, 0]
             t += h[:, k] * self.w2[k, 1]
         t += self.log_offsets[band]
+        if self.offsets is not None:
+            t += self.offsets[band][rows, cols]
         mu = np.round(mu * MU_GRID) / MU_GRID
         idx = np.clip(np.round(t * LOG_SCALE_GRID), _LOG_TABLE_LO, _LOG_TABLE_HI).astype(np.int64)
         return mu, _SCALE_TABLE[idx - _LOG_TABLE_LO]
@@ -350,7 +366,8 @@ class CodingModel:
         for band, (h, w) in enumerate(self.gatherer.shapes):
             rows, cols = np.repeat(np.arange(h), w), np.tile(np.arange(w), h)
             ctx = self.gatherer.gather(padded, band, rows, cols, self.ratios[band])
-            out.append(self.mlp(ctx, band) if rows.size else (np.zeros(0), np.ones(0)))
+            out.append(self.mlp(ctx, band, rows, cols) if rows.size
+                       else (np.zeros(0), np.ones(0)))
         return out
 
 
@@ -436,7 +453,8 @@ def decode_context(model: CodingModel, words: np.ndarray,
         family = constriction.stream.model.QuantizedLaplace(int(lo), int(hi))
         ratios = model.ratios[band]
         for rows, cols in wavefronts(shapes[band]):
-            mu, b = model.mlp(model.gatherer.gather(padded, band, rows, cols, ratios), band)
+            mu, b = model.mlp(model.gatherer.gather(padded, band, rows, cols, ratios), band,
+                              rows, cols)
             try:
                 values = decoder.decode(family, mu, b)
             except Exception as exc:  # noqa: BLE001 - constriction raises its own types

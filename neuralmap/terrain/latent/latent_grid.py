@@ -36,6 +36,13 @@ from neuralmap.terrain.latent.bspline import (
 from neuralmap.terrain.latent.context_model import ContextModel
 from neuralmap.terrain.latent.entropy import laplace_bits
 from neuralmap.terrain.latent.pyramid import laplacian_init, level_shapes, node_lattice
+from neuralmap.terrain.latent.regions import (
+    RegionCodes,
+    active_groups,
+    band_groups,
+    check_regions,
+    choose_step_codes,
+)
 from neuralmap.terrain.latent.synthesis import Synthesis
 
 #: Relaxations of the rounding during training.
@@ -169,9 +176,13 @@ class LatentGrid(nn.Module):
         entropy: ``"factorized"`` (one Laplace per latent array) or ``"context"`` (the
             context MLP of `.context_model`; wavelet basis only).
         context_hidden: Hidden units of the context MLP.
+        regions: Side ``R`` of the grid of regions with their own step and entropy scale
+            (`.regions`; 0 = one step per latent array). The codes start at 0 and are
+            chosen by `choose_regions` (the fit does so when straight-through rounding
+            starts).
 
     Raises:
-        NeuralMapError: Unknown basis, wavelet or entropy model, ``levels`` < 1 or too many for the
+        NeuralMapError: Unknown basis, wavelet or entropy model, ``regions`` out of range, ``levels`` < 1 or too many for the
             tile, ``hidden`` < 0, ``init_step`` <= 0.
     """
 
@@ -179,8 +190,9 @@ class LatentGrid(nn.Module):
                  init_step: float = 1.0, init_sweeps: int = 12, seed: int = 0,
                  exact_start: bool = True, basis: str = "wavelet",
                  wavelet: str = "cdf97", entropy: str = "factorized",
-                 context_hidden: int = 12) -> None:
+                 context_hidden: int = 12, regions: int = 0) -> None:
         super().__init__()
+        self.regions = check_regions(regions)
         ny, nx = tile.shape
         self.basis = make_basis(basis, levels, (int(ny), int(nx)), wavelet=wavelet)
         if int(hidden) < 0:
@@ -221,6 +233,74 @@ class LatentGrid(nn.Module):
              node_operator(nx, 2**level, shapes[level][1]))
             for level in range(len(shapes))
         ]
+        # region codes (buffers, so a checkpoint keeps them): (G, R²) step and scale codes
+        self.groups = band_groups(self.basis.name, len(init))
+        n_groups, n_reg = max(self.groups) + 1, max(1, self.regions) ** 2
+        self.register_buffer("region_step_codes", torch.zeros(n_groups, n_reg, dtype=torch.int64))
+        self.register_buffer("region_scale_codes", torch.zeros(n_groups, n_reg,
+                                                               dtype=torch.int64))
+        self.register_buffer("regions_chosen", torch.zeros((), dtype=torch.bool))
+        self._region_cache: tuple | None = None
+
+    # ------------------------------------------------------------------ regions
+    @property
+    def region_codes(self) -> RegionCodes | None:
+        """The region codes (None without regions)."""
+        if not self.regions:
+            return None
+        shapes = [tuple(z.shape) for z in self.latents]
+        return RegionCodes(self.regions, self.region_step_codes.numpy().copy(),
+                           self.region_scale_codes.numpy().copy(), tuple(self.groups),
+                           active_groups(shapes, self.groups, self.regions))
+
+    def set_regions(self, codes: RegionCodes) -> None:
+        """Stores chosen region codes."""
+        self.region_step_codes.copy_(torch.as_tensor(codes.step_codes))
+        self.region_scale_codes.copy_(torch.as_tensor(codes.scale_codes))
+        self.regions_chosen.fill_(True)
+        self._region_cache = None
+
+    def region_maps(self, codes: RegionCodes | None = None
+                    ) -> tuple[list[torch.Tensor], list[torch.Tensor]] | None:
+        """Per array ``(H, W)`` step multipliers and scale terms (factorized: scale
+        multipliers; context: ``log b`` offsets, flat), float32, of ``codes`` (default: the
+        grid's once chosen); None without regions or before they are chosen."""
+        if codes is None:
+            codes = self.region_codes if bool(self.regions_chosen) else None
+        if codes is None:
+            return None
+        key = (codes.step_codes.tobytes(), codes.scale_codes.tobytes())
+        if self._region_cache is None or self._region_cache[0] != key:
+            shapes = [tuple(z.shape) for z in self.latents]
+            steps = [torch.from_numpy(m).float() for m in codes.step_maps(shapes)]
+            if self.context is None:
+                scale = [torch.from_numpy(m).float() for m in codes.scale_maps(shapes)]
+            else:
+                scale = [torch.from_numpy(m).float().reshape(-1)
+                         for m in codes.log_scale_offsets(shapes)]
+            self._region_cache = (key, (steps, scale))
+        return self._region_cache[1]
+
+    def choose_regions(self, rate_weight: float, *, store: bool = True) -> RegionCodes | None:
+        """Chooses every region's step code (and a first scale code) by RDO from the
+        current latents (`.regions.choose_step_codes`) at ``lambda'`` = ``rate_weight`` (m²
+        per bit, RDOQ's), stores and returns them. The context model keeps scale codes 0
+        (its MLP predicts the local scale); they are chosen again on the final symbols.
+        ``store=False`` returns them without storing."""
+        if not self.regions:
+            return None
+        with torch.no_grad():
+            latents = [z.detach().double().numpy() for z in self.latents]
+            w2 = float(self.synthesis.linear.detach().double().pow(2).mean())
+            codes = choose_step_codes(latents, self.steps.double().numpy(),
+                                      self.scales.double().numpy(),
+                                      node_gains(self.basis, self.shape).numpy(), w2,
+                                      float(rate_weight), self.regions, self.groups)
+        if self.context is not None:
+            codes = codes.with_scale_codes(np.zeros_like(codes.scale_codes))
+        if store:
+            self.set_regions(codes)
+        return codes
 
     # ------------------------------------------------------------------ quantisation
     @property
@@ -251,8 +331,10 @@ class LatentGrid(nn.Module):
                                  f"{quantizer!r}.")
         decoded, relaxed, bits = [], [], []
         steps, scales = self.steps, self.scales
+        maps = self.region_maps()
         for level, z in enumerate(self.latents):
-            y = z / steps[level]
+            step = steps[level] if maps is None else steps[level] * maps[0][level]
+            y = z / step
             out = None
             if quantizer == "noise":
                 y = y + (torch.rand_like(y) - 0.5)
@@ -263,19 +345,24 @@ class LatentGrid(nn.Module):
                 out = soft_round(y, alpha)
             else:
                 y = torch.round(y).detach()
-            decoded.append((y if out is None else out) * steps[level])
+            decoded.append((y if out is None else out) * step)
             relaxed.append(y)
             if self.context is None:
-                bits.append(laplace_bits(y, scales[level]).sum())
+                scale = scales[level] if maps is None else scales[level] * maps[1][level]
+                bits.append(laplace_bits(y, scale).sum())
         if self.context is not None:
-            return decoded, self.context.bits(relaxed, steps, self.log_scale)
+            return decoded, self.context.bits(relaxed, steps, self.log_scale,
+                                              None if maps is None else maps[1])
         return decoded, torch.stack(bits).sum()
 
-    def symbols(self) -> list[np.ndarray]:
-        """The integer symbols ``round(z_l / Delta_l)`` per latent array (int32)."""
+    def symbols(self, codes: RegionCodes | None = None) -> list[np.ndarray]:
+        """The integer symbols ``round(z_l / Delta_l)`` per latent array (int32; with
+        regions ``Delta_l`` times the region's step multiplier, of ``codes`` or the grid's)."""
+        maps = self.region_maps(codes)
         with torch.no_grad():
-            return [torch.round(z / s).to(torch.int32).numpy()
-                    for z, s in zip(self.latents, self.steps, strict=True)]
+            return [torch.round(z / (s if maps is None else s * maps[0][k])).to(torch.int32)
+                    .numpy() for k, (z, s) in enumerate(zip(self.latents, self.steps,
+                                                            strict=True))]
 
     # ------------------------------------------------------------------ decoding
     def node_features(self, decoded: list[torch.Tensor]) -> torch.Tensor:
@@ -318,60 +405,101 @@ def stored_context(grid: LatentGrid) -> np.ndarray | None:
         return grid.context.parameter_vector().numpy().astype(np.float16).astype(np.float32)
 
 
+def coding_parameters(grid: LatentGrid, symbols: list[np.ndarray],
+                      codes: RegionCodes | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per latent array ``(mu, b)`` (flat) of ``symbols`` under the grid's entropy model as
+    the file codes it (factorized ``(0, b_s)`` times the region scales, or the context
+    model in its coding form), with region codes ``codes`` (default: the grid's)."""
+    from neuralmap.terrain.latent.context_model import CodingModel
+
+    codes = grid.region_codes if codes is None else codes
+    shapes = [tuple(s.shape) for s in symbols]
+    with torch.no_grad():
+        steps = grid.steps.numpy().astype(np.float32)
+        scales = grid.scales.numpy().astype(np.float32)
+    vector = stored_context(grid)
+    if vector is None:
+        maps = codes.scale_maps(shapes) if codes is not None else [np.ones(sh) for sh in shapes]
+        return [(np.zeros(int(np.prod(sh))), float(b) * m.ravel())
+                for sh, b, m in zip(shapes, scales.astype(np.float64), maps, strict=True)]
+    assert grid.context is not None
+    offsets = None if codes is None else codes.log_scale_offsets(shapes)
+    model = CodingModel(vector, grid.context.hidden, shapes, grid.levels, steps, scales,
+                        offsets)
+    return model.all_parameters(symbols)
+
+
+def _ranges(sym: list[np.ndarray]) -> list[tuple[int, int]]:
+    return [(min(0, int(s.min())), max(0, int(s.max()))) if s.size else (0, 0) for s in sym]
+
+
 def rdoq_symbols(grid: LatentGrid, rate_weight: float, heights: torch.Tensor,
-                 valid: torch.Tensor | None = None) -> tuple[list[np.ndarray], dict]:
-    """RDOQ symbols of a trained grid (`.rdoq`) under its entropy model as stored.
+                 valid: torch.Tensor | None = None, codes: RegionCodes | None = None
+                 ) -> tuple[list[np.ndarray], dict]:
+    """RDOQ symbols of a trained grid (`.rdoq`) under its entropy model as stored (and its
+    region steps and scales, `.regions`).
 
     Args:
         grid: The trained grid.
         rate_weight: ``lambda`` of the node-only trade-off (m² per bit per node).
         heights: ``(ny, nx)`` target node heights (voids filled).
         valid: ``(ny, nx)`` bool mask of the nodes that count (default: all).
+        codes: Region codes (default: the grid's once chosen).
 
     Returns:
         ``(symbols, info)`` as `rdoq` (``J`` in summed m²: ``n`` times the objective).
     """
-    from neuralmap.terrain.latent.context_model import CodingModel, symbol_bits
+    from neuralmap.terrain.latent.context_model import symbol_bits
     from neuralmap.terrain.latent.rdoq import rdoq
 
+    shapes = grid.basis.shapes(grid.shape)
+    if codes is None and bool(grid.regions_chosen):
+        codes = grid.region_codes
+    step_maps = (codes.step_maps(shapes) if codes is not None
+                 else [np.ones(sh) for sh in shapes])
     with torch.no_grad():
         steps = grid.steps.numpy().astype(np.float32)
-        scales = grid.scales.numpy().astype(np.float32)
         w = float(grid.synthesis.linear.detach().double().pow(2).mean())
-    curvature = node_gains(grid.basis, grid.shape).numpy() * w * steps.astype(np.float64) ** 2
-    vector = stored_context(grid)
+    gains = node_gains(grid.basis, grid.shape).numpy() * w
+    # SSE of a one-step change of each symbol: G_s w^2 (Delta_s m_r)^2
+    curvature = [g * (float(d) * m) ** 2 for g, d, m in zip(gains, steps, step_maps, strict=True)]
+    step_tensors = [float(d) * torch.from_numpy(m).float()
+                    for d, m in zip(steps, step_maps, strict=True)]
     target = torch.as_tensor(heights, dtype=torch.float32)
     mask = (torch.ones_like(target, dtype=torch.bool) if valid is None
             else torch.as_tensor(valid, dtype=torch.bool))
 
     def bits_of(sym: list[np.ndarray]) -> list:
-        ranges = [(min(0, int(s.min())), max(0, int(s.max()))) if s.size else (0, 0)
-                  for s in sym]
-        if vector is None:
-            params = [(np.zeros(s.size), np.full(s.size, float(b)))
-                      for s, b in zip(sym, scales, strict=True)]
-        else:
-            model = CodingModel(vector, grid.context.hidden, grid.basis.shapes(grid.shape),
-                                grid.levels, steps, scales)
-            params = model.all_parameters(sym)
+        params = coding_parameters(grid, sym, codes)
         return [(lambda c, mu=mu, b=b, r=r: symbol_bits(c, mu, b, *r).reshape(c.shape))
-                for (mu, b), r in zip(params, ranges, strict=True)]
+                for (mu, b), r in zip(params, _ranges(sym), strict=True)]
 
     def distortion_of(sym: list[np.ndarray]) -> tuple[float, list[np.ndarray]]:
         with torch.enable_grad():  # also inside validation's no_grad
             q = [torch.from_numpy(s.astype(np.float32)).requires_grad_(True) for s in sym]
-            decoded = [qi * float(d) for qi, d in zip(q, steps, strict=True)]
+            decoded = [qi * d for qi, d in zip(q, step_tensors, strict=True)]
             err = grid.node_heights(decoded) - target
             sse = (err[mask] ** 2).sum()
             grads = torch.autograd.grad(sse, q)
         return float(sse.detach()), [g.double().numpy() for g in grads]
 
-    return rdoq(grid.symbols(), curvature, rate_weight, bits_of, distortion_of)
+    return rdoq(grid.symbols(codes), curvature, rate_weight, bits_of, distortion_of)
+
+
+def refine_regions(grid: LatentGrid, symbols: list[np.ndarray], codes: RegionCodes
+                   ) -> RegionCodes:
+    """``codes`` with the scale codes chosen again on the final ``symbols`` (exact code
+    length, `.regions.refine_scale_codes`)."""
+    from neuralmap.terrain.latent.regions import refine_scale_codes
+
+    return refine_scale_codes(codes, symbols, coding_parameters(grid, symbols, codes),
+                              _ranges(symbols))
 
 
 def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
                rdoq_rate_weight: float | None = None,
-               rdoq_target: tuple[torch.Tensor, torch.Tensor] | None = None) -> Any:
+               rdoq_target: tuple[torch.Tensor, torch.Tensor] | None = None,
+               region_rate_weight: float | None = None) -> Any:
     """The `LatentTerrainMap` of a trained grid,
     exactly as its file stores it (symbols rounded, MLP weights in float16).
 
@@ -382,6 +510,9 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
             (`rdoq_symbols`) instead of rounded.
         rdoq_target: ``(heights (ny, nx), valid (ny, nx))`` node targets of RDOQ (needed
             with ``rdoq_rate_weight``; `RateDistortion.heights` / ``.valid``).
+        region_rate_weight: ``lambda'`` of the region-code choice when the fit did not
+            choose them (`LatentGrid.choose_regions`); default ``rdoq_rate_weight``.
+            With regions the scale codes are chosen again on the final symbols.
 
     Raises:
         NeuralMapError: ``rdoq_rate_weight`` without ``rdoq_target``.
@@ -391,8 +522,22 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
     from neuralmap.terrain.latent.bitstream import stored_latent_map
     from neuralmap.terrain.latent.map import LatentTerrainMap
 
-    symbols = (grid.symbols() if rdoq_rate_weight is None or rdoq_target is None
-               else rdoq_symbols(grid, rdoq_rate_weight, *rdoq_target)[0])
+    codes = None  # the grid is left as it is (a validation export does not change the fit)
+    if grid.regions and bool(grid.regions_chosen):
+        codes = grid.region_codes
+    elif grid.regions:
+        lam = region_rate_weight if region_rate_weight is not None else rdoq_rate_weight
+        if lam is None:
+            raise NeuralMapError(
+                "export_map: the region codes were not chosen during the fit; pass "
+                "region_rate_weight (lambda', m² per bit) or rdoq_rate_weight.")
+        codes = grid.choose_regions(lam, store=False)
+    if codes is not None:
+        codes = refine_regions(grid, grid.symbols(codes), codes)
+    symbols = (grid.symbols(codes) if rdoq_rate_weight is None or rdoq_target is None
+               else rdoq_symbols(grid, rdoq_rate_weight, *rdoq_target, codes=codes)[0])
+    if codes is not None:
+        codes = refine_regions(grid, symbols, codes)
     with torch.no_grad():
         latent_map = LatentTerrainMap(
             symbols, grid.steps.numpy(), grid.scales.numpy(),
@@ -401,5 +546,6 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
             tile_info=grid.tile_info, metrics=metrics, basis=grid.basis,
             context=stored_context(grid),
             context_hidden=grid.context.hidden if grid.context is not None else 0,
+            regions=codes,
         )
     return stored_latent_map(latent_map)

@@ -27,6 +27,7 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.base import TerrainModel
 from neuralmap.terrain.latent.basis import LatentBasis, make_basis
 from neuralmap.terrain.latent.bspline import bspline_matrix, cell_position
+from neuralmap.terrain.latent.regions import RegionCodes
 from neuralmap.terrain.latent.synthesis import Synthesis
 
 
@@ -89,6 +90,8 @@ class LatentTerrainMap(TerrainModel):
         context: ``(parameter_count(context_hidden),)`` weights of the context entropy
             model (`.context_model`), or None for the factorized model.
         context_hidden: Hidden units of the context MLP (0 without it).
+        regions: Per-region step and scale codes (`.regions`), or None (one step per
+            latent array).
 
     Raises:
         NeuralMapError: Inconsistent shapes.
@@ -113,6 +116,7 @@ class LatentTerrainMap(TerrainModel):
         basis: LatentBasis | None = None,
         context: np.ndarray | None = None,
         context_hidden: int = 0,
+        regions: RegionCodes | None = None,
     ) -> None:
         super().__init__()
         self.tile_info = dict(tile_info)
@@ -140,6 +144,11 @@ class LatentTerrainMap(TerrainModel):
         self.context_hidden = int(context_hidden) if context is not None else 0
         self.entropy = "factorized" if context is None else "context"
         self.symbols = [np.ascontiguousarray(s, dtype=np.int32) for s in symbols]
+        self.regions = regions
+        if regions is not None and len(regions.groups) != len(symbols):
+            raise NeuralMapError(
+                f"latent map: region codes for {len(regions.groups)} latent arrays, the map "
+                f"has {len(symbols)}; the file is damaged.")
         self.steps = np.asarray(steps, np.float32).copy()
         self.scales = np.asarray(scales, np.float32).copy()
         self.feature_scale = np.asarray(feature_scale, np.float32).copy()
@@ -160,13 +169,19 @@ class LatentTerrainMap(TerrainModel):
         """Short description for ``print(model)``."""
         return (f"tile={self.tile_name!r}, shape={self.shape}, basis={self.basis.name}, "
                 f"levels={self.levels}, entropy={self.entropy}, "
+                f"regions={0 if self.regions is None else self.regions.regions}, "
                 f"hidden={self.hidden}")
 
     @property
     def decoded_latents(self) -> list[torch.Tensor]:
-        """Decoded latents ``q_b Delta_b`` per latent array (float64, storage order)."""
-        return [torch.from_numpy(s).double() * float(d)
-                for s, d in zip(self.symbols, self.steps, strict=True)]
+        """Decoded latents ``q_b Delta_b`` per latent array (float64, storage order), times
+        the region step multipliers ``2^(k_r / 4)`` with regions (`.regions`)."""
+        out = [torch.from_numpy(s).double() * float(d)
+               for s, d in zip(self.symbols, self.steps, strict=True)]
+        if self.regions is None:
+            return out
+        maps = self.regions.step_maps([tuple(s.shape) for s in self.symbols])
+        return [q * torch.from_numpy(m) for q, m in zip(out, maps, strict=True)]
 
     def _check_xy(self, xy: torch.Tensor) -> torch.Tensor:
         if not isinstance(xy, torch.Tensor) or xy.ndim < 1 or xy.shape[-1] != 2:

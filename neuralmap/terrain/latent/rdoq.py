@@ -34,14 +34,16 @@ BitsOf = Callable[[list[np.ndarray]], list[Callable[[np.ndarray], np.ndarray]]]
 DistortionOf = Callable[[list[np.ndarray]], tuple[float, list[np.ndarray]]]
 
 
-def rdoq(symbols: list[np.ndarray], curvature: np.ndarray, rate_weight: float,
+def rdoq(symbols: list[np.ndarray], curvature: list[np.ndarray] | np.ndarray,
+         rate_weight: float,
          bits_of: BitsOf, distortion_of: DistortionOf, *, passes: int = 4,
          halvings: int = 4) -> tuple[list[np.ndarray], dict[str, float]]:
     """RDOQ starting from ``symbols`` (the rounded latents).
 
     Args:
         symbols: Integer symbols per subband.
-        curvature: ``(S,)`` ``G_s Delta_s^2``: the SSE of a one-step change (m²).
+        curvature: Per subband ``G_s Delta_s^2``, the SSE of a one-step change (m²): a
+            float, or an array of the subband's shape (per-region steps, `.regions`).
         rate_weight: ``lambda'`` (m² per bit).
         bits_of: See `BitsOf`.
         distortion_of: See `DistortionOf`.
@@ -63,9 +65,10 @@ def rdoq(symbols: list[np.ndarray], curvature: np.ndarray, rate_weight: float,
         fns = bits_of(sym)
         picks, gains = [], []
         for c2, s, g, f in zip(curvature, sym, grads, fns, strict=True):
+            c2 = np.asarray(c2, np.float64)
             base = rate_weight * f(s)
             cands = [s, s - 1, s + 1, np.zeros_like(s)]
-            cost = np.stack([g * (c - s) + float(c2) * (c - s) ** 2 + rate_weight * f(c) - base
+            cost = np.stack([g * (c - s) + c2 * (c - s) ** 2 + rate_weight * f(c) - base
                              for c in cands])
             pick = np.argmin(cost, axis=0)
             picks.append(np.choose(pick, cands).astype(np.int32))

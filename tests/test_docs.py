@@ -120,6 +120,20 @@ def test_every_study_page_quotes_only_numbers_of_its_stamped_page() -> None:
     assert not problems, "\n".join(problems)
 
 
+def test_benchmarks_training_and_data_pages_quote_only_numbers_of_their_stamped_pages() -> None:
+    from neuralmap.docs.trace import TRACED_PAGES, check_linked_page, linked_results
+
+    pages = [p for pattern in TRACED_PAGES for p in sorted((REPO / "docs").glob(pattern))]
+    assert {"benchmarks.md", "data.md", "index.md", "latent.md", "region.md"} <= {
+        p.name for p in pages}
+    problems = [problem for page in pages for problem in check_linked_page(page, REPO)]
+    assert not problems, "\n".join(problems)
+    for name in ("benchmarks.md", "data.md", "training/index.md", "training/region.md"):
+        page = REPO / "docs" / name
+        assert linked_results(page, REPO / "docs"), f"{name} links no stamped page"
+        assert "Measured by hand at the stated size" not in page.read_text(encoding="utf-8")
+
+
 def test_an_untraced_number_is_named_and_code_spans_are_not_checked() -> None:
     stamped = "| neural | 20.9 | 1.16x |"
     assert untraced_numbers("RMSE 20.9 m, 1.16× the PCRB", [stamped]) == []

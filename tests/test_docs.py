@@ -415,3 +415,29 @@ def test_a_linked_page_quotes_only_numbers_of_the_stamped_pages_it_links(
     page.write_text("Slow: 9.5 ([hand](results/hand.md)).\n")
     problems = check_linked_page(page, tmp_path)
     assert "carries no run stamp" in problems[0] and "9.5" in problems[1]
+
+
+def test_train_py_writes_a_summary_that_update_stamps(tmp_path: Path) -> None:
+    """A 1-epoch fit of a small tile: summary.md beside metrics.json, stamped with the
+    default config and the options on the command line as overrides."""
+    import numpy as np
+
+    from neuralmap.training.cli import main as train_main
+
+    tile = tmp_path / "t.npy"
+    np.save(tile, np.random.default_rng(0).normal(size=(40, 40)).cumsum(0).cumsum(1))
+    path = train_main(["--data.path", str(tile), "--data.spacing", "30", "--runs_dir",
+                       str(tmp_path / "runs"), "--experiment", "t", "--model.block_nodes",
+                       "16", "--model.hidden", "8", "--model.n_frequencies", "4",
+                       "--data.refit_epochs", "0", "--trainer.max_epochs", "1",
+                       "--trainer.enable_progress_bar", "false"])
+    assert path is not None
+    metrics = json.loads((path.parent / "metrics.json").read_text())
+    page = update_page(path.parent, docs_dir=tmp_path / "docs", configs_dir=REPO / "configs",
+                       figures=False)
+    stamp = read_stamp(page)
+    assert page.name == "train_train.md" and stamp is not None and stamp.kind == "train"
+    assert stamp.config == "configs/train.yaml" and stamp.seed == 0
+    assert stamp.overrides["trainer.max_epochs"] == "1" and "runs_dir" not in stamp.overrides
+    assert f"| rmse_m | {metrics['rmse_m']:.4g} |" in page.read_text()
+    assert check_page(page, REPO) == []

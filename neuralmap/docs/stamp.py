@@ -132,7 +132,8 @@ def check_page(page: str | Path, repo_root: str | Path, *,
     if config_sha256(config) != stamp.config_sha256:
         problems.append(f"{page}: stamped with {stamp.config} at sha256 "
                         f"{stamp.config_sha256[:12]}, but the file now hashes to "
-                        f"{config_sha256(config)[:12]}; rerun the study with the current "
+                        f"{config_sha256(config)[:12]}; rerun the "
+                        f"{'training' if stamp.kind == 'train' else 'study'} with the current "
                         "config and update the page")
     data = load_yaml(config.read_text(encoding="utf-8"))
     if stamp.kind == "study" and (not isinstance(data, dict) or data.get("study") != stamp.study):

@@ -108,7 +108,10 @@ def run_tile(name: str, args: argparse.Namespace) -> list[str]:
             nbytes = len(encode_latent_map(latent_map))
             rmse = node_rmse(latent_map.node_heights().numpy(), tile)
             maps[variant].append((nbytes, rmse))
-            print(f"#   {variant} lambda {lam:g}: {nbytes} B, node RMSE {rmse:.3f} m, "
+            kept = ("" if "regions" not in variant else
+                    "; regions kept" if latent_map.regions is not None else
+                    "; regions dropped (they did not pay)")
+            print(f"#   {variant} lambda {lam:g}: {nbytes} B, node RMSE {rmse:.3f} m{kept}, "
                   f"{time.perf_counter() - clock:.0f} s", flush=True)
     codecs = codec_curves(tile, args)
     lines = [f"### {tile.name} ({tile.shape[0]} x {tile.shape[1]} nodes)", "",

@@ -14,6 +14,7 @@ from scipy.ndimage import gaussian_filter
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.terrain.latent import LatentGrid, RateDistortion
 from neuralmap.terrain.latent.bitstream import (
     coding_model,
     decode_latent_map,
@@ -25,6 +26,7 @@ from neuralmap.terrain.latent.bitstream import (
 from neuralmap.terrain.latent.context_model import encode_context, symbol_bits
 from neuralmap.terrain.latent.encode import fit_latent_map
 from neuralmap.terrain.latent.entropy import encode_located, laplace_bits, symbol_range
+from neuralmap.terrain.latent.latent_grid import exact_objective, regions_pay
 from neuralmap.terrain.latent.regions import (
     CODE_BITS,
     STEP_CANDIDATES,
@@ -49,7 +51,7 @@ def _half_tile() -> DemTile:
     return DemTile(h, spacing=(10.0, 10.0), name="half")
 
 
-FIT = {"steps": 150, "levels": 4, "between_points": 512, "rdoq": True}
+FIT = {"steps": 150, "levels": 4, "between_points": 512, "rdoq": True, "regions_always": True}
 
 
 @pytest.fixture(scope="module")
@@ -238,3 +240,31 @@ def test_flat_and_rough_halves_get_different_steps_and_a_lower_rate(fits):
               f"{_rate_at(single, rmse[4, lam]):.0f} B; scale codes west {west:.1f} east "
               f"{east:.1f}; step codes west {steps_west.mean():.2f} east {steps_east.mean():.2f}")
         assert len(encode_latent_map(regional)) < _rate_at(single, rmse[4, lam])
+
+
+def test_regions_are_stored_only_where_they_pay():
+    tile = _half_tile()
+    grid = LatentGrid(tile, levels=4, regions=4)
+    objective = RateDistortion(tile, rate_weight=0.3, between_points=0)
+    target = (objective.heights, objective.valid)
+    codes = grid.choose_regions(0.2)
+    zero = RegionCodes(4, np.zeros_like(codes.step_codes), np.zeros_like(codes.scale_codes),
+                       codes.groups, codes.active)
+    plain = grid.symbols(zero)
+    # all-zero codes decode exactly as no regions (the same SSE + lambda' bits as the
+    # uniform model's, computed independently), so they only add their own bits
+    with torch.no_grad():
+        sse = float(((grid.node_heights([torch.from_numpy(q.astype(np.float32)) * d for q, d
+                                         in zip(plain, grid.steps, strict=True)])
+                      - objective.heights) ** 2).sum())
+    bits = sum(float(laplace_bits(torch.as_tensor(q, dtype=torch.float64),
+                                  torch.tensor(float(b), dtype=torch.float64)).sum())
+               for q, b in zip(plain, grid.scales.detach().numpy().astype(np.float32),
+                               strict=True) if q.min() < q.max() or q.any())
+    # within 2 %: the coder's model keeps the tails beyond the symbol range in the end
+    # symbols, laplace_bits has infinite support
+    assert exact_objective(grid, plain, zero, 0.2, *target) == pytest.approx(
+        sse + 0.2 * bits, rel=2e-2)
+    assert not regions_pay(grid, plain, zero, plain, 0.2, *target)
+    # the chosen codes on the half-flat tile lower SSE + lambda' bits by more than they cost
+    assert regions_pay(grid, grid.symbols(codes), codes, plain, 0.2, *target)

@@ -90,6 +90,7 @@ def fit_latent_map(
     relaxation: str = "noise",
     rdoq: bool = False,
     regions: int = 0,
+    regions_always: bool = False,
 ) -> tuple[LatentTerrainMap, dict[str, Any]]:
     """Fits a latent-grid map to ``tile`` and returns it as its file stores it.
 
@@ -115,6 +116,8 @@ def fit_latent_map(
         rdoq: Choose the final symbols by RDOQ (`.rdoq`) instead of rounding.
         regions: Side ``R`` of the grid of regions with their own steps and entropy scales
             (`.regions`; 0 = one step per subband).
+        regions_always: Store the regions even where they do not lower the exact
+            ``SSE + lambda' bits`` (default: dropped then, `.latent_grid.regions_pay`).
 
     Returns:
         ``(map, history)`` with the last step's loss terms in ``history``.
@@ -148,5 +151,5 @@ def fit_latent_map(
                    for key in ("loss", "node_mse", "between_mse", "bits")}
     latent_map = export_map(grid, rdoq_rate_weight=node_lambda if rdoq else None,
                             rdoq_target=(objective.heights, objective.valid),
-                            region_rate_weight=node_lambda)
+                            region_rate_weight=node_lambda, regions_always=regions_always)
     return latent_map, history

@@ -496,10 +496,46 @@ def refine_regions(grid: LatentGrid, symbols: list[np.ndarray], codes: RegionCod
                               _ranges(symbols))
 
 
+def exact_objective(grid: LatentGrid, symbols: list[np.ndarray], codes: RegionCodes,
+                    rate_weight: float, heights: torch.Tensor, valid: torch.Tensor) -> float:
+    """``SSE_nodes + lambda' bits`` of ``symbols`` under ``codes`` (m²): the decoded nodes
+    against ``heights`` at ``valid``, the ideal code length of the symbols (coder form)."""
+    from neuralmap.terrain.latent.context_model import symbol_bits
+
+    shapes = [tuple(s.shape) for s in symbols]
+    with torch.no_grad():
+        steps = grid.steps.numpy().astype(np.float32)
+        decoded = [torch.from_numpy(s.astype(np.float32)) * float(d) * torch.from_numpy(m).float()
+                   for s, d, m in zip(symbols, steps, codes.step_maps(shapes), strict=True)]
+        err = grid.node_heights(decoded) - torch.as_tensor(heights, dtype=torch.float32)
+        sse = float((err[torch.as_tensor(valid, dtype=torch.bool)].double() ** 2).sum())
+    bits = sum(float(symbol_bits(s, mu, b, *r).sum()) for s, (mu, b), r in
+               zip(symbols, coding_parameters(grid, symbols, codes), _ranges(symbols),
+                   strict=True) if s.size)
+    return sse + float(rate_weight) * bits
+
+
+def regions_pay(grid: LatentGrid, symbols: list[np.ndarray], codes: RegionCodes,
+                plain: list[np.ndarray], rate_weight: float, heights: torch.Tensor,
+                valid: torch.Tensor) -> bool:
+    """Whether the regional symbols with their codes (range-coded words, the count and
+    about 32 header bytes) have a lower `exact_objective` than the uniform-step ``plain``
+    symbols."""
+    from neuralmap.terrain.latent.regions import code_scales, encode_codes
+
+    zero = RegionCodes(codes.regions, np.zeros_like(codes.step_codes),
+                       np.zeros_like(codes.scale_codes), codes.groups, codes.active)
+    code_bits = 32.0 * encode_codes(codes, code_scales(codes)).size + 8.0 * (4 + 32)
+    j_regions = (exact_objective(grid, symbols, codes, rate_weight, heights, valid)
+                 + float(rate_weight) * code_bits)
+    return j_regions < exact_objective(grid, plain, zero, rate_weight, heights, valid)
+
+
 def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
                rdoq_rate_weight: float | None = None,
                rdoq_target: tuple[torch.Tensor, torch.Tensor] | None = None,
-               region_rate_weight: float | None = None) -> Any:
+               region_rate_weight: float | None = None,
+               regions_always: bool = False) -> Any:
     """The `LatentTerrainMap` of a trained grid,
     exactly as its file stores it (symbols rounded, MLP weights in float16).
 
@@ -513,6 +549,12 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
         region_rate_weight: ``lambda'`` of the region-code choice when the fit did not
             choose them (`LatentGrid.choose_regions`); default ``rdoq_rate_weight``.
             With regions the scale codes are chosen again on the final symbols.
+        regions_always: Keep the regions even where they do not pay. By default, with
+            ``rdoq_target`` and a ``lambda'``, the map is stored without regions (format 2
+            / 3) when the exact ``SSE_nodes + lambda' bits`` of the uniform-step symbols,
+            region codes' bits excluded, is no larger than the regional one's with them
+            (`regions_pay`): small maps, where about a hundred codes are a tenth of the
+            file.
 
     Raises:
         NeuralMapError: ``rdoq_rate_weight`` without ``rdoq_target``.
@@ -538,6 +580,14 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
                else rdoq_symbols(grid, rdoq_rate_weight, *rdoq_target, codes=codes)[0])
     if codes is not None:
         codes = refine_regions(grid, symbols, codes)
+        lam = region_rate_weight if region_rate_weight is not None else rdoq_rate_weight
+        if not regions_always and rdoq_target is not None and lam is not None:
+            zero = RegionCodes(codes.regions, np.zeros_like(codes.step_codes),
+                               np.zeros_like(codes.scale_codes), codes.groups, codes.active)
+            plain = (grid.symbols(zero) if rdoq_rate_weight is None
+                     else rdoq_symbols(grid, rdoq_rate_weight, *rdoq_target, codes=zero)[0])
+            if not regions_pay(grid, symbols, codes, plain, lam, *rdoq_target):
+                codes, symbols = None, plain
     with torch.no_grad():
         latent_map = LatentTerrainMap(
             symbols, grid.steps.numpy(), grid.scales.numpy(),

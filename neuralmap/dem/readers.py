@@ -51,9 +51,10 @@ from neuralmap.dem.tile import DemTile, ProjectedReference, broadcast_pair
 from neuralmap.exceptions import NeuralMapError
 
 #: Built-in tile names accepted by `load_tile` (see `neuralmap.dem.samples`).
-#: ``rmnp``, ``volcano`` and ``minnesota`` read other packages' shipped example DEMs
-#: (`neuralmap.dem.package_samples`, the ``samples`` extra).
-SAMPLE_NAMES = ("jacksboro", "topobathy", "rmnp", "volcano", "minnesota", "synthetic")
+#: ``rmnp``, ``volcano``, ``minnesota`` and ``gironde`` read other packages' shipped example
+#: DEMs (`neuralmap.dem.package_samples`: the ``samples`` extra; gironde: demcompare's sdist).
+SAMPLE_NAMES = ("jacksboro", "topobathy", "rmnp", "volcano", "minnesota", "gironde",
+                "synthetic")
 #: File extensions accepted by `load_tile` (case-insensitive).
 SUPPORTED_EXTENSIONS = (".npz", ".npy", ".hgt", ".asc", ".tif", ".tiff")
 #: Keys of a matplotlib-style geographic .npz (``jacksboro_fault_dem.npz``).

@@ -1,6 +1,6 @@
 """Built-in sample tiles: ``"jacksboro"`` and ``"topobathy"`` (matplotlib's shipped DEMs),
-``"rmnp"``, ``"volcano"`` and ``"minnesota"`` (other packages' shipped DEMs, see
-`neuralmap.dem.package_samples`) and ``"synthetic"``."""
+``"rmnp"``, ``"volcano"``, ``"minnesota"`` and ``"gironde"`` (other packages' shipped DEMs,
+see `neuralmap.dem.package_samples`) and ``"synthetic"``."""
 
 from __future__ import annotations
 
@@ -60,6 +60,8 @@ def load_sample(
     DEMs read from those packages' installed example data (mountainous, a volcanic cone,
     gentle 1 m LiDAR); see `neuralmap.dem.package_samples` for provenance and licences.
     They need the ``samples`` extra (the error says so when a package is missing).
+    ``"gironde"``: the Gironde coast DEM (≈ 82 m × 116 m, land 0–105 m, sea at 0 m) from
+    demcompare's source archive, fetched once with pip (the error gives the command).
     ``"synthetic"``: `neuralmap.dem.synthetic_tile` with its defaults
     (seed 0); ``"synthetic:N"`` / ``"synthetic:NYxNX"`` set the shape.
 

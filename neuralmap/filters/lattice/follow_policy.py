@@ -87,6 +87,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.lattice.algebra2 import eigh2, eigvalsh2, inv2, solve2, spd2_ok, sqrtm2
 from neuralmap.filters.lattice.kernels import (
     LatticeMoments,
     affine_field,
@@ -202,16 +203,10 @@ def _sym(m: torch.Tensor) -> torch.Tensor:
     return 0.5 * (m + m.transpose(-1, -2))
 
 
-def _sqrtm2(c: torch.Tensor, inverse: bool = False) -> torch.Tensor:
-    """Symmetric square root (or inverse root) of SPD ``(..., n, n)`` via eigh."""
-    lam, v = torch.linalg.eigh(_sym(c))
-    lam = lam.clamp_min(torch.finfo(c.dtype).tiny)
-    r = lam.rsqrt() if inverse else lam.sqrt()
-    return (v * r[..., None, :]) @ v.transpose(-1, -2)
-
-
 def _cholesky_ok(c: torch.Tensor) -> torch.Tensor:
-    """``(N,)`` bool: finite, symmetric and positive definite."""
+    """``(N,)`` bool: finite, symmetric and positive definite (2 × 2: closed form)."""
+    if c.shape[-1] == 2:
+        return spd2_ok(c)
     finite = torch.isfinite(c).flatten(1).all(1)
     safe = torch.where(finite[:, None, None], c, torch.eye(c.shape[-1], dtype=c.dtype,
                                                           device=c.device))
@@ -358,12 +353,12 @@ class FollowLattice:
         ms, mz = mean[:, :2], mean[:, 2:]
         css, czs, czz = cov[:, :2, :2], cov[:, 2:, :2], cov[:, 2:, 2:]
         centre, axes = self._lattice_for(f, ms, css, torch.zeros_like(ms) if q is None else q)
-        inv_a = torch.linalg.inv(axes)
+        inv_a = inv2(axes)
         cu = _sym(inv_a @ css @ inv_a.transpose(1, 2))
         w = normalised(self._log_gauss(f, torch.zeros_like(ms), cu))
-        gu = czs @ torch.linalg.solve(css, axes)  # (N, nz, 2): z-gain per cell step
+        gu = czs @ solve2(css, axes)  # (N, nz, 2): z-gain per cell step
         mu = mz[:, :, None, None] + self._affine(f, gu, torch.zeros_like(ms))
-        P = _sym(czz - czs @ torch.linalg.solve(css, czs.transpose(1, 2)))
+        P = _sym(czz - czs @ solve2(css, czs.transpose(1, 2)))
         return self._matched(f, (w, mu, P, centre, axes), ms, css, mz, czz, czs, fallback=False)
 
     def _lattice_for(self, f: LatticeFilter, mean: torch.Tensor, cov: torch.Tensor,
@@ -372,7 +367,7 @@ class FollowLattice:
         ``q (N, 2)``: process noise of the next step (collapse guard)."""
         cfg = self.config
         if cfg.principal_axes:
-            lam, vec = torch.linalg.eigh(_sym(cov))
+            lam, vec = eigh2(_sym(cov))
             qa = torch.einsum("nki,nk->ni", vec * vec, q)  # q projected on the axes
         else:
             lam = torch.diagonal(cov, dim1=1, dim2=2)
@@ -420,7 +415,7 @@ class FollowLattice:
         """
         w, mu, P, centre, axes = state
         lm = f.lattice_moments(w, mu)
-        thin = torch.linalg.eigvalsh(lm.cu)[:, 0] < MIN_CELL_VARIANCE
+        thin = eigvalsh2(lm.cu)[:, 0] < MIN_CELL_VARIANCE
         if fallback and bool(thin.any()):
             idx = thin.nonzero().reshape(-1)
             mean_t = torch.cat([ms_t, mz_t], 1).index_select(0, idx)
@@ -434,22 +429,29 @@ class FollowLattice:
         # the 2 x 2 map in float64: a float32 eigh of an elongated posterior (condition ~1e4)
         # returns a small eigenvalue at round-off level and T would collapse the lattice
         c64, ct64 = css.double(), css_t.double()
-        root = _sqrtm2(c64)
-        iroot = _sqrtm2(c64, inverse=True)
-        T = (iroot @ _sqrtm2(root @ ct64 @ root) @ iroot).to(w.dtype)
+        lam, vec = eigh2(_sym(c64))
+        lam = lam.clamp_min(torch.finfo(torch.float64).tiny)
+        root = (vec * lam.sqrt()[:, None, :]) @ vec.transpose(1, 2)
+        iroot = (vec * lam.rsqrt()[:, None, :]) @ vec.transpose(1, 2)
+        T = (iroot @ sqrtm2(_sym(root @ ct64 @ root)) @ iroot).to(w.dtype)
         ok = torch.isfinite(T).flatten(1).all(1) & _cholesky_ok(css) & _cholesky_ok(_sym(css_t))
         eye = torch.eye(2, dtype=w.dtype, device=w.device).expand_as(T)
         T = torch.where(ok[:, None, None], T, eye)
         axes = T @ axes
         centre = ms_t - (axes @ lm.u[:, :, None]).squeeze(-1)
         # z: mean shift and a per-cell-step gain gu so that Cov(z, s) hits its target
-        want = torch.linalg.solve(axes, czs_t.transpose(1, 2)).transpose(1, 2)  # czs_t A^-T
-        gu = torch.linalg.solve(lm.cu, (want - lm.czu).transpose(1, 2)).transpose(1, 2)
+        want = solve2(axes, czs_t.transpose(1, 2)).transpose(1, 2)  # czs_t A^-T
+        gu = solve2(lm.cu, (want - lm.czu).transpose(1, 2)).transpose(1, 2)
         mu = mu + (mz_t - lm.mz)[:, :, None, None] + self._affine(f, gu, lm.u)
         czz_b = (lm.czz_b + gu @ lm.czu.transpose(1, 2) + lm.czu @ gu.transpose(1, 2)
                  + gu @ lm.cu @ gu.transpose(1, 2))
         P = _sym(czz_t - czz_b)
-        lam, vec = torch.linalg.eigh(P)
+        if P.shape[-1] == 1:  # closed forms for one and two linear states
+            lam, vec = P[:, :, 0], torch.ones_like(P)
+        elif P.shape[-1] == 2:
+            lam, vec = eigh2(P)
+        else:
+            lam, vec = torch.linalg.eigh(P)
         floor = 1e-12 * lam.abs().amax(-1, keepdim=True).clamp_min(1e-300)
         if bool((lam < floor).any()):  # round-off: keep the Kalman part positive definite
             P = _sym((vec * lam.clamp_min(floor)[:, None, :]) @ vec.transpose(1, 2))
@@ -466,7 +468,7 @@ class FollowLattice:
         fit, with the cells' own spread ``A Aᵀ / 12`` added, on a fresh lattice; returns the
         lattice moments of the state."""
         lm = f.lattice_moments(f.weights, f.lin_mean)
-        thin = torch.linalg.eigvalsh(lm.cu)[:, 0] < MIN_CELL_VARIANCE
+        thin = eigvalsh2(lm.cu)[:, 0] < MIN_CELL_VARIANCE
         if not bool(thin.any()):
             return lm
         idx = thin.nonzero().reshape(-1)
@@ -515,7 +517,7 @@ class FollowLattice:
         # the per-cell z mean = its affine fit in the cell coordinates + a residual; the
         # affine part of the shift E μ moves the lattice (exact), the residual's spread is
         # transition noise
-        gzu = torch.linalg.solve(lm.cu, lm.czu.transpose(1, 2)).transpose(1, 2)  # (N, nz, 2)
+        gzu = solve2(lm.cu, lm.czu.transpose(1, 2)).transpose(1, 2)  # (N, nz, 2)
         cz_res = _sym(lm.czz_b - gzu @ lm.czu.transpose(1, 2))
         B_u = E @ gzu  # shift per cell step (N, 2, 2)
         axes_new = axes + B_u
@@ -523,7 +525,7 @@ class FollowLattice:
         sig_eta = _sym(E @ P @ E.T + qs + E @ cz_res @ E.T)
         # blur by separable kernels of exact variance along the lattice axes; the cross-axis
         # part and any remainder are carried by the moment correction (an affine stretch)
-        inv_a = torch.linalg.inv(axes_new)
+        inv_a = inv2(axes_new)
         k_cells = inv_a @ sig_eta @ inv_a.transpose(1, 2)
         var_c = torch.diagonal(k_cells, dim1=1, dim2=2).clamp_min(0.0)  # (N, 2) x, y
         w_new, mu_new = w, mu
@@ -606,7 +608,7 @@ class FollowLattice:
         cfg = self.config
         lm = self._refit_thin(f)
         w, mu, P, centre, axes = f.state()
-        inv_a = torch.linalg.inv(axes)
+        inv_a = inv2(axes)
         u, k = lm.u, lm.cu  # mean and covariance in cells
         sig = torch.diagonal(k, dim1=1, dim2=2).clamp_min(0.0).sqrt()
         qc = torch.diagonal(inv_a @ torch.diag_embed(self._q_next) @ inv_a.transpose(1, 2),
@@ -643,7 +645,7 @@ class FollowLattice:
         czz = _sym(P_o + rows(lm.czz_b))
         c_n, a_n = self._lattice_for(f, ms, css, rows(self._q_next))
         # old cell coordinates of the new cells: o_old = A_o⁻¹ (c_n − c_o) + A_o⁻¹ A_n o
-        ia_o = torch.linalg.inv(a_o)
+        ia_o = inv2(a_o)
         base = (ia_o @ (c_n - c_o)[:, :, None]).squeeze(-1)
         lin = ia_o @ a_n
         o = f._off
@@ -656,17 +658,16 @@ class FollowLattice:
         tiny = torch.finfo(f.dtype).tiny
         log_r = w_o.clamp_min(tiny).log() - self._log_gauss(f, u_o, cu_o)
         log_r = (log_r - log_r.amax((1, 2), keepdim=True)).clamp_min(_LOG_R_FLOOR)
-        # gelsd, not the default gelsy: gelsy's result differs in the last bits from call to
-        # call on some CPUs, and the tracker must repeat itself exactly (streaming = replay)
-        gzu = torch.linalg.lstsq(cu_o, czu_o.transpose(1, 2),
-                                 driver="gelsd").solution.transpose(1, 2)
+        # closed form (cu_o is positive definite for every moved run): deterministic to the
+        # last bit, as the tracker must repeat itself exactly (streaming = replay)
+        gzu = solve2(cu_o, czu_o.transpose(1, 2)).transpose(1, 2)
         resid = mu_o - mz_o[:, :, None, None] - self._affine(f, gzu, u_o)
         chans = torch.cat([log_r[:, None], resid], 1)
         out = resample_bilinear(chans, uv, padding="border")
-        cu_n = _sym(torch.linalg.inv(a_n) @ css @ torch.linalg.inv(a_n).transpose(1, 2))
+        cu_n = _sym(inv2(a_n) @ css @ inv2(a_n).transpose(1, 2))
         zero = torch.zeros_like(ms)
         w_n = normalised(out[:, 0] + self._log_gauss(f, zero, cu_n))
-        g_n = czs @ torch.linalg.solve(css, a_n)  # z-gain per new cell step
+        g_n = czs @ solve2(css, a_n)  # z-gain per new cell step
         mu_n = out[:, 1:] + mz_o[:, :, None, None] + self._affine(f, g_n, zero)
         new = self._matched(f, (w_n, mu_n, P_o, c_n, a_n), ms, css, mz_o, czz, czs)
         if every:

@@ -30,6 +30,7 @@ import math
 import torch
 import torch.nn.functional as nnf
 
+from neuralmap.filters.lattice.algebra2 import eigh2
 from neuralmap.filters.underflow import exp_or_zero, log_or_neg_inf
 
 __all__ = ["BANDED_MIN_HALF_LEN", "LatticeMoments", "WeightUpdate", "affine_field", "blur",
@@ -297,7 +298,7 @@ def gaussian_log_density(off: torch.Tensor, u: torch.Tensor, cu: torch.Tensor) -
     lattice cannot hold a narrower posterior), so a posterior collapsed onto one cell or one
     line of cells stays invertible; wider posteriors are unchanged.
     """
-    vals, vecs = torch.linalg.eigh(0.5 * (cu + cu.transpose(1, 2)))
+    vals, vecs = eigh2(0.5 * (cu + cu.transpose(1, 2)))
     floored = vals.clamp_min(1.0 / 12.0)
     inv = (vecs / floored[:, None, :]) @ vecs.transpose(1, 2)
     dx = (off[None, :] - u[:, 0:1])[:, None, :]  # (N, 1, G) along columns

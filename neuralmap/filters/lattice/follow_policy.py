@@ -43,7 +43,8 @@ shape beyond the covariance, never the mean or covariance.
 run moves to a new lattice centred on its mean, with cell steps ``span_sigma · σ_k / h``
 along each axis ``k`` (the principal axes of its covariance when ``principal_axes``,
 else x and y) — i.e. the spacing is ``1 / spacing_per_sigma`` of σ — when its mean left
-the central ``recentre_fraction`` of the lattice, its ``± span_sigma σ`` box pokes out,
+the central ``recentre_fraction`` of the lattice, its ``± regrid_sigma σ`` box pokes out
+(hysteresis: built for ``± span_sigma σ``),
 or it needs less than ``1 / resize_ratio`` of the lattice. Masses and ``w μ`` are
 resampled bilinearly (density interpolation), then the moment correction restores the
 pre-regrid moments. Guard against collapse: the half-width is never below
@@ -127,6 +128,9 @@ class TrackerConfig:
         principal_axes: Align the lattice with the posterior's principal axes.
         recentre_fraction: Regrid when the mean is farther from the centre than this
             fraction of the half-width along a lattice axis.
+        regrid_sigma: Regrid when the posterior's ``± regrid_sigma σ`` box pokes out of the
+            lattice (hysteresis: a lattice is built for ``± span_sigma σ`` and kept while the
+            smaller box fits; None = ``span_sigma``, no hysteresis).
         resize_ratio: Regrid when the posterior needs less than ``1/resize_ratio`` of the
             lattice's half-width along an axis (keeps the cells a fixed fraction of σ).
         min_half_width: Smallest half-width (state units) of a lattice axis.
@@ -146,6 +150,7 @@ class TrackerConfig:
     span_sigma: float = 5.0
     principal_axes: bool = True
     recentre_fraction: float = 0.1
+    regrid_sigma: float | None = 4.0
     resize_ratio: float = 1.5
     min_half_width: float = 0.0
     max_spacing: float | None = None
@@ -170,6 +175,8 @@ class TrackerConfig:
             raise bad("span_sigma", f"in [1, (cells-1)/2 = {h:g}] (a cell at most 1 σ wide)")
         if not 0.0 < self.recentre_fraction < 1.0:
             raise bad("recentre_fraction", "in (0, 1)")
+        if self.regrid_sigma is not None and not 1.0 <= self.regrid_sigma <= self.span_sigma:
+            raise bad("regrid_sigma", f"None or in [1, span_sigma = {self.span_sigma:g}]")
         if not self.resize_ratio > 1.0:
             raise bad("resize_ratio", "> 1")
         if not self.min_half_width >= 0.0:
@@ -617,7 +624,8 @@ class FollowLattice:
         h = f.half
         rho = k[:, 0, 1] / (sig[:, 0] * sig[:, 1]).clamp_min(1e-300)
         off_centre = (u.abs() > cfg.recentre_fraction * h).any(1)
-        pokes_out = (u.abs() + need > h * (1 + 1e-6)).any(1)
+        box = need if cfg.regrid_sigma is None else need * (cfg.regrid_sigma / cfg.span_sigma)
+        pokes_out = (u.abs() + box > h * (1 + 1e-6)).any(1)
         too_coarse = (need * cfg.resize_ratio < h).any(1)
         if cfg.min_half_width > 0:  # a guarded lattice at its floor is not "too coarse"
             floor_cells = cfg.min_half_width / torch.linalg.norm(axes, dim=1)

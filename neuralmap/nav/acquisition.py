@@ -496,12 +496,12 @@ def _outputs(n: int, k_steps: int, dtype: torch.dtype, device: torch.device) -> 
 
 
 def _finish(inputs: TanInputs, out: dict[str, Any], name: str, healthy: torch.Tensor,
-            elapsed: float) -> FilterRun:
+            elapsed: float, lost: torch.Tensor | None = None) -> FilterRun:
     t = torch.arange(inputs.radar.shape[1], dtype=inputs.radar.dtype) * inputs.dt
     return FilterRun(
         method=name, t=t, err=out["err"], P=out["P"], nis=out["nis"],
         residual=out["residual"], updated=out["updated"], est_on_map=out["est_on_map"],
-        off_map=~inputs.on_map.all(dim=1), healthy=healthy, elapsed_s=elapsed,
+        off_map=~inputs.on_map.all(dim=1), healthy=healthy, elapsed_s=elapsed, lost=lost,
     )
 
 
@@ -773,12 +773,15 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
         acq_hist[rows, k] = True
     elapsed = time.perf_counter() - start
     healthy = track.healthy.clone() if track is not None else torch.ones(n, dtype=torch.bool)
+    lost = None
     if pool is not None:
         updates += pool.cell_updates
+        # the tracker's lost flag of a run it took over counts as a divergence (metrics)
+        lost = pool.tracker.lost & (handoff_step >= 0)
     if pm is not None and rows.numel() > 0:
         finite = torch.isfinite(pm.weights).flatten(1).all(1)
         healthy[rows] = healthy[rows] & finite
-    run = _finish(inputs, out, name, healthy, elapsed)
+    run = _finish(inputs, out, name, healthy, elapsed, lost)
     return AcquisitionResult(
         run=run, handoff_step=handoff_step, n_fallbacks=n_fallbacks, recoveries=recoveries,
         acquiring=acq_hist, elapsed_s=elapsed, cell_updates=updates,

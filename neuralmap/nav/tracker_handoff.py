@@ -40,6 +40,8 @@ from typing import Any
 
 import torch
 
+from neuralmap.filters.lattice.filter import to_state
+from neuralmap.filters.lattice.kernels import LatticeMoments
 from neuralmap.filters.point_mass import PointMassFilter
 from neuralmap.filters.point_mass_tracker import PointMassTracker, TrackerConfig
 from neuralmap.nav.model import N_STATES
@@ -52,6 +54,10 @@ def grid_posterior_moments(pm: PointMassFilter, index: torch.Tensor, *, ppp: tor
                            mp: torch.Tensor, condition: bool = True,
                            ) -> tuple[torch.Tensor, torch.Tensor]:
     """5-state mean and covariance of grid runs ``index`` (module docstring).
+
+    The ``(s, a)`` moments are the lattice kernels' (`LatticeMoments`, `to_state`: the
+    ones `LatticeFilter.moments` uses) on the selected runs, accumulated in float64
+    whatever the grid's dtype; the pending process noise (``deferred_cov``) is added.
 
     Args:
         pm: The acquisition grid (``M`` runs).
@@ -67,17 +73,15 @@ def grid_posterior_moments(pm: PointMassFilter, index: torch.Tensor, *, ppp: tor
         Mean ``(K, 5)`` and covariance ``(K, 5, 5)`` in float64, ``[δx, δy, δh, δv_x, δv_y]``.
     """
     f64 = torch.float64
-    w = pm.weights.index_select(0, index).to(f64)  # (K, G, G)
-    a = pm.scalar_mean.index_select(0, index).to(f64)
-    va = pm.scalar_var.index_select(0, index).to(f64)
-    pts = pm.points().index_select(0, index).to(f64)  # (K, G, G, 2)
-    mean_s = pm.mean().index_select(0, index).to(f64)
-    cov_s = pm.cov().index_select(0, index).to(f64)
-    a_bar = (w * a).sum((1, 2))
-    da = a - a_bar[:, None, None]
-    var_a = va + (w * da * da).sum((1, 2))
-    ds = pts - mean_s[:, None, None, :]
-    cov_as = (w[..., None] * da[..., None] * ds).sum((1, 2))  # (K, 2)
+    # the lattice kernels' moments (`LatticeMoments`, `to_state`), accumulated in float64
+    lm = LatticeMoments(pm.weights.index_select(0, index).to(f64),
+                        pm.lin_mean.index_select(0, index).to(f64), pm.offsets.to(f64))
+    axes = pm.axes.index_select(0, index).to(f64)
+    mean_s, cov_s = to_state(lm.u, lm.cu, pm.centre.index_select(0, index).to(f64), axes)
+    cov_s = cov_s + pm.policy.deferred_cov(pm).index_select(0, index).to(f64)  # pending Q
+    a_bar = lm.mz[:, 0]  # ā = Σ w a
+    var_a = pm.lin_cov.index_select(0, index)[:, 0, 0].to(f64) + lm.czz_b[:, 0, 0]
+    cov_as = (lm.czu @ axes.transpose(1, 2))[:, 0]  # Σ_as = Σ w (a − ā)(s − s̄)ᵀ, (K, 2)
     ppp, ppv, pvv = ppp.to(f64), ppv.to(f64), pvv.to(f64)
     b = ppv / ppp if condition else torch.zeros_like(ppv)
     bm = torch.diag_embed(b)
@@ -87,7 +91,7 @@ def grid_posterior_moments(pm: PointMassFilter, index: torch.Tensor, *, ppp: tor
     cov_va = b * cov_as
     k = index.numel()
     x = torch.cat([mean_s, a_bar[:, None], v], 1)
-    P = torch.zeros(k, N_STATES, N_STATES, dtype=f64, device=w.device)
+    P = torch.zeros(k, N_STATES, N_STATES, dtype=f64, device=axes.device)
     P[:, :2, :2] = cov_s
     P[:, 2, 2] = var_a
     P[:, 2, :2] = cov_as

@@ -150,3 +150,27 @@ def test_grid_then_tracker_equals_the_kalman_filter_across_the_handoff(plane) ->
     assert bool((after <= at + 2e-3).all())  # measured: at most +0.13 % σ
     torch.testing.assert_close(res.run.err[..., 2], kalman.run.err[..., 2], atol=0.05, rtol=0)
     torch.testing.assert_close(res.run.err[..., 3:], kalman.run.err[..., 3:], atol=0.01, rtol=0)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_grid_posterior_moments_are_the_lattice_filters(dtype, tol) -> None:
+    """The ``(s, a)`` block is `LatticeFilter.moments` of the same runs (one kernel set;
+    float64 accumulation: equal to round-off in float64, to float32 round-off relative to
+    σ on a float32 grid)."""
+    pm64 = _skewed_grid(2)
+    pm = pm64 if dtype == torch.float64 else PointMassFilter(
+        torch.zeros(3, 2, dtype=torch.float32), torch.eye(2) * 900.0,
+        config=PointMassConfig(cells=40), dtype=torch.float32)
+    if dtype == torch.float32:
+        pm.set_state(*(t.to(torch.float32) for t in pm64.state()))
+        pm.policy.pending = pm64.policy.pending.to(torch.float32)
+    idx = torch.tensor([1, 2])
+    ones = torch.ones(2, 2, dtype=D)
+    kw = {"ppp": 1500.0 * ones, "ppv": 2.0 * ones, "pvv": 0.3 * ones, "v0": 0.0 * ones,
+          "mp": 0.0 * ones}
+    x, P = grid_posterior_moments(pm, idx, **kw)
+    mean, cov = pm.moments()
+    sd = P.diagonal(dim1=1, dim2=2)[:, :3].sqrt()
+    assert float(((mean[idx].double() - x[:, :3]) / sd).abs().max()) <= tol
+    assert float(((cov[idx].double() - P[:, :3, :3]) / (sd[:, :, None] * sd[:, None, :])
+                  ).abs().max()) <= tol

@@ -159,6 +159,33 @@ def test_a_study_page_without_a_stamped_page_or_with_a_hand_number_fails(
     assert check_study_page(page, tmp_path) == []
 
 
+
+def test_a_bound_is_not_traced_but_a_result_beside_it_is() -> None:
+    stamped = "| tracker | 1.157 |"
+    text = "1.157× the PCRB (target 1.10×, ≤ 1.05× map-aware; Targets: 2.5); 1.16"
+    assert untraced_numbers(text, [stamped]) == ["1.16"]
+    assert untraced_numbers("1.157 (≥ 90.0 % in band, < 0.5 m, > 3.3 s)", [stamped]) == []
+    assert untraced_numbers("about 1.10× the bound", [stamped]) == ["1.10"]
+
+
+def test_a_study_page_may_quote_a_stamped_page_it_links(tmp_path: Path) -> None:
+    studies, results = tmp_path / "docs" / "studies", tmp_path / "docs" / "results"
+    studies.mkdir(parents=True)
+    results.mkdir()
+    (results / "tan.md").write_text("| tracker | 1.157 |\n")
+    page = studies / "tan.md"
+    page.write_text("jacksboro 1.157; synthetic 1.412 ([run](../results/tan_synthetic.md))\n")
+    (results / "tan_synthetic.md").write_text("| tracker | 1.412 |\n")  # no stamp
+    problems = check_study_page(page, tmp_path)
+    assert any("tan_synthetic.md, which carries no run stamp" in p for p in problems)
+    assert any("1.412 not on the stamped page" in p for p in problems)
+    stamp = RunStamp(study="tan", config="configs/tan_synthetic.yaml", config_sha256="0" * 64,
+                     seed=0, commit="0" * 40, dirty=False, date="2026-12-03T00:00:00Z",
+                     overrides={})
+    (results / "tan_synthetic.md").write_text(stamp.line() + "\n| tracker | 1.412 |\n")
+    assert check_study_page(page, tmp_path) == []
+
+
 # ----------------------------------------------------------------------------- summary.md
 @dataclass
 class _Config:
@@ -237,6 +264,31 @@ def test_update_stamps_the_run_with_its_config_and_lists_overrides(tmp_path: Pat
                                    configs_dir=REPO / "configs", figures=False))
     assert stamp is not None and stamp.overrides == {"n_runs": 7}
     assert "--n_runs 7" in (tmp_path / "docs" / "results" / "wind.md").read_text()
+
+
+
+def test_a_run_of_another_config_of_the_study_gets_that_config_s_page(tmp_path: Path) -> None:
+    from dataclasses import asdict
+
+    from neuralmap.io import to_jsonable
+    from neuralmap.studies.cli import parse_config
+
+    @dataclass
+    class _Tan(_Config):
+        study: str = "tan"
+
+    with StudyOutputs(tmp_path / "runs", config=_Tan(), title="TAN", echo=False,
+                      tensorboard=False) as outputs:
+        outputs.add_table("Headline", ["method", "RMSE [m]"], [["tracker", 76.9]])
+        run = outputs.finalize()
+    config = to_jsonable(asdict(parse_config(
+        ["--config", str(REPO / "configs" / "tan_synthetic.yaml")])))
+    (run / "config.yaml").write_text(yaml.safe_dump(config))
+    page = update_page(run, docs_dir=tmp_path / "docs", configs_dir=REPO / "configs")
+    assert page == tmp_path / "docs" / "results" / "tan_synthetic.md"
+    stamp = read_stamp(page)
+    assert stamp is not None and stamp.config == "configs/tan_synthetic.yaml"
+    assert stamp.study == "tan" and not stamp.tiny and check_page(page, REPO) == []
 
 
 def test_update_refuses_a_folder_that_is_not_a_run(tmp_path: Path,

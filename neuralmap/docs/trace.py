@@ -6,11 +6,17 @@ study page's prose and tables (``20.4``, ``1.16``, ``0.025``) must occur in that
 the study's config file ``configs/<study>.yaml``; integers (run counts, seeds, σ0 values)
 and code spans (parameters, commands) are not checked.
 
-The other pages that quote measurements (`TRACED_PAGES`: benchmarks, training, data) take
-their numbers from the stamped pages they link (``results/bench_filter.md``,
-``results/train_train.md``, ...) and the config files they name (``configs/train.yaml``).
-There a number may be quoted rounded: ``0.71`` is traced by a stamped ``0.7122`` (a
-study page quotes its page's digits exactly).
+A study page may also quote the stamped pages it links (another tile's run of the
+study, ``results/tan_synthetic.md``).
+
+Every other page of the site (`TRACED_PAGES`: getting started, guides, benchmarks,
+training, data, known gaps, architecture, ...) takes its numbers from the stamped pages it
+links (``results/bench_filter.md``, ``results/train_train.md``, ...) and the config files
+it names (``configs/train.yaml``). There a number may be quoted rounded: ``0.71`` is traced
+by a stamped ``0.7122`` (a study page quotes its page's digits exactly).
+
+A bound is not a result: a number written right after ``target``, ``≤``, ``≥``, ``<`` or
+``>`` (``target 1.10×``, ``≤ 1.05×``) is a requirement and is not traced.
 """
 
 from __future__ import annotations
@@ -21,11 +27,15 @@ from pathlib import Path
 __all__ = ["TRACED_PAGES", "check_linked_page", "check_study_page", "linked_results",
            "untraced_numbers"]
 
-#: The pages besides the study pages whose numbers are traced (globs under ``docs/``).
-TRACED_PAGES = ("benchmarks.md", "data.md", "training/*.md")
+#: The pages besides the study pages whose numbers are traced (globs under ``docs/``):
+#: every page of the site but the stamped pages themselves, the study pages (traced by
+#: `check_study_page`) and the API reference (docstrings).
+TRACED_PAGES = ("*.md", "guides/*.md", "training/*.md")
 
 #: A decimal number standing on its own (not part of a word, version or path).
 _DECIMAL = re.compile(r"(?<![\w.])\d+\.\d+(?![\d.])")
+#: A bound (a requirement, not a result): a decimal right after "target", ≤, ≥, < or >.
+_BOUND = re.compile(r"(?:\btargets?:?|[≤≥<>])\s*\d+\.\d+(?![\d.])", re.IGNORECASE)
 #: Inline code spans and fenced code blocks.
 _CODE = re.compile(r"```.*?```|`[^`\n]*`", re.DOTALL)
 #: A markdown link target ending in ``.md`` (an anchor allowed).
@@ -56,7 +66,7 @@ def untraced_numbers(page_text: str, sources: list[str], *, rounded: bool = Fals
     Returns:
         The untraced numbers, in page order (repeats kept once).
     """
-    prose = _CODE.sub(" ", page_text)
+    prose = _BOUND.sub(" ", _CODE.sub(" ", page_text))
     traced = set()
     for source in sources:
         traced.update(_DECIMAL.findall(source))
@@ -85,12 +95,33 @@ def check_study_page(page: str | Path, repo_root: str | Path) -> list[str]:
     config = root / "configs" / f"{study}.yaml"
     if config.is_file():
         sources.append(config.read_text(encoding="utf-8"))
-    missing = untraced_numbers(page.read_text(encoding="utf-8"), sources)
-    if not missing:
-        return []
-    return [f"{page}: {', '.join(missing)} not on the stamped page {results.relative_to(root)}"
-            " nor in its config; quote numbers from the stamped run only (or stamp a run "
-            "that measures them)"]
+    problems, linked = _stamped_sources(page, root)
+    missing = untraced_numbers(page.read_text(encoding="utf-8"), sources + linked)
+    if missing:
+        problems.append(
+            f"{page}: {', '.join(missing)} not on the stamped page "
+            f"{results.relative_to(root)}, a stamped page it links, nor in its config; quote "
+            "numbers from the stamped run only (or stamp a run that measures them)")
+    return problems
+
+
+def _stamped_sources(page: Path, root: Path) -> tuple[list[str], list[str]]:
+    """The problems of the results pages ``page`` links and the texts of the stamped ones."""
+    from neuralmap.docs.stamp import read_stamp
+
+    sources, problems = [], []
+    for linked in linked_results(page, root / "docs"):
+        if not linked.is_file():
+            continue  # a broken link: the strict site build names it
+        try:
+            stamped = read_stamp(linked) is not None
+        except ValueError:
+            stamped = False
+        if not stamped:
+            problems.append(f"{page}: links {linked.name}, which carries no run stamp")
+            continue
+        sources.append(linked.read_text(encoding="utf-8"))
+    return problems, sources
 
 
 def linked_results(page: str | Path, docs_dir: str | Path) -> list[Path]:
@@ -112,22 +143,9 @@ def check_linked_page(page: str | Path, repo_root: str | Path) -> list[str]:
         page: A page under ``docs/`` (``docs/benchmarks.md``).
         repo_root: The repository root (holding ``docs/`` and ``configs/``).
     """
-    from neuralmap.docs.stamp import read_stamp
-
     page, root = Path(page), Path(repo_root)
     text = page.read_text(encoding="utf-8")
-    sources, problems = [], []
-    for linked in linked_results(page, root / "docs"):
-        if not linked.is_file():
-            continue  # a broken link: the strict site build names it
-        try:
-            stamped = read_stamp(linked) is not None
-        except ValueError:
-            stamped = False
-        if not stamped:
-            problems.append(f"{page}: links {linked.name}, which carries no run stamp")
-            continue
-        sources.append(linked.read_text(encoding="utf-8"))
+    problems, sources = _stamped_sources(page, root)
     for name in sorted(set(_CONFIG.findall(text))):
         if (root / name).is_file():
             sources.append((root / name).read_text(encoding="utf-8"))

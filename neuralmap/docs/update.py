@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import re
+import shlex
 import shutil
 from dataclasses import asdict
 from pathlib import Path
@@ -105,13 +106,21 @@ def _demote(markdown: str) -> str:
                    for part in parts)
 
 
+def _shell_value(value: Any) -> str:
+    """An override as the studies' CLI reads it, quoted for a shell (``'[a,b]'``)."""
+    if isinstance(value, str):
+        return shlex.quote(value)
+    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        return shlex.quote(f"[{','.join(value)}]")
+    return shlex.quote(json.dumps(value))
+
+
 def _stamp_table(stamp: RunStamp, run_dir: Path) -> str:
     commit = f"`{stamp.commit[:12]}`" if stamp.commit else "unknown (not run from a checkout)"
     if stamp.dirty:
         commit += " with uncommitted changes in the working tree"
     rerun = f"python evaluate.py --config {stamp.config}" + "".join(
-        f" --{k} {json.dumps(v) if not isinstance(v, str) else v}"
-        for k, v in stamp.overrides.items())
+        f" --{k} {_shell_value(v)}" for k, v in stamp.overrides.items())
     rows = [
         ("config", f"`{stamp.config}` (sha256 `{stamp.config_sha256[:12]}`)"
                    + (f" — **{TINY_NOTE}**" if stamp.tiny else "")),
@@ -241,8 +250,10 @@ def _run_table(stamp: RunStamp, run_dir: Path) -> str:
 def update_page(run_dir: str | Path, *, docs_dir: str | Path = "docs",
                 configs_dir: str | Path = "configs", figures: bool = True,
                 page_name: str | None = None) -> Path:
-    """Writes a stamped ``<docs_dir>/results/`` page from one run: ``<study>.md`` for a
-    study, ``train_<config>.md`` for a training run, ``bench_<name>.md`` for a benchmark.
+    """Writes a stamped ``<docs_dir>/results/`` page from one run: ``<config>.md`` for a
+    study (the stem of the shipped config found, ``_tiny`` dropped: ``tan.md``,
+    ``tan_synthetic.md``), ``train_<config>.md`` for a training run, ``bench_<name>.md``
+    for a benchmark.
 
     Args:
         run_dir: A published run folder (``runs/<experiment>/version_N``).
@@ -280,7 +291,10 @@ def update_page(run_dir: str | Path, *, docs_dir: str | Path = "docs",
             config_sha256=config_sha256(config), seed=provenance.get("seed"),
             commit=provenance.get("commit"), dirty=provenance.get("dirty"),
             date=provenance.get("date", ""), overrides=overrides)
-        name, title, table = study, f"# Results: `{study}` (stamped run)\n", None
+        # One page per shipped config of the study (tan.yaml -> tan, tan_synthetic.yaml ->
+        # tan_synthetic); the smoke config writes the study's page, marked as tiny.
+        name = config.stem.removesuffix("_tiny")
+        title, table = f"# Results: `{name}` (stamped run)\n", None
     elif kind in ("train", "bench"):
         stamp, name = (_train_stamp(provenance, configs_dir, run_dir / "summary.md")
                        if kind == "train" else _bench_stamp(provenance, run_dir / "summary.md"))

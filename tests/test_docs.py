@@ -213,7 +213,10 @@ def test_every_run_writes_a_summary_with_its_headline_table_claims_and_provenanc
     provenance = json.loads(first[len(SUMMARY_MARK):].removesuffix("-->"))
     assert provenance["seed"] == 3 and provenance["study"] == "wind"
     assert provenance["date"].endswith("Z")
-    assert set(provenance) == {"study", "experiment", "seed", "commit", "dirty", "date"}
+    assert set(provenance) == {"study", "experiment", "seed", "commit", "dirty", "date",
+                               "wall_s", "machine"}
+    assert 0 <= provenance["wall_s"] < 60 and provenance["machine"]["cores"] >= 1
+    assert f"Study time: {provenance['wall_s']} s wall on" in body
     assert "## Headline" in body and "| b | 2.25 |" in body
     assert "Second" not in body  # only the headline table
     assert "| SEEDS 002 | a claim | 1.5 m | **holds** |" in body
@@ -255,6 +258,7 @@ def test_update_stamps_the_run_with_its_config_and_lists_overrides(tmp_path: Pat
     assert stamp.seed == 3 and stamp.overrides == {} and stamp.tiny
     text = page.read_text()
     assert TINY_NOTE in text and "| b | 2.25 |" in text and "### Headline" in text
+    assert "| machine |" in text and "Study time:" in text
     assert (tmp_path / "docs" / "results" / "wind" / "fig.png").is_file()
     assert check_page(page, REPO) == []
 

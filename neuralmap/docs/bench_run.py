@@ -24,8 +24,6 @@ import argparse
 import hashlib
 import io
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 from typing import Any
@@ -37,6 +35,7 @@ from neuralmap.io import (
     publish_dir,
     to_jsonable,
 )
+from neuralmap.machine import machine
 from neuralmap.studies.outputs import SUMMARY_MARK, run_provenance
 
 __all__ = ["BenchRun", "add_out_option", "machine", "markdown_of_output", "script_sha256",
@@ -49,34 +48,6 @@ BENCH_KIND = "bench"
 def script_sha256(path: str | Path) -> str:
     """SHA-256 of a benchmark script's bytes (hex): the benchmark's config in its stamp."""
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
-            if line.lower().startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def machine() -> dict[str, Any]:
-    """The machine a run measured on: CPU model, logical cores, torch threads, the
-    ``OMP_NUM_THREADS`` setting and the 1-minute load average when asked."""
-    try:
-        import torch
-
-        threads: int | None = torch.get_num_threads()
-    except ImportError:  # pragma: no cover - torch is a dependency
-        threads = None
-    try:
-        load: float | None = round(os.getloadavg()[0], 2)
-    except OSError:  # pragma: no cover - not on every platform
-        load = None
-    return {"cpu": _cpu_model(), "cores": os.cpu_count(), "torch_threads": threads,
-            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "load_1min": load,
-            "python": platform.python_version()}
 
 
 def add_out_option(parser: argparse.ArgumentParser, name: str) -> None:

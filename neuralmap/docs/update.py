@@ -131,6 +131,8 @@ def _stamp_table(stamp: RunStamp, run_dir: Path) -> str:
         ("rerun", f"`{rerun}`"),
         ("run folder", f"`{run_dir.parent.name}/{run_dir.name}`"),
     ]
+    if stamp.machine:  # runs from before studies recorded their machine have none
+        rows.insert(4, ("machine", _machine_row(stamp.machine)))
     return "| run stamp | |\n|---|---|\n" + "\n".join(f"| {k} | {v} |" for k, v in rows)
 
 
@@ -290,7 +292,8 @@ def update_page(run_dir: str | Path, *, docs_dir: str | Path = "docs",
             study=study, config=f"{configs_dir.name}/{config.name}",
             config_sha256=config_sha256(config), seed=provenance.get("seed"),
             commit=provenance.get("commit"), dirty=provenance.get("dirty"),
-            date=provenance.get("date", ""), overrides=overrides)
+            date=provenance.get("date", ""), overrides=overrides,
+            machine=provenance.get("machine"))
         # One page per shipped config of the study (tan.yaml -> tan, tan_synthetic.yaml ->
         # tan_synthetic); the smoke config writes the study's page, marked as tiny.
         name = config.stem.removesuffix("_tiny")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import shutil
 import subprocess
+import time
 from dataclasses import asdict, dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -27,6 +28,7 @@ from neuralmap.io import (
     publish_dir,
     to_jsonable,
 )
+from neuralmap.machine import machine
 
 __all__ = [
     "DOES_NOT_HOLD",
@@ -259,6 +261,8 @@ class StudyOutputs:
         self.published: Path | None = None
         self._report: str | None = None
         self._headline: str | None = None
+        self._started = time.monotonic()  # the study's wall time runs from here
+        self._machine = machine()
 
     def __enter__(self) -> StudyOutputs:
         return self
@@ -386,12 +390,18 @@ class StudyOutputs:
         """The run's ``summary.md``: its provenance line, the headline table (the one added
         with ``headline=True``, else the report's first) and the claims table; ``python -m neuralmap.docs update`` copies it
         into the documentation."""
-        provenance = json.dumps(run_provenance(self.config), sort_keys=True)
+        wall_s = round(time.monotonic() - self._started, 1)
+        host = {**self._machine, "load_1min_end": machine()["load_1min"]}
+        provenance = json.dumps({**run_provenance(self.config), "wall_s": wall_s,
+                                 "machine": host}, sort_keys=True)
         body = self._report if self._report is not None else "\n".join(self._sections)
         parts = [f"{SUMMARY_MARK} {provenance} -->", f"# {self.title}\n"]
         table = self._headline or _first_table(body)
         if table:
             parts.append(table + "\n")
+        parts.append(f"Study time: {wall_s} s wall on {host['cpu']}, {host['cores']} cores, "
+                     f"torch threads {host['torch_threads']}, load {host['load_1min']} → "
+                     f"{host['load_1min_end']}.\n")
         claims = self.render().split("## Papers' claims beside the measurements", 1)
         if len(claims) == 2:
             parts.append("## Papers' claims beside the measurements" + claims[1].rstrip() + "\n")

@@ -45,7 +45,7 @@ def train_summary(*, mode: str, argv: list[str], configs: list[str | Path],
         wall_s: Wall time of the command from parsing to export (s).
         experiment: The run's experiment name.
     """
-    from neuralmap.docs.bench_run import machine  # the docs package: no torch at import
+    from neuralmap.machine import machine
 
     base = run_provenance(argparse.Namespace(study=f"train_{mode}", experiment=experiment,
                                              seed=seed))

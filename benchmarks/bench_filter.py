@@ -29,9 +29,14 @@ warm-up (the fastest repeat is printed too: on a shared machine it shows what th
 without interference). ``torch.set_num_threads(2)`` unless ``--threads`` says otherwise.
 (c) is one pass (it is slow and steady); its ratio is against the median of the others.
 
+``--device cuda`` runs the torch rows ((a), (b), (d), (e), (f): filters, maps and their
+inputs) on the GPU, each timed region between ``torch.cuda.synchronize()`` calls; FilterPy,
+scipy and the float64 cross-check of (c) stay on the CPU.
+
 Usage:
     python benchmarks/bench_filter.py            # full run (about a minute)
     python benchmarks/bench_filter.py --quick    # smoke test (a few seconds)
+    python benchmarks/bench_filter.py --device cuda
 """
 
 from __future__ import annotations
@@ -56,6 +61,9 @@ if str(REPO_ROOT) not in sys.path:  # run as a script from anywhere
 from neuralmap.dem.tile import DemTile  # noqa: E402
 from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.exceptions import NeuralMapError  # noqa: E402
+from neuralmap.studies.base import check_device  # noqa: E402
+
+CPU = torch.device("cpu")
 
 
 @dataclasses.dataclass
@@ -79,18 +87,28 @@ class Row:
     detail: str
 
 
-def timed(fn: Callable[[], Any], *, repeats: int, warmup: int = 2) -> tuple[float, float]:
+def sync(device: torch.device) -> None:
+    """Waits for the device's queued work (CUDA), so a timed region holds all of it."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(fn: Callable[[], Any], *, repeats: int, warmup: int = 2,
+          device: torch.device = CPU) -> tuple[float, float]:
     """Median and minimum wall-clock seconds of ``fn()`` over ``repeats`` calls.
 
     ``warmup`` untimed calls come first (allocator and thread-pool warm-up: the first
-    calls on large batches are several times slower).
+    calls on large batches are several times slower). On CUDA each timed call starts and
+    ends with a `sync`.
     """
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(repeats):
+        sync(device)
         start = time.perf_counter()
         fn()
+        sync(device)
         times.append(time.perf_counter() - start)
     return statistics.median(times), min(times)
 
@@ -138,23 +156,26 @@ def bench_tan_step(
     *,
     dtype: torch.dtype,
     repeats: int,
+    device: torch.device = CPU,
 ) -> tuple[float, float]:
-    """(median, best) trajectory-steps per second of the batched TAN filter over K steps."""
+    """(median, best) trajectory-steps per second of the batched TAN filter over K steps
+    (filter, inputs and ``linearizer`` on ``device``)."""
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.nav.model import N_STATES, TanModel
     from neuralmap.nav.tan import tan_filter_step
 
     n, k_steps = truth.n_runs, truth.n_steps
-    ins_pos = truth.ins_pos.to(dtype)
-    radar = truth.radar.to(dtype)
+    ins_pos = truth.ins_pos.to(device, dtype)
+    radar = truth.radar.to(device, dtype)
     model = TanModel.from_scenario(scenario)
-    p0 = model.filter_prior(dtype=dtype)
-    F = model.transition(dtype=dtype)
-    Q = model.filter_process_noise(dtype=dtype)
+    p0 = model.filter_prior(dtype=dtype).to(device)
+    F = model.transition(dtype=dtype).to(device)
+    Q = model.filter_process_noise(dtype=dtype).to(device)
     R = model.base_R
+    linearizer = linearizer.to(device)
 
     def run() -> None:
-        ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype), p0)
+        ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device), p0)
         with torch.no_grad():
             for k in range(1, k_steps + 1):
                 tan_filter_step(
@@ -168,7 +189,7 @@ def bench_tan_step(
                     extent=truth.extent,
                 )
 
-    return _rates(n * k_steps, timed(run, repeats=repeats, warmup=1))
+    return _rates(n * k_steps, timed(run, repeats=repeats, warmup=1, device=device))
 
 
 def policy_factories() -> dict[str, Callable[[], Any]]:
@@ -203,6 +224,7 @@ def bench_policy_steps(
     *,
     dtype: torch.dtype,
     repeats: int,
+    device: torch.device = CPU,
 ) -> list[tuple[str, float, float, float]]:
     """(name, median, best trajectory-steps/s, median CPU seconds) of the TAN step per policy.
 
@@ -216,11 +238,12 @@ def bench_policy_steps(
     from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
 
     n, k_steps = truth.n_runs, truth.n_steps
-    ins_pos = truth.ins_pos.to(dtype)
-    radar = truth.radar.to(dtype)
-    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype))
-    F = transition_matrix(scenario.dt, dtype=dtype)
-    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype))
+    ins_pos = truth.ins_pos.to(device, dtype)
+    radar = truth.radar.to(device, dtype)
+    p0 = torch.diag(torch.tensor(scenario.P0_diag, dtype=dtype, device=device))
+    F = transition_matrix(scenario.dt, dtype=dtype, device=device)
+    Q = torch.diag(torch.tensor(scenario.Q_diag, dtype=dtype, device=device))
+    linearizer = linearizer.to(device)
     R = scenario.R_m2 + scenario.fit_variance_m2
     gen = torch.Generator().manual_seed(1)
     quality = torch.stack(
@@ -230,13 +253,13 @@ def bench_policy_steps(
             (torch.rand(k_steps + 1, n, generator=gen) > 0.01).float(),
         ],
         dim=-1,
-    ).to(dtype)
+    ).to(device, dtype)
 
     def runner(make: Callable[[], Any]) -> Callable[[], None]:
         def run() -> None:
             policy = make()
             takes_quality = bool(quality_members(policy))
-            ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype), p0)
+            ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=dtype, device=device), p0)
             with torch.no_grad():
                 for k in range(1, k_steps + 1):
                     if takes_quality:
@@ -255,8 +278,10 @@ def bench_policy_steps(
     cpu: dict[str, list[float]] = {name: [] for name in runs}
     for _ in range(repeats):
         for name, run in runs.items():
+            sync(device)
             start, start_cpu = time.perf_counter(), time.process_time()
             run()
+            sync(device)
             times[name].append(time.perf_counter() - start)
             cpu[name].append(time.process_time() - start_cpu)
     return [
@@ -361,9 +386,11 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
 
 
 def bench_queries(
-    tile: DemTile, neural: torch.nn.Module, *, n_points: int, n_scipy: int, repeats: int
+    tile: DemTile, neural: torch.nn.Module, *, n_points: int, n_scipy: int, repeats: int,
+    device: torch.device = CPU,
 ) -> list[Row]:
-    """Height + slope queries per second for the neural map, torch grids and scipy."""
+    """Height + slope queries per second for the neural map, torch grids (on ``device``) and
+    scipy (CPU)."""
     from scipy.interpolate import RegularGridInterpolator
 
     from neuralmap.linearize.autograd import AutogradLinearizer
@@ -374,11 +401,12 @@ def bench_queries(
     lo = torch.tensor([xmin, ymin], dtype=torch.float64)
     span = torch.tensor([xmax - xmin, ymax - ymin], dtype=torch.float64)
     xy64 = lo + span * torch.rand(n_points, 2, generator=gen, dtype=torch.float64)
-    xy32 = xy64.float()
+    xy32 = xy64.float().to(device)
+    xy64_dev = xy64.to(device)
     rows: list[Row] = []
 
-    lin = AutogradLinearizer(neural)
-    rate, best = _rates(n_points, timed(lambda: lin(xy32), repeats=repeats))
+    lin = AutogradLinearizer(neural.to(device))
+    rate, best = _rates(n_points, timed(lambda: lin(xy32), repeats=repeats, device=device))
     rows.append(
         Row(
             "(d) queries",
@@ -390,10 +418,11 @@ def bench_queries(
         )
     )
     for method in ("bilinear", "bicubic"):
-        for dtype, xy in ((torch.float32, xy32), (torch.float64, xy64)):
-            grid = GridTerrain(tile, method=method, dtype=dtype)
+        for dtype, xy in ((torch.float32, xy32), (torch.float64, xy64_dev)):
+            grid = GridTerrain(tile, method=method, dtype=dtype).to(device)
             rate, best = _rates(
-                n_points, timed(lambda g=grid, p=xy: g.height_and_slope(p), repeats=repeats)
+                n_points, timed(lambda g=grid, p=xy: g.height_and_slope(p), repeats=repeats,
+                                device=device)
             )
             rows.append(
                 Row(
@@ -441,7 +470,7 @@ def latent_maps_for(tile: DemTile, hidden: list[int]) -> list[tuple[torch.nn.Mod
 
 
 def bench_latent_queries(tile: DemTile, *, n_points: int, repeats: int,
-                         hidden: list[int]) -> list[Row]:
+                         hidden: list[int], device: torch.device = CPU) -> list[Row]:
     """Latent-map vs torch bicubic height + slope queries, float32, one thread, same run."""
     from neuralmap.terrain.grid import GridTerrain
 
@@ -451,9 +480,9 @@ def bench_latent_queries(tile: DemTile, *, n_points: int, repeats: int,
         gen = torch.Generator().manual_seed(1)
         xmin, xmax, ymin, ymax = tile.extent
         xy = (torch.tensor([xmin, ymin]) + torch.tensor([xmax - xmin, ymax - ymin])
-              * torch.rand(n_points, 2, generator=gen, dtype=torch.float64)).float()
-        bicubic = GridTerrain(tile, method="bicubic", dtype=torch.float32)
-        maps = latent_maps_for(tile, hidden)
+              * torch.rand(n_points, 2, generator=gen, dtype=torch.float64)).float().to(device)
+        bicubic = GridTerrain(tile, method="bicubic", dtype=torch.float32).to(device)
+        maps = [(m.to(device), what) for m, what in latent_maps_for(tile, hidden)]
         times: dict[str, list[float]] = {"bicubic": []}
         times.update({what: [] for _, what in maps})
         fns = [("bicubic", lambda: bicubic.height_and_slope(xy))]
@@ -462,8 +491,10 @@ def bench_latent_queries(tile: DemTile, *, n_points: int, repeats: int,
             fn()
         for _ in range(max(repeats, 3)):  # interleaved: machine load hits every method alike
             for what, fn in fns:
+                sync(device)
                 start = time.perf_counter()
                 fn()
+                sync(device)
                 times[what].append(time.perf_counter() - start)
     finally:
         torch.set_num_threads(previous)
@@ -487,18 +518,20 @@ def run(args: argparse.Namespace) -> list[Row]:
     from neuralmap.nav.simulator import simulate
 
     torch.set_num_threads(args.threads)
+    device = check_device(args.device)
     scenario, tile, scenario_name = load_bench_tile(args.scenario)
     if args.latent_only:
         print(f"# bench_filter (f) only: torch {torch.__version__}; tile {tile.name} "
-              f"{tile.shape[0]}x{tile.shape[1]}")
+              f"{tile.shape[0]}x{tile.shape[1]}; torch rows on {device}")
         return bench_latent_queries(tile, n_points=args.n_queries, repeats=args.repeats,
-                                    hidden=args.latent_hidden)
+                                    hidden=args.latent_hidden, device=device)
     scenario = dataclasses.replace(scenario, duration_s=args.steps * scenario.dt)
     n, n_neural = args.n, args.n_neural
     print(
         f"# bench_filter: torch {torch.__version__}, {torch.get_num_threads()} threads, "
         f"{platform.processor() or platform.machine()}; scenario {scenario_name} "
-        f"(tile {tile.name} {tile.shape[0]}x{tile.shape[1]}), {args.steps} steps"
+        f"(tile {tile.name} {tile.shape[0]}x{tile.shape[1]}), {args.steps} steps; torch rows "
+        f"on {device}"
     )
     clock = time.perf_counter()
 
@@ -514,7 +547,8 @@ def run(args: argparse.Namespace) -> list[Row]:
 
     for dtype in (torch.float32, torch.float64):
         lin = make_linearizer("bilinear", tile=tile, dtype=dtype)
-        rate, best = bench_tan_step(truth, scenario, lin, dtype=dtype, repeats=args.repeats)
+        rate, best = bench_tan_step(truth, scenario, lin, dtype=dtype, repeats=args.repeats,
+                                    device=device)
         rows.append(
             Row(
                 "(a) TAN step",
@@ -531,7 +565,8 @@ def run(args: argparse.Namespace) -> list[Row]:
     lin = make_linearizer("neural", tile=tile, terrain=neural)
     sub = _subset(truth, n_neural)
     for dtype in (torch.float32, torch.float64):
-        rate, best = bench_tan_step(sub, scenario, lin, dtype=dtype, repeats=args.repeats)
+        rate, best = bench_tan_step(sub, scenario, lin, dtype=dtype, repeats=args.repeats,
+                                    device=device)
         rows.append(
             Row(
                 "(b) TAN step",
@@ -566,7 +601,7 @@ def run(args: argparse.Namespace) -> list[Row]:
     if not args.skip_policies:
         lin = make_linearizer("bilinear", tile=tile, dtype=torch.float32)
         policy_rows = bench_policy_steps(truth, scenario, lin, dtype=torch.float32,
-                                         repeats=args.repeats)
+                                         repeats=args.repeats, device=device)
         plain_med, plain_cpu = policy_rows[0][1], policy_rows[0][3]
         for name, rate, best, cpu_s in policy_rows:
             rows.append(
@@ -582,11 +617,12 @@ def run(args: argparse.Namespace) -> list[Row]:
             )
         stage("(e) policies")
     rows += bench_queries(
-        tile, neural, n_points=args.n_queries, n_scipy=args.n_scipy, repeats=args.repeats
+        tile, neural, n_points=args.n_queries, n_scipy=args.n_scipy, repeats=args.repeats,
+        device=device,
     )
     stage("(d) queries")
     rows += bench_latent_queries(tile, n_points=args.n_queries, repeats=args.repeats,
-                                 hidden=args.latent_hidden)
+                                 hidden=args.latent_hidden, device=device)
     stage("(f) latent queries")
     return rows
 
@@ -648,6 +684,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--latent_only", action="store_true", help="run benchmark (f) only")
     parser.add_argument("--latent_hidden", type=int, nargs="+", default=[0, 8],
                         help="MLP widths of the latent maps in (f)")
+    parser.add_argument("--device", default="cpu",
+                        help="torch device of the torch rows (cpu, cuda, cuda:<i>)")
     add_out_option(parser, "bench_filter")
     args = parser.parse_args(argv)
     if args.quick:
@@ -659,6 +697,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     """Runs the benchmarks and prints the markdown table."""
     args = parse_args(argv)
+    try:
+        check_device(args.device)
+    except NeuralMapError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     bench = start_bench(__file__, args, argv)
     previous = torch.get_num_threads()
     try:

@@ -17,6 +17,11 @@ the shipped ``configs/navigator.yaml``):
 
 Targets (toolkit): median ≤ 1 ms, p99 ≤ 5 ms for (a); ≥ 50 000 vehicle-epochs/s for (b).
 
+``--device`` (default cpu) is checked like the other benchmarks' (a clear error when CUDA
+is asked for and absent), but the `Navigator` builds its state on the CPU (no device
+option yet), so ``--device cuda`` is refused with one ``error:`` line: nothing is measured
+on CUDA for the navigator.
+
 Usage:
     OMP_NUM_THREADS=1 python benchmarks/bench_navigator.py
     OMP_NUM_THREADS=1 python benchmarks/bench_navigator.py --quick
@@ -29,15 +34,18 @@ import dataclasses
 import math
 import platform
 import statistics
+import sys
 import time
 
 import numpy as np
 import torch
 
 from neuralmap.docs.bench_run import add_out_option, start_bench
+from neuralmap.exceptions import NeuralMapError
 from neuralmap.nav.navigator import Navigator
 from neuralmap.nav.scenario import load_scenario, scenario_tile
 from neuralmap.nav.simulator import simulate
+from neuralmap.studies.base import check_device
 from neuralmap.terrain.grid import GridTerrain
 
 CONFIG = {"sensor": {"altimeter_sigma_m": 10.0}, "map_error": {"dem_accuracy_m": 1.0}}
@@ -143,8 +151,19 @@ def main() -> None:
     parser.add_argument("--batch_steps", type=int, default=30, help="epochs of the batch run")
     parser.add_argument("--latent_steps", type=int, default=60,
                         help="Adam steps of the latent map's fit")
+    parser.add_argument("--device", default="cpu",
+                        help="torch device (cpu only: the Navigator has no device option yet)")
     add_out_option(parser, "bench_navigator")
     args = parser.parse_args()
+    try:
+        device = check_device(args.device)
+        if device.type != "cpu":
+            raise NeuralMapError(
+                f"--device {args.device}: the Navigator builds its state on the CPU (it has no "
+                "device option yet), so this benchmark runs on the CPU only; use --device cpu.")
+    except NeuralMapError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     bench = start_bench(__file__, args)
     if args.quick:
         args.vehicles, args.steps, args.batch_steps, args.latent_steps = 50, 40, 10, 5

@@ -29,9 +29,14 @@ Both fly the same straight 200 m/s track from a 1 km prior; the process noise is
 the scenario's INS position error. Rates are medians over repeats after a warm-up; the
 fastest repeat is printed too (on a shared machine it shows the code without interference).
 
+``--device cuda`` runs the torch rows (a), (a') on the GPU (timed between
+``torch.cuda.synchronize()`` calls; their roofline is then the device's own copy bandwidth,
+a torch copy on it); the NumPy and Stone Soup references stay on the CPU.
+
 Usage:
     python benchmarks/bench_point_mass.py              # N = 1000, G = 32, 20 steps
     python benchmarks/bench_point_mass.py --quick      # smoke test
+    python benchmarks/bench_point_mass.py --device cuda
 """
 
 from __future__ import annotations
@@ -55,11 +60,13 @@ from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
 from neuralmap.exceptions import NeuralMapError  # noqa: E402
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter  # noqa: E402
 from neuralmap.nav.acquisition import lattice_bilinear  # noqa: E402
+from neuralmap.studies.base import check_device  # noqa: E402
 
 SIGMA0 = 1000.0
 R_M2 = 106.0
 Q_POS = 1.0
 Q_ALT = 1.0
+CPU = torch.device("cpu")
 
 
 def track(n_runs: int, steps: int, tile_extent: tuple[float, float, float, float],
@@ -173,40 +180,53 @@ def stonesoup_reference(heights, origin, spacing, ins, radar, cells: int) -> flo
     return n * steps * cells * cells / elapsed
 
 
+def _sync(device: torch.device) -> None:
+    """Waits for the device's queued work (CUDA), so a timed region holds all of it."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 def batched(heights_grid, ins, radar, cells: int, dtype: torch.dtype,
-            adaptive: bool = True) -> float:
+            adaptive: bool = True, device: torch.device = CPU) -> float:
     n, steps = ins.shape[0], ins.shape[1]
-    f = PointMassFilter(torch.zeros(n, 2, dtype=dtype), torch.eye(2, dtype=dtype) * SIGMA0**2,
+    kw = {"dtype": dtype, "device": device}
+    f = PointMassFilter(torch.zeros(n, 2, **kw), torch.eye(2, **kw) * SIGMA0**2,
                         scalar_var=900.0, config=PointMassConfig(cells=cells, adaptive=adaptive),
                         dtype=dtype)
-    ins_t = torch.as_tensor(ins)
-    y = torch.as_tensor(radar).to(dtype)
+    ins_t = torch.as_tensor(ins).to(device)
+    y = torch.as_tensor(radar).to(**kw)
+    _sync(device)
     start = time.perf_counter()
     for k in range(steps):
         f.predict(Q=Q_POS, scalar_q=Q_ALT)
         pred = lattice_bilinear(heights_grid, ins_t[:, k], f.centre, f.spacing, f.offsets)
         f.update(y[:, k], pred, R=R_M2)
+    _sync(device)
     elapsed = time.perf_counter() - start
     return n * steps * cells * cells / elapsed
 
 
-def tracker(terrain, ins, radar, cells: int, dtype: torch.dtype) -> float:
+def tracker(terrain, ins, radar, cells: int, dtype: torch.dtype,
+            device: torch.device = CPU) -> float:
     """Cell-updates/s of the point-mass tracker (2-D grid + altitude Kalman part per cell)."""
     from neuralmap.filters.point_mass_tracker import PointMassTracker, TrackerConfig
 
     n, steps = ins.shape[0], ins.shape[1]
-    cov = torch.diag(torch.tensor([SIGMA0**2, SIGMA0**2, 900.0], dtype=dtype))
-    f = PointMassTracker(torch.zeros(n, 3, dtype=dtype), cov, E=torch.zeros(2, 1, dtype=dtype),
-                         F=torch.eye(1, dtype=dtype), c=torch.ones(1, dtype=dtype),
+    kw = {"dtype": dtype, "device": device}
+    cov = torch.diag(torch.tensor([SIGMA0**2, SIGMA0**2, 900.0], **kw))
+    f = PointMassTracker(torch.zeros(n, 3, **kw), cov, E=torch.zeros(2, 1, **kw),
+                         F=torch.eye(1, **kw), c=torch.ones(1, **kw),
                          config=TrackerConfig(cells=cells), dtype=dtype)
-    ins_t = torch.as_tensor(ins).to(dtype)
-    y = torch.as_tensor(radar).to(dtype)
-    qs, qz = Q_POS * torch.eye(2, dtype=dtype), Q_ALT * torch.eye(1, dtype=dtype)
+    ins_t = torch.as_tensor(ins).to(**kw)
+    y = torch.as_tensor(radar).to(**kw)
+    qs, qz = Q_POS * torch.eye(2, **kw), Q_ALT * torch.eye(1, **kw)
+    _sync(device)
     start = time.perf_counter()
     for k in range(steps):
         f.predict(Q_s=qs, Q_z=qz)
         xy = ins_t[:, k, None, None, :] - f.points()
         f.update(y[:, k], terrain(xy.reshape(-1, 2)).reshape(xy.shape[:-1]), R=R_M2)
+    _sync(device)
     elapsed = time.perf_counter() - start
     return n * steps * cells * cells / elapsed
 
@@ -220,6 +240,21 @@ def copy_bandwidth(megabytes: int = 256, repeats: int = 5) -> float:
     for _ in range(repeats):
         start = time.perf_counter()
         np.copyto(dst, src)
+        best = min(best, time.perf_counter() - start)
+    return 2.0 * src.nbytes / best
+
+
+def device_copy_bandwidth(device: torch.device, megabytes: int = 256, repeats: int = 5) -> float:
+    """Memory bandwidth (bytes read + written per second) of a torch copy on ``device``."""
+    src = torch.ones(megabytes * 2**20 // 8, dtype=torch.float64, device=device)
+    dst = torch.empty_like(src)
+    dst.copy_(src)
+    best = math.inf
+    for _ in range(repeats):
+        _sync(device)
+        start = time.perf_counter()
+        dst.copy_(src)
+        _sync(device)
         best = min(best, time.perf_counter() - start)
     return 2.0 * src.nbytes / best
 
@@ -245,8 +280,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--device", default="cpu",
+                        help="torch device of the batched rows (cpu, cuda, cuda:<i>)")
     add_out_option(parser, "bench_point_mass")
     args = parser.parse_args()
+    try:
+        device = check_device(args.device)
+    except NeuralMapError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     bench = start_bench(__file__, args)
     if args.quick:
         args.runs, args.steps, args.ref_runs, args.repeats = 50, 5, 1, 1
@@ -263,14 +305,14 @@ def main() -> None:
     radar = radar_truth + rng.normal(0.0, 10.0, radar_truth.shape)  # y = h_ins − h_radar
     print(f"point-mass benchmark: {platform.processor() or platform.machine()}, torch "
           f"{torch.__version__}, {args.threads} thread(s); N = {args.runs}, G = {args.cells}, "
-          f"{args.steps} steps, sigma0 = {SIGMA0:g} m")
+          f"{args.steps} steps, sigma0 = {SIGMA0:g} m; torch rows on {device}")
     rows = []
     for dtype, adaptive in ((torch.float32, True), (torch.float32, False),
                             (torch.float64, True)):
-        grid = _Grid(torch.as_tensor(heights, dtype=dtype), origin, spacing)
+        grid = _Grid(torch.as_tensor(heights, dtype=dtype, device=device), origin, spacing)
         batched(grid, ins[: min(10, args.runs), :2], radar[: min(10, args.runs), :2],
-                args.cells, dtype, adaptive)  # warm-up
-        rates = [batched(grid, ins, radar, args.cells, dtype, adaptive)
+                args.cells, dtype, adaptive, device)  # warm-up
+        rates = [batched(grid, ins, radar, args.cells, dtype, adaptive, device)
                  for _ in range(args.repeats)]
         label = "adaptive" if adaptive else "fixed grid"
         rows.append((f"batched torch {str(dtype).replace('torch.', '')} {label}, "
@@ -279,17 +321,18 @@ def main() -> None:
     from neuralmap.terrain.grid import GridTerrain
 
     for dtype in (torch.float32, torch.float64):
-        terrain = GridTerrain(tile, method="bilinear", dtype=dtype)
+        terrain = GridTerrain(tile, method="bilinear", dtype=dtype).to(device)
         name = f"point-mass tracker {str(dtype).replace('torch.', '')}, N = {args.runs}"
         try:
             tracker(terrain, ins[: min(10, args.runs), :2], radar[: min(10, args.runs), :2],
-                    args.cells, dtype)  # warm-up
-            rates = [tracker(terrain, ins, radar, args.cells, dtype)
+                    args.cells, dtype, device)  # warm-up
+            rates = [tracker(terrain, ins, radar, args.cells, dtype, device)
                      for _ in range(args.repeats)]
         except NeuralMapError as exc:  # reported, not hidden
             print(f"({name} failed: {exc})")
             continue
         rows.append((name, statistics.median(rates), max(rates), 4 * dtype.itemsize))
+    n_torch = len(rows)  # the rows measured on the device
     ref_rates = [numpy_reference(heights, origin, spacing, ins[: args.ref_runs],
                                  err[: args.ref_runs], radar[: args.ref_runs], args.cells)
                  for _ in range(args.repeats)]
@@ -315,11 +358,17 @@ def main() -> None:
     bandwidth = copy_bandwidth()
     print(f"memory bandwidth (NumPy copy, read + write): {bandwidth / 1e9:.2f} GB/s; roofline "
           "= bandwidth / (bytes a cell-update must read and write)")
+    device_bw = bandwidth
+    if device.type != "cpu":  # the torch rows' roofline is the device's own memory
+        device_bw = device_copy_bandwidth(device)
+        print(f"{device} memory bandwidth (torch copy, read + write): {device_bw / 1e9:.2f} "
+              "GB/s (the roofline of the torch rows)")
     print(f"{'what':58s} {'median cell-upd/s':>18s} {'best':>12s} {'ratio':>7s} "
           f"{'B/cell':>6s} {'roofline':>9s}")
-    for name, rate, best, nbytes in rows:
+    for i, (name, rate, best, nbytes) in enumerate(rows):
+        bw = device_bw if i < n_torch else bandwidth
         print(f"{name:58s} {rate:18.3e} {best:12.3e} {rate / ref:7.2f}x {nbytes:6d} "
-              f"{rate * nbytes / bandwidth:9.2%}")
+              f"{rate * nbytes / bw:9.2%}")
     print("target: the batched rows >= 10x the NumPy loop per cell-update (N = 1000, 32², "
           "one thread)")
     bench.finish()

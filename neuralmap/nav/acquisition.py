@@ -36,6 +36,10 @@ Fall-back (`lost_lock`): a tracking run whose mean NIS over the last
 lock; its grid is re-initialised around the EKF estimate with the EKF's horizontal
 covariance inflated to at least ``reacquire_sigma_m`` per axis.
 
+Spike gate (``spike_gate_prob`` > 0, default off): a clearance whose predictive NIS against
+the predicted grid mixture exceeds ``χ²₁(p)`` is not used by the grid
+(`neuralmap.nav.spike_gate`); counted per run in ``extra["spikes"]``.
+
 Coupling to the TAN model is kept to `tan_inputs` (truth/scenario → tensors) and the
 call of `neuralmap.nav.tan.tan_filter_step`.
 """
@@ -58,6 +62,7 @@ from neuralmap.filters.ekf_bank import GaussianSumEKF, lattice_prior
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter
 from neuralmap.nav.cell_variance import cell_height_variance
 from neuralmap.nav.monte_carlo import FilterRun
+from neuralmap.nav.spike_gate import predictive_nis, spiked
 from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
 from neuralmap.nav.tracker_handoff import grid_posterior_moments
 from neuralmap.terrain.base import inside_extent
@@ -98,6 +103,11 @@ class AcquisitionConfig:
         dtype: Point-mass dtype, ``"float32"`` or ``"float64"``.
         outlier_prob: Altimeter outlier probability of the likelihood (0 = Gaussian).
         outlier_width_m: Width of the uniform outlier density, m.
+        spike_gate_prob: Altimeter spike gate of the grid (`neuralmap.nav.spike_gate`): a
+            clearance whose predictive NIS against the predicted grid mixture exceeds
+            ``χ²₁(p)`` is not used (that run's grid is predicted only; counted in
+            ``extra["spikes"]``), as the navigator's tracker does with
+            ``integrity.spike_gate_prob``. 0 (default) = no gate.
         handoff_sigma_m: Largest posterior standard deviation allowed at hand-off, m.
         handoff_affinity: Smallest Bhattacharyya coefficient grid-vs-Gaussian-fit.
         handoff_hold: Consecutive steps the test must pass.
@@ -140,6 +150,7 @@ class AcquisitionConfig:
     dtype: str = "float32"
     outlier_prob: float = 0.0
     outlier_width_m: float = 1000.0
+    spike_gate_prob: float = 0.0
     handoff_sigma_m: float = 40.0
     handoff_affinity: float = 0.9
     handoff_hold: int = 3
@@ -174,6 +185,11 @@ class AcquisitionConfig:
             raise NeuralMapError(
                 f"AcquisitionConfig: 'handoff_affinity' must be in (0, 1], got "
                 f"{self.handoff_affinity!r}."
+            )
+        if not 0.0 <= self.spike_gate_prob < 1.0:
+            raise NeuralMapError(
+                f"AcquisitionConfig: 'spike_gate_prob' must be in [0, 1) (0 = no gate), got "
+                f"{self.spike_gate_prob!r}."
             )
         if not 0.0 < self.fallback_prob < 1.0:
             raise NeuralMapError(
@@ -654,6 +670,7 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
     handoff_step = torch.full((n,), -1, dtype=torch.long, device=device)
     n_fallbacks = torch.zeros(n, dtype=torch.long, device=device)
     recoveries = torch.zeros(n, dtype=torch.long, device=device)
+    spikes = torch.zeros(n, dtype=torch.long, device=device)
     hold = torch.zeros(n, dtype=torch.long, device=device)
     since = torch.zeros(n, dtype=torch.long, device=device)
     win = max(cfg.fallback_window, 1)
@@ -682,7 +699,13 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
             if cfg.map_support:  # the truth flies over the map: off-map cells get 0
                 on = cells_on_map(ins_xy, pm.centre, pm.spacing, pm.offsets, inputs.extent)
                 pred = pred.masked_fill(~on, math.nan)
-            upd_pm = pm.update(y, pred, R=inputs.R, cell_variance=cell_var)
+            keep = None
+            if cfg.spike_gate_prob > 0:  # a clearance past χ²₁(p) of its predictive NIS
+                gated = spiked(predictive_nis(y, pm.weights, pred, pm.scalar_mean,
+                                              pm.scalar_var, inputs.R), cfg.spike_gate_prob)
+                spikes.index_add_(0, rows, gated.long())
+                keep = ~gated
+            upd_pm = pm.update(y, pred, R=inputs.R, cell_variance=cell_var, mask=keep)
             recoveries.index_add_(0, rows, upd_pm.recovered.long())
             updates += rows.numel() * pm.cells**2
             since[rows] += 1
@@ -785,6 +808,7 @@ def _run_grid(inputs: TanInputs, method: str, terrain: Any, linearizer: Any,
     return AcquisitionResult(
         run=run, handoff_step=handoff_step, n_fallbacks=n_fallbacks, recoveries=recoveries,
         acquiring=acq_hist, elapsed_s=elapsed, cell_updates=updates,
+        extra={"spikes": spikes} if cfg.spike_gate_prob > 0 else {},
     )
 
 

@@ -431,6 +431,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--out", default=None, help="folder for results.json / results.md")
     parser.add_argument("--merge", nargs="+", default=None, metavar="FOLDER",
                         help="only merge the results.json of these --out folders into --out")
+    parser.add_argument("--stamp", default=None, metavar="DIR",
+                        help="also publish a stamped run (summary.md + results.json) into "
+                             "DIR/version_N for `python -m neuralmap.docs update`")
     parser.add_argument("--tiny", action="store_true",
                         help="volcano only, tiny budgets (seconds; the test's run)")
     args = parser.parse_args(argv)
@@ -455,9 +458,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     torch.set_num_threads(1)
     try:
         args = parse_args(argv)
-        if args.merge:
-            return merge(args.merge, args.out)
-        return run(args)
+        stamped = None
+        if args.stamp:
+            from neuralmap.docs.bench_run import start_bench
+
+            stamped = start_bench(__file__, argparse.Namespace(**{**vars(args),
+                                                                  "out": args.stamp}), argv)
+        out = merge(args.merge, args.out) if args.merge else run(args)
+        if stamped is not None:
+            stamped.finish(out)
+        return out
     except NeuralMapError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from exc

@@ -397,3 +397,34 @@ def test_geotiff_tiles_train_and_export_through_the_clis(tmp_path: Path, capsys)
         residual = res.read(1)
     ts = LatentTileset(index)
     assert np.sqrt(np.mean(residual.astype(np.float64) ** 2)) <= 3.0 * ts.metrics["rmse_m"]
+
+
+def test_the_navigator_flies_across_the_seams_as_on_the_single_tile_fit(fitted: dict) -> None:
+    # a flight over the four tiles' seams (960 m on both axes): the Navigator on the tileset
+    # gives the fixes it gives on the single latent map of the whole region, within a
+    # fraction of their σ (the two maps differ by their fit error, not by the seams)
+    from neuralmap.nav.fix import STATUS_CODE
+    from neuralmap.nav.navigator import Navigator
+    from neuralmap.nav.scenario import load_scenario
+    from neuralmap.nav.simulator import simulate
+    from neuralmap.terrain.export import load_map
+
+    scenario = dataclasses.replace(load_scenario("tiny"), start_xy=[400.0, 400.0],
+                                   duration_s=24.0).validate()
+    truth = simulate(scenario, fitted["plan"].region, n_runs=4, seed=0)
+    assert bool((truth.pos[:, 0, :2] < SEAM).all() and (truth.pos[:, -1, :2] > SEAM).all())
+    config = {"sensor": {"dt_s": 1.0, "altimeter_sigma_m": 3.0},
+              "initial": {"position_sigma_m": 20.0, "altitude_sigma_m": 10.0,
+                          "velocity_sigma_mps": 0.2},
+              "process_noise": {"position_sigma_m": 1.0, "altitude_sigma_m": 1.0,
+                                "velocity_sigma_mps": 0.05}}
+
+    def fly(terrain: object):  # noqa: ANN202 - FixTrack
+        nav = Navigator(terrain, config, n_vehicles=truth.n_runs)
+        return nav.replay(truth.t, truth.ins_pos[..., :2], truth.ins_pos[..., 2], truth.radar)
+
+    tiles, single = fly(load_map(fitted["index"])), fly(fitted["single"])
+    sigma = tiles.cov[..., 0, 0].sqrt()
+    assert torch.isfinite(tiles.xy).all()
+    assert float(((tiles.xy - single.xy).norm(dim=-1) / sigma).max()) < 1.0
+    assert bool((tiles.status[:, -1] == STATUS_CODE["tracking"]).all())

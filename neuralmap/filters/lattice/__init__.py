@@ -25,8 +25,10 @@ from neuralmap.filters.lattice.kernels import (
     toeplitz_kernels,
     weight_update,
 )
+from neuralmap.filters.lattice.policy import LATTICE_POLICIES, make_lattice_filter
 
-__all__ = ["LatticeFilter", "LatticeMoments", "LatticeUpdate", "WeightUpdate", "affine_field", "blur", "cell_log_likelihood",
-           "conditional_mean", "convolve_axis", "gaussian_kernels", "gaussian_log_density",
-           "kalman_cells", "mass_moments", "normalised", "resample_bilinear",
+__all__ = ["LATTICE_POLICIES", "LatticeFilter", "LatticeMoments", "LatticeUpdate",
+           "WeightUpdate", "affine_field", "blur", "cell_log_likelihood", "conditional_mean",
+           "convolve_axis", "gaussian_kernels", "gaussian_log_density", "kalman_cells",
+           "make_lattice_filter", "mass_moments", "normalised", "resample_bilinear",
            "toeplitz_kernels", "weight_update"]

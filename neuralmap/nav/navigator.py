@@ -70,7 +70,7 @@ Streaming equals replay: `Navigator.replay` is `Navigator.step` over the epochs
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import torch
@@ -118,11 +118,59 @@ def _largest_sigma(cov: torch.Tensor) -> torch.Tensor:
     return lam.clamp_min(0.0).sqrt()
 
 
-def _transition(dt: float, dtype: torch.dtype) -> torch.Tensor:
-    phi = torch.eye(N_STATES, dtype=dtype)
+def _transition(dt: float, dtype: torch.dtype, device: torch.device | None = None
+                ) -> torch.Tensor:
+    phi = torch.eye(N_STATES, dtype=dtype, device=device)
     phi[0, 3] = dt
     phi[1, 4] = dt
     return phi
+
+
+def _map_tensors(terrain: Any) -> Any:
+    """The map's parameters, then its buffers (none for a map that is not a module)."""
+    for name in ("parameters", "buffers"):
+        tensors = getattr(terrain, name, None)
+        if callable(tensors):
+            yield from tensors()
+
+
+def _map_device(terrain: Any) -> torch.device | None:
+    """The device of the map's first parameter or buffer; None when it has none."""
+    return next((t.device for t in _map_tensors(terrain)), None)
+
+
+def _resolve_device(device: Any, terrain: Any) -> torch.device:
+    """The navigator's device: ``device`` (``"cpu"``, ``"cuda"``, ``"cuda:<i>"``, a
+    `torch.device`) or, when None, the map's (`_map_device`, else the CPU); a clear error
+    when it is unknown, absent, or not where the map's tensors are."""
+    on_map = _map_device(terrain)
+    if device is None:
+        return on_map if on_map is not None else torch.device("cpu")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise NeuralMapError(f"Navigator: device={device!r} is not a torch device; use "
+                             "'cpu', 'cuda', 'cuda:<i>' or a torch.device.") from exc
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise NeuralMapError(f"Navigator: device={str(device)!r}, but CUDA is not available "
+                             "on this machine; pass device='cpu' (or leave device unset).")
+    if dev.type == "cuda" and dev.index is None:
+        dev = torch.device("cuda", torch.cuda.current_device())
+    if on_map is not None and on_map != dev:
+        raise NeuralMapError(
+            f"Navigator: device={str(device)!r}, but the map ({type(terrain).__name__}) is on "
+            f"{on_map}; move the map first (terrain.to({str(dev)!r})) or pass "
+            f"device={str(on_map)!r}.")
+    return dev
+
+
+def _track_to(track: FixTrack, device: torch.device) -> FixTrack:
+    """``track`` with every tensor on ``device`` (itself when already there)."""
+    if track.xy.device == device:
+        return track
+    moved = {f.name: getattr(track, f.name).to(device) for f in fields(track)
+             if isinstance(getattr(track, f.name), torch.Tensor)}
+    return replace(track, **moved)
 
 
 def _spd_guard(cov: torch.Tensor) -> torch.Tensor:
@@ -139,16 +187,16 @@ class _Window:
     windowed NIS every fix reports."""
 
     def __init__(self, n: int, window: int, prob: float, dtype: torch.dtype,
-                 cap: float = math.inf) -> None:
+                 cap: float = math.inf, device: torch.device | None = None) -> None:
         """``cap`` finite: NIS entering the window are capped at twice the threshold."""
         self.w = max(int(window), 1)
         self.enabled = window > 0
         self.threshold = _chi2_mean_threshold(prob, self.w) if self.enabled else math.inf
         self.cap = 2.0 * self.threshold if cap < math.inf else math.inf
-        self.values = torch.zeros(n, self.w, dtype=dtype)
-        self.count = torch.zeros(n, dtype=torch.long)
-        self.slot = torch.zeros(n, dtype=torch.long)
-        self._rows = torch.arange(n)
+        self.values = torch.zeros(n, self.w, dtype=dtype, device=device)
+        self.count = torch.zeros(n, dtype=torch.long, device=device)
+        self.slot = torch.zeros(n, dtype=torch.long, device=device)
+        self._rows = torch.arange(n, device=device)
 
     def add(self, nis: torch.Tensor, applied: torch.Tensor) -> None:
         cur = self.values[self._rows, self.slot]
@@ -185,6 +233,7 @@ class _TrackerFilter:
         cfg = nav.config
         tc = cfg.tracker
         self.dtype = torch.float32 if tc.dtype == "float32" else torch.float64
+        self.device = dev = nav.device
         # the navigator runs the lost-lock test itself (no widening inside the tracker)
         opts = TrackerOptions(cells=tc.cells, span_sigma=tc.span_sigma,
                               principal_axes=tc.principal_axes, dtype=tc.dtype, lost_window=0,
@@ -193,11 +242,12 @@ class _TrackerFilter:
         self.options = opts
         P0, Q, T = nav._P0, nav._Q, nav._T
         self.tcfg = opts.tracker_config(blur_m=transition_blur(P0, Q, T))
-        self.E_nominal = torch.tensor([[0.0, T, 0.0], [0.0, 0.0, T]], dtype=self.dtype)
-        F = torch.eye(3, dtype=self.dtype)
-        c = torch.tensor([1.0, 0.0, 0.0], dtype=self.dtype)
+        kw = {"dtype": self.dtype, "device": dev}
+        self.E_nominal = torch.tensor([[0.0, T, 0.0], [0.0, 0.0, T]], **kw)
+        F = torch.eye(3, **kw)
+        c = torch.tensor([1.0, 0.0, 0.0], **kw)
         n = nav.n_vehicles
-        self.tracker = PointMassTracker(torch.zeros(n, N_STATES, dtype=self.dtype),
+        self.tracker = PointMassTracker(torch.zeros(n, N_STATES, **kw),
                                         P0.to(self.dtype), E=self.E_nominal, F=F, c=c,
                                         config=self.tcfg, dtype=self.dtype)
         self.qs, self.qz = Q[:2, :2].to(self.dtype), Q[2:, 2:].to(self.dtype)
@@ -220,7 +270,7 @@ class _TrackerFilter:
             return
         trk = self.tracker
         E = self.E_nominal if dt == self._T else torch.tensor(
-            [[0.0, dt, 0.0], [0.0, 0.0, dt]], dtype=self.dtype)
+            [[0.0, dt, 0.0], [0.0, 0.0, dt]], dtype=self.dtype, device=self.device)
         trk.E = E  # the open-loop transition [[I, E], [0, F]] follows from it
         self._dt = dt
 
@@ -261,7 +311,7 @@ class _TrackerFilter:
         trk = self.tracker
         y = y.to(self.dtype)
         g = heights_on_cells(self.terrain, ins_pos[:, :2], self.extent)(trk.points())
-        gated = torch.zeros(y.shape[0], dtype=torch.bool)
+        gated = torch.zeros(y.shape[0], dtype=torch.bool, device=y.device)
         nis_pred = None
         if self.gate < math.inf:
             nis_pred = self._predictive_nis(y, g)
@@ -291,7 +341,8 @@ class _TrackerFilter:
 
     def drop(self, mask: torch.Tensor) -> None:
         n = mask.shape[0]
-        self.tracker.reset(torch.zeros(n, N_STATES, dtype=self.dtype), self._dormant, mask=mask)
+        self.tracker.reset(torch.zeros(n, N_STATES, dtype=self.dtype, device=self.device),
+                           self._dormant, mask=mask)
 
 
 class _EkfFilter:
@@ -302,19 +353,20 @@ class _EkfFilter:
 
         self.dtype = nav.dtype
         n = nav.n_vehicles
-        self.ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=self.dtype),
+        self.device = nav.device
+        self.ekf = BatchedEKF(torch.zeros(n, N_STATES, dtype=self.dtype, device=self.device),
                               nav._P0.to(self.dtype))
         self.linearizer, self.policy, self.R = linearizer, policy, base_R
         self.extent = nav.extent
         self._Q = nav._Q.to(self.dtype)
         self._T = nav._T
-        self._F = _transition(nav._T, self.dtype)
+        self._F = _transition(nav._T, self.dtype, self.device)
         self._pending: tuple[torch.Tensor, torch.Tensor] | None = None
         if policy is not None:
             policy.reset()
 
     def predict(self, dt: float, scale: float) -> None:
-        F = self._F if dt == self._T else _transition(dt, self.dtype)
+        F = self._F if dt == self._T else _transition(dt, self.dtype, self.device)
         Q = self._Q if scale == 1.0 else self._Q * scale
         self._pending = (F, Q)
 
@@ -372,17 +424,19 @@ class _Grid:
         self.dtype = torch.float32 if a.dtype == "float32" else torch.float64
         n, P0 = nav.n_vehicles, prior
         sigma0 = float(P0[:2, :2].diagonal().max()) ** 0.5
-        self.pm = PointMassFilter(torch.zeros(n, 2, dtype=self.dtype), P0[:2, :2].to(self.dtype),
+        dev = nav.device
+        self.pm = PointMassFilter(torch.zeros(n, 2, dtype=self.dtype, device=dev),
+                                  P0[:2, :2].to(self.dtype),
                                   scalar_mean=0.0, scalar_var=float(P0[2, 2]),
                                   config=self.acfg.point_mass_config(sigma0), dtype=self.dtype)
-        self.vel = _VelocityPrior(n, P0, torch.float64, torch.device("cpu"))
+        self.vel = _VelocityPrior(n, P0, torch.float64, dev)
         self.fast = _is_bilinear_grid(nav.terrain)
         self.terrain = (_Float32Grid(nav.terrain) if self.fast and self.dtype == torch.float32
                         else nav.terrain)
         self.extent = nav.extent
         self.R = nav.noise.R
-        self.hold = torch.zeros(n, dtype=torch.long)
-        self.since = torch.zeros(n, dtype=torch.long)
+        self.hold = torch.zeros(n, dtype=torch.long, device=dev)
+        self.since = torch.zeros(n, dtype=torch.long, device=dev)
         self._Q = nav._Q
 
     def predict(self, dt: float, scale: float) -> None:
@@ -415,7 +469,7 @@ class _Grid:
     def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
         """5-state mean and covariance of every row (velocity from the position posterior)."""
         pm = self.pm
-        rows = torch.arange(pm.n_runs)
+        rows = torch.arange(pm.n_runs, device=self.hold.device)
         mu, sigma = pm.mean().double(), pm.cov().double()
         alt_m, alt_v = (t.double() for t in pm.scalar_moments())
         return self.vel.state(rows, mu, sigma, alt_m, alt_v, self.acfg.velocity_from_grid)
@@ -428,7 +482,7 @@ class _Grid:
         cov = pm.cov().double()
         small = torch.linalg.eigvalsh(cov)[:, -1].clamp_min(0.0).sqrt() <= cfg.handoff_sigma_m
         cand = (small & acquiring).nonzero().reshape(-1)
-        affinity = torch.zeros(pm.n_runs, dtype=torch.float64)
+        affinity = torch.zeros(pm.n_runs, dtype=torch.float64, device=cov.device)
         if cand.numel() > 0:
             affinity[cand] = pm.gaussian_affinity(cand).double()
         ok = handoff_ready(affinity, cov, max_sigma=cfg.handoff_sigma_m,
@@ -449,7 +503,7 @@ class _Grid:
         horizontal σ at least ``reacquire_sigma_m``."""
         floor = self.acfg.reacquire_sigma_m ** 2
         var = torch.diagonal(cov[:, :2, :2], dim1=1, dim2=2)
-        d = torch.ones(cov.shape[0], N_STATES, dtype=cov.dtype)
+        d = torch.ones(cov.shape[0], N_STATES, dtype=cov.dtype, device=cov.device)
         d[:, :2] = (var.clamp_min(floor) / var.clamp_min(1e-300)).sqrt()
         cov = _spd_guard(d[:, :, None] * cov * d[:, None, :])  # D P D, D = diag(scale, 1)
         self.pm.reset(mean[:, :2].to(self.dtype), cov[:, :2, :2].to(self.dtype),
@@ -479,6 +533,12 @@ class Navigator:
             study's DEM error measured against its truth terrain; None = from the config
             and the map's stored fit metrics (`neuralmap.nav.map_noise`).
         dtype: dtype of the fixes (float64 default).
+        device: Where the filter state lives and runs: ``"cpu"``, ``"cuda"``,
+            ``"cuda:<i>"`` or a `torch.device`; None (default) = the map's device (its
+            first parameter or buffer, else the CPU). A map with tensors must already be
+            on it (``terrain.to(device)``). Inputs to `step` / `replay` may be on any
+            device (they are moved); `step` returns its `Fix` on this device (no copy
+            per epoch), `replay` returns its `FixTrack` on the CPU.
         tile: The DEM tile, for the EKF linearizers that read the DEM itself (``bilinear``,
             ``nine_point``, ...); None = rebuilt from a grid map's heights.
 
@@ -489,13 +549,14 @@ class Navigator:
 
     Raises:
         NeuralMapError: Bad config, a map without an extent, ``n_vehicles < 1``, a policy
-            that needs an altimeter quality record, or a linearizer that cannot be built.
+            that needs an altimeter quality record, a linearizer that cannot be built, or
+            a device that is unknown, absent (CUDA asked for without it) or not the map's.
     """
 
     def __init__(self, terrain: Any, config: NavigatorConfig | dict | str | Any = None, *,
                  n_vehicles: int = 1, map_frame: Any = None,
                  map_error_variance: float | None = None, dtype: torch.dtype = torch.float64,
-                 tile: Any = None) -> None:
+                 tile: Any = None, device: str | torch.device | None = None) -> None:
         self.config = load_navigator_config(config)
         if isinstance(n_vehicles, bool) or not isinstance(n_vehicles, int) or n_vehicles < 1:
             raise NeuralMapError(f"Navigator: n_vehicles must be an integer >= 1, got "
@@ -509,13 +570,14 @@ class Navigator:
                                  f"method, got {type(map_frame).__name__}.")
         if dtype not in (torch.float32, torch.float64):
             raise NeuralMapError(f"Navigator: dtype must be float32 or float64, got {dtype}.")
+        self.device = _resolve_device(device, terrain)
         self.terrain = terrain
         self.extent = tuple(float(e) for e in extent)
         self.n_vehicles, self.map_frame, self.dtype, self.tile = n_vehicles, map_frame, dtype, tile
         self.noise: MapNoise = measurement_noise(self.config, terrain,
                                                  map_error_variance=map_error_variance)
-        self._P0 = self.config.prior()
-        self._Q = self.config.process_noise_per_period()
+        self._P0 = self.config.prior().to(self.device)
+        self._Q = self.config.process_noise_per_period().to(self.device)
         self._T = float(self.config.sensor.dt_s)
         gate_p = self.config.integrity.spike_gate_prob
         self._gate = _chi2_quantile(gate_p) if gate_p > 0 else math.inf
@@ -586,13 +648,14 @@ class Navigator:
             if self.method == "point_mass_ekf":
                 self._grid, on_grid = _Grid(self, self._P0), True
         # the grid holds the vehicle (acquisition); else the track filter does
-        self._on_grid = torch.full((n,), on_grid, dtype=torch.bool)
+        dev = self.device
+        self._on_grid = torch.full((n,), on_grid, dtype=torch.bool, device=dev)
         self._window = _Window(n, cfg.integrity.lost_window, cfg.integrity.lost_prob,
-                               torch.float64, cap=self._gate)
+                               torch.float64, cap=self._gate, device=dev)
         self._open_cov1 = self._P0.clone()
         self._t_prev: float | None = None
         self._ins_prev: torch.Tensor | None = None
-        self._mean = torch.zeros(n, N_STATES, dtype=torch.float64)
+        self._mean = torch.zeros(n, N_STATES, dtype=torch.float64, device=dev)
         self._cov = self._P0.expand(n, N_STATES, N_STATES).clone()
         self.counts = dict.fromkeys(COUNT_KEYS, 0)
         self._dt_last = self._T
@@ -620,7 +683,8 @@ class Navigator:
         if not bool(torch.isfinite(pos).all()) or not bool(torch.isfinite(alt).all()):
             raise NeuralMapError("Navigator.step: the INS position and altitude must be finite "
                                  "(NaN is allowed in the clearance only).")
-        return float(tt[0]), pos.to(f64), alt.to(f64), clr.to(f64)
+        dev = self.device
+        return (float(tt[0]), pos.to(dev, f64), alt.to(dev, f64), clr.to(dev, f64))
 
     # ------------------------------------------------------------------ one epoch
     def step(self, t: float | torch.Tensor, ins_position: torch.Tensor,
@@ -634,7 +698,7 @@ class Navigator:
             clearance: ``(N,)`` radar-altimeter clearance, m (NaN = no measurement).
 
         Returns:
-            `Fix`.
+            `Fix`, its tensors on the navigator's device (``Navigator.device``).
 
         Raises:
             NeuralMapError: Bad shapes, non-finite INS inputs, time not increasing.
@@ -643,11 +707,12 @@ class Navigator:
         n = self.n_vehicles
         counts = self.counts
         counts["epochs"] += n
-        nomeas = torch.zeros(n, dtype=torch.bool)
-        lost = torch.zeros(n, dtype=torch.bool)
-        off = torch.zeros(n, dtype=torch.bool)
+        dev = self.device
+        nomeas = torch.zeros(n, dtype=torch.bool, device=dev)
+        lost = torch.zeros(n, dtype=torch.bool, device=dev)
+        off = torch.zeros(n, dtype=torch.bool, device=dev)
         if self._t_prev is None:  # the prior epoch
-            vel_ins = torch.full((n, 2), math.nan, dtype=torch.float64)
+            vel_ins = torch.full((n, 2), math.nan, dtype=torch.float64, device=dev)
             off = ~inside_extent(pos, self.extent)
         else:
             dt = t_k - self._t_prev
@@ -687,8 +752,8 @@ class Navigator:
         on_map = inside_extent(pos - pred_err, self.extent)
         y = alt - clr
         self._propagate_open_loop(dt, scale)
-        zeros = torch.zeros(n, dtype=torch.bool)
-        nis = torch.full((n,), math.nan, dtype=torch.float64)
+        zeros = torch.zeros(n, dtype=torch.bool, device=self.device)
+        nis = torch.full((n,), math.nan, dtype=torch.float64, device=self.device)
         applied, reacq, handoff = zeros.clone(), zeros.clone(), zeros.clone()
         lost, spikes = zeros.clone(), zeros.clone()
         grid, track = self._grid, self._track
@@ -735,7 +800,7 @@ class Navigator:
             if bool(go.any()):
                 rows = go.nonzero().reshape(-1)
                 xg, Pg = grid.handoff_moments(rows)
-                mean = torch.zeros(n, N_STATES, dtype=torch.float64)
+                mean = torch.zeros(n, N_STATES, dtype=torch.float64, device=self.device)
                 cov = self._P0.expand(n, N_STATES, N_STATES).clone()
                 mean[rows], cov[rows] = xg, Pg
                 track.load(go, mean, cov)
@@ -755,13 +820,13 @@ class Navigator:
 
         Every vehicle shares it (same prior, same epochs, no measurement), and its mean
         stays 0 (``m_0 = 0``), so one ``(5, 5)`` covariance is carried."""
-        phi = _transition(dt, torch.float64)
+        phi = _transition(dt, torch.float64, self.device)
         P = phi @ self._open_cov1 @ phi.T + self._Q * scale
         self._open_cov1 = 0.5 * (P + P.T)
 
     @property
     def _open_mean(self) -> torch.Tensor:
-        return torch.zeros(self.n_vehicles, N_STATES, dtype=torch.float64)
+        return torch.zeros(self.n_vehicles, N_STATES, dtype=torch.float64, device=self.device)
 
     @property
     def _open_cov(self) -> torch.Tensor:
@@ -814,10 +879,11 @@ class Navigator:
         xy = pos - mean[:, :2]
         lat = lon = None
         if self.map_frame is not None:
-            la, lo = self.map_frame.to_geo(xy[:, 0], xy[:, 1])
-            lat = torch.as_tensor(la, dtype=torch.float64).reshape(n).to(dt)
-            lon = torch.as_tensor(lo, dtype=torch.float64).reshape(n).to(dt)
-        return Fix(t=torch.full((n,), t, dtype=dt), xy=xy.to(dt),
+            xg = xy if xy.device.type == "cpu" else xy.cpu()  # geodesy runs on the CPU
+            la, lo = self.map_frame.to_geo(xg[:, 0], xg[:, 1])
+            lat = torch.as_tensor(la, dtype=torch.float64).reshape(n).to(pos.device, dt)
+            lon = torch.as_tensor(lo, dtype=torch.float64).reshape(n).to(pos.device, dt)
+        return Fix(t=torch.full((n,), t, dtype=dt, device=pos.device), xy=xy.to(dt),
                    altitude=(alt - mean[:, 2]).to(dt), velocity=(vel_ins - mean[:, 3:]).to(dt),
                    cov=cov.to(dt), status=status.long(), nis=self._window.mean().to(dt),
                    lat=lat, lon=lon)
@@ -834,8 +900,9 @@ class Navigator:
             clearance: ``(N, K)`` clearances, m (NaN = no measurement).
 
         Returns:
-            `FixTrack` (equal, bit for bit, to the fixes of
-            `step` called K times after `reset`), with `counts`.
+            `FixTrack` on the CPU whatever the navigator's device (equal, bit for bit, to
+            the fixes of `step` called K times after `reset`, moved to the CPU), with
+            `counts`.
         """
         t = torch.as_tensor(t)
         n = self.n_vehicles
@@ -855,7 +922,7 @@ class Navigator:
         self.reset()
         fixes = [self.step(t[i], ins_position[:, i], ins_altitude[:, i], clearance[:, i])
                  for i in range(k)]
-        return FixTrack.stack(fixes, counts=self.counts)
+        return _track_to(FixTrack.stack(fixes, counts=self.counts), torch.device("cpu"))
 
     @property
     def R(self) -> float:

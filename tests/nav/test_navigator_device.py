@@ -1,0 +1,103 @@
+"""The Navigator's ``device`` option: the CPU request is the default bit for bit, a CUDA
+request without CUDA is refused by name, and on CUDA (when present) the fixes match the
+CPU's within float64 round-off."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from neuralmap.exceptions import NeuralMapError
+from neuralmap.nav.fix import FixTrack
+from neuralmap.nav.navigator import Navigator
+from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.nav.simulator import simulate
+from neuralmap.terrain.grid import GridTerrain
+
+TINY = {"sensor": {"dt_s": 1.0, "altimeter_sigma_m": 3.0},
+        "initial": {"position_sigma_m": 20.0, "altitude_sigma_m": 10.0, "velocity_sigma_mps": 0.2},
+        "process_noise": {"position_sigma_m": 1.0, "altitude_sigma_m": 1.0,
+                          "velocity_sigma_mps": 0.05}}
+# a wide prior: the acquisition grid first, then the hand-off to the tracker
+WIDE = dict(TINY, initial={"position_sigma_m": 150.0, "altitude_sigma_m": 10.0,
+                           "velocity_sigma_mps": 0.2}, acquisition={"above_sigma_m": 100.0})
+EKF = dict(TINY, method="neural", policy="raf")
+CONFIGS = {"tracker": TINY, "grid_then_tracker": WIDE, "ekf": EKF}
+FIELDS = ("xy", "altitude", "velocity", "cov", "status", "nis")
+
+
+@pytest.fixture(scope="module")
+def tiny_flight():
+    scenario = load_scenario("tiny")
+    tile = scenario_tile(scenario)
+    truth = simulate(scenario, tile, n_runs=3, seed=0)
+    k = min(25, truth.t.shape[0])
+    radar = truth.radar[:, :k].clone()
+    radar[1, 5] = float("nan")  # a missing clearance on one vehicle
+    return truth, k, radar, GridTerrain(tile, method="bilinear"), tile
+
+
+def _replay(nav: Navigator, truth, k: int, radar: torch.Tensor) -> FixTrack:
+    return nav.replay(truth.t[:k], truth.ins_pos[:, :k, :2], truth.ins_pos[:, :k, 2], radar)
+
+
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_device_cpu_is_the_default_bit_for_bit(tiny_flight, name: str) -> None:
+    truth, k, radar, grid, _ = tiny_flight
+    cfg = CONFIGS[name]
+    default = Navigator(grid, cfg, n_vehicles=3)
+    on_cpu = Navigator(grid, cfg, n_vehicles=3, device="cpu")
+    by_object = Navigator(grid, cfg, n_vehicles=3, device=torch.device("cpu"))
+    assert default.device == on_cpu.device == by_object.device == torch.device("cpu")
+    ref = _replay(default, truth, k, radar)
+    for nav in (on_cpu, by_object):
+        got = _replay(nav, truth, k, radar)
+        for f in FIELDS:  # NaN (no velocity at the prior, no NIS yet) at the same places
+            a, b = getattr(got, f), getattr(ref, f)
+            assert torch.equal(a.isnan(), b.isnan()), (name, f)
+            assert torch.equal(a.nan_to_num(0.0), b.nan_to_num(0.0)), (name, f)
+        assert got.counts == ref.counts
+    if name == "grid_then_tracker":
+        assert ref.counts["handoffs"] > 0  # the grid ran and handed off
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_a_cuda_request_without_cuda_names_the_option(tiny_flight) -> None:
+    grid = tiny_flight[3]
+    with pytest.raises(NeuralMapError, match=r"device='cuda'.*CUDA is not available"):
+        Navigator(grid, TINY, device="cuda")
+
+
+def test_an_unknown_device_is_refused_by_name(tiny_flight) -> None:
+    grid = tiny_flight[3]
+    with pytest.raises(NeuralMapError, match=r"device='gpu0' is not a torch device"):
+        Navigator(grid, TINY, device="gpu0")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_a_map_elsewhere_than_the_device_is_refused(tiny_flight) -> None:
+    grid = tiny_flight[3]  # on the CPU
+    with pytest.raises(NeuralMapError, match=r"device='cuda'.*move the map first"):
+        Navigator(grid, TINY, device="cuda")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("name", sorted(CONFIGS))
+def test_cuda_matches_the_cpu(tiny_flight, name: str) -> None:
+    truth, k, radar, grid, tile = tiny_flight
+    cfg = CONFIGS[name]
+    ref = _replay(Navigator(grid, cfg, n_vehicles=3), truth, k, radar)
+    grid_gpu = GridTerrain(tile, method="bilinear").to("cuda")
+    nav = Navigator(grid_gpu, cfg, n_vehicles=3)  # the map's device
+    assert nav.device.type == "cuda"
+    got = _replay(nav, truth, k, radar)  # CPU inputs are moved
+    assert got.xy.device.type == "cpu"  # replay returns on the CPU
+    assert torch.equal(got.status, ref.status), name
+    assert got.counts == ref.counts
+    # float64 on both; reductions in another order: round-off, amplified over 25 epochs
+    for f in ("xy", "altitude", "cov", "nis"):
+        torch.testing.assert_close(getattr(got, f), getattr(ref, f), rtol=1e-6, atol=1e-6,
+                                   equal_nan=True, msg=f"{name}: {f}")
+    fix = nav.step(truth.t[k], truth.ins_pos[:, k, :2].cuda(), truth.ins_pos[:, k, 2].cuda(),
+                   truth.radar[:, k].cuda())
+    assert fix.xy.device.type == "cuda"  # step stays on the device

@@ -17,10 +17,11 @@ the shipped ``configs/navigator.yaml``):
 
 Targets (toolkit): median ≤ 1 ms, p99 ≤ 5 ms for (a); ≥ 50 000 vehicle-epochs/s for (b).
 
-``--device`` (default cpu) is checked like the other benchmarks' (a clear error when CUDA
-is asked for and absent), but the `Navigator` builds its state on the CPU (no device
-option yet), so ``--device cuda`` is refused with one ``error:`` line: nothing is measured
-on CUDA for the navigator.
+``--device`` (default cpu; a clear error when CUDA is asked for and absent): the maps and
+the flight are moved to it and the `Navigator` runs there (its ``device`` option, the
+map's device); timed regions are bracketed by ``torch.cuda.synchronize()`` on CUDA, and the
+flight's tensors are on the device before the clock starts (the filter is timed, not the
+host-to-device copy of the inputs). The NumPy loop (c) stays on the CPU.
 
 Usage:
     OMP_NUM_THREADS=1 python benchmarks/bench_navigator.py
@@ -48,6 +49,7 @@ from neuralmap.nav.simulator import simulate
 from neuralmap.studies.base import check_device
 from neuralmap.terrain.grid import GridTerrain
 
+CPU = torch.device("cpu")
 CONFIG = {"sensor": {"altimeter_sigma_m": 10.0}, "map_error": {"dem_accuracy_m": 1.0}}
 
 
@@ -55,27 +57,40 @@ def percentile(values: list[float], q: float) -> float:
     return float(np.percentile(np.asarray(values), q))
 
 
-def step_latency(terrain, truth, steps: int, warmup: int = 10) -> dict[str, float]:
-    """Per-epoch latency of one vehicle's `Navigator.step`, ms."""
-    nav = Navigator(terrain, CONFIG, n_vehicles=1)
-    ins, radar, t = truth.ins_pos[:1], truth.radar[:1], truth.t
+def sync(device: torch.device) -> None:
+    """Waits for the device's queued work (CUDA); nothing on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def step_latency(terrain, truth, steps: int, warmup: int = 10,
+                 device: torch.device = CPU) -> dict[str, float]:
+    """Per-epoch latency of one vehicle's `Navigator.step` on ``device``, ms."""
+    nav = Navigator(terrain, CONFIG, n_vehicles=1, device=device)
+    ins, radar, t = truth.ins_pos[:1].to(device), truth.radar[:1].to(device), truth.t
     times = []
     for k in range(min(steps, t.shape[0])):
+        sync(device)
         start = time.perf_counter()
         nav.step(t[k], ins[:, k, :2], ins[:, k, 2], radar[:, k])
+        sync(device)
         times.append(1e3 * (time.perf_counter() - start))
     body = times[warmup:]
     return {"median_ms": statistics.median(body), "p99_ms": percentile(body, 99.0),
             "epochs": len(body)}
 
 
-def batched_rate(terrain, truth, n: int, steps: int) -> float:
-    """Vehicle-epochs/s of `Navigator.replay` over ``n`` vehicles."""
-    nav = Navigator(terrain, CONFIG, n_vehicles=n)
+def batched_rate(terrain, truth, n: int, steps: int,
+                 device: torch.device = CPU) -> float:
+    """Vehicle-epochs/s of `Navigator.replay` over ``n`` vehicles on ``device`` (the
+    returned track's copy to the CPU included)."""
+    nav = Navigator(terrain, CONFIG, n_vehicles=n, device=device)
     k = min(steps, truth.t.shape[0])
+    ins, radar = truth.ins_pos[:n, :k].to(device), truth.radar[:n, :k].to(device)
+    sync(device)
     start = time.perf_counter()
-    nav.replay(truth.t[:k], truth.ins_pos[:n, :k, :2], truth.ins_pos[:n, :k, 2],
-               truth.radar[:n, :k])
+    nav.replay(truth.t[:k], ins[..., :2], ins[..., 2], radar)
+    sync(device)
     return n * (k - 1) / (time.perf_counter() - start)
 
 
@@ -152,15 +167,11 @@ def main() -> None:
     parser.add_argument("--latent_steps", type=int, default=60,
                         help="Adam steps of the latent map's fit")
     parser.add_argument("--device", default="cpu",
-                        help="torch device (cpu only: the Navigator has no device option yet)")
+                        help="torch device of the Navigator and its maps (cpu, cuda, cuda:<i>)")
     add_out_option(parser, "bench_navigator")
     args = parser.parse_args()
     try:
         device = check_device(args.device)
-        if device.type != "cpu":
-            raise NeuralMapError(
-                f"--device {args.device}: the Navigator builds its state on the CPU (it has no "
-                "device option yet), so this benchmark runs on the CPU only; use --device cpu.")
     except NeuralMapError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -171,14 +182,16 @@ def main() -> None:
     scenario = dataclasses.replace(load_scenario("jacksboro"), truth_model="dem").validate()
     tile = scenario_tile(scenario)
     truth = simulate(scenario, tile, n_runs=max(args.vehicles, 1), seed=0)
-    grid = GridTerrain(tile, method="bilinear")
-    print(f"neuralmap Navigator benchmark | {platform.processor() or platform.machine()} | "
+    grid = GridTerrain(tile, method="bilinear").to(device)
+    where = torch.cuda.get_device_name(device) if device.type == "cuda" else (
+        platform.processor() or platform.machine())
+    print(f"neuralmap Navigator benchmark | {device} {where} | "
           f"torch {torch.__version__} | threads {torch.get_num_threads()} | jacksboro "
           f"{tile.shape[1]}x{tile.shape[0]} nodes | default method point_mass_tracker 32^2",
           flush=True)
     rows = []
-    step_latency(grid, truth, min(args.steps, 60))  # warm-up flight (allocator, caches)
-    rows.append(("grid (bilinear DEM)", step_latency(grid, truth, args.steps)))
+    step_latency(grid, truth, min(args.steps, 60), device=device)  # warm-up (allocator, caches)
+    rows.append(("grid (bilinear DEM)", step_latency(grid, truth, args.steps, device=device)))
     from neuralmap.terrain.bake import bake_to_grid
     from neuralmap.terrain.latent.encode import fit_latent_map
 
@@ -186,9 +199,11 @@ def main() -> None:
     latent, _ = fit_latent_map(tile, rate_weight=1e-3, steps=args.latent_steps)
     print(f"latent map fitted in {time.perf_counter() - clock:.0f} s "
           f"({args.latent_steps} steps)", flush=True)
-    rows.append(("latent map", step_latency(latent, truth, args.steps)))
+    baked = bake_to_grid(latent, tile).to(device)  # baked from the CPU fit
+    latent = latent.to(device)
+    rows.append(("latent map", step_latency(latent, truth, args.steps, device=device)))
     rows.append(("latent map baked (bicubic grid)",
-                 step_latency(bake_to_grid(latent, tile), truth, args.steps)))
+                 step_latency(baked, truth, args.steps, device=device)))
     numpy_row = numpy_loop(tile, truth, args.steps)
     print("\none vehicle, step latency (target median <= 1 ms, p99 <= 5 ms)")
     print(f"{'map':34s} {'median ms':>10s} {'p99 ms':>8s} {'epochs/s':>9s}")
@@ -197,7 +212,7 @@ def main() -> None:
               f"{1e3 / r['median_ms']:9.0f}")
     print(f"{'NumPy loop, same filter (grid)':34s} {numpy_row['median_ms']:10.2f} "
           f"{numpy_row['p99_ms']:8.2f} {numpy_row['rate']:9.0f}")
-    rate = batched_rate(grid, truth, args.vehicles, args.batch_steps)
+    rate = batched_rate(grid, truth, args.vehicles, args.batch_steps, device=device)
     print(f"\n{args.vehicles} vehicles batched (grid): {rate:,.0f} vehicle-epochs/s "
           f"(target >= 50,000); NumPy loop {numpy_row['rate']:,.0f} vehicle-epochs/s "
           f"-> {rate / numpy_row['rate']:.1f}x")

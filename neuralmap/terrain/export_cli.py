@@ -46,6 +46,8 @@ def _parser() -> ArgumentParser:
                         help="Output folder; default: <map folder>/geotiff.")
     parser.add_argument("--layers", type=list[str], default=list(LAYERS),
                         help=f"Layers to write, of {list(LAYERS)}.")
+    parser.add_argument("--cog", type=bool, default=False,
+                        help="Write Cloud Optimized GeoTIFFs (tiled, internal overviews).")
     return parser
 
 
@@ -101,7 +103,7 @@ def export(args: object) -> dict[str, Path]:
                          origin=origin)
     except NeuralMapError as exc:  # the loader names train.py's options; name this CLI's
         raise NeuralMapError(f"--dem {dem}: {_cli_option_names(str(exc))}") from None
-    paths = write_map_geotiffs(terrain, tile, out, layers=tuple(args.layers))
+    paths = write_map_geotiffs(terrain, tile, out, layers=tuple(args.layers), cog=args.cog)
     for name, path in paths.items():
         print(f"{PROG}: {name} -> {path}", flush=True)
     return paths
@@ -136,7 +138,7 @@ def _export_tileset(tileset: object, args: object) -> dict[str, Path]:
             raise NeuralMapError(f"--dem {dem}: {_cli_option_names(str(exc))} (or pass "
                                  "--layers [height,slope] to export the map alone)") from None
     written = export_tileset_geotiffs(tileset, out, region=region,  # type: ignore[arg-type]
-                                      layers=tuple(args.layers))
+                                      layers=tuple(args.layers), cog=args.cog)
     paths: dict[str, Path] = {}
     for (row, col), layers in written.items():
         for name, path in layers.items():

@@ -127,11 +127,14 @@ def map_layers(terrain: torch.nn.Module, tile: DemTile, *,
 
 
 def write_geotiff(path: str | os.PathLike[str], values: np.ndarray, tile: DemTile, *,
-                  nodata: float | None = None, description: str = "") -> Path:
+                  nodata: float | None = None, description: str = "",
+                  cog: bool = False) -> Path:
     """Writes one ``(ny, nx)`` layer (DemTile order, NaN = void) on the tile's source grid.
 
     The file is built under a hidden name in the destination folder and renamed when
-    complete.
+    complete. With ``cog`` it is a Cloud Optimized GeoTIFF (GDAL's COG driver: 512-pixel
+    tiles, deflate, internal overviews, the header first), which web map servers and
+    ``/vsicurl/`` readers fetch by range.
 
     Args:
         path: Destination ``.tif``.
@@ -139,6 +142,7 @@ def write_geotiff(path: str | os.PathLike[str], values: np.ndarray, tile: DemTil
         tile: The tile whose grid and CRS the file takes.
         nodata: No-data value; None = the source's (when finite) else `NODATA`.
         description: Band description (shown by GIS tools).
+        cog: Write a Cloud Optimized GeoTIFF.
 
     Returns:
         The path written.
@@ -178,6 +182,15 @@ def write_geotiff(path: str | os.PathLike[str], values: np.ndarray, tile: DemTil
             dst.write(raster, 1)
             if description:
                 dst.set_band_description(1, description)
+        if cog:  # the COG driver only copies: the plain GeoTIFF above is its source
+            from rasterio.shutil import copy as raster_copy
+
+            plain, tmp = tmp, tmp.removesuffix(".tmp.tif") + ".cog.tmp.tif"
+            try:
+                raster_copy(plain, tmp, driver="COG", compress="DEFLATE", blocksize=512,
+                            overviews="AUTO")
+            finally:
+                os.unlink(plain)
         os.chmod(tmp, default_mode())
         os.replace(tmp, path)
     except BaseException as exc:
@@ -198,7 +211,7 @@ _DESCRIPTIONS = {
 
 def write_map_geotiffs(terrain: torch.nn.Module, tile: DemTile, out_dir: str | os.PathLike[str],
                        *, layers: tuple[str, ...] = LAYERS, stem: str = "neural_map",
-                       nodata: float | None = None) -> dict[str, Path]:
+                       nodata: float | None = None, cog: bool = False) -> dict[str, Path]:
     """Writes the map's layers as ``<out_dir>/<stem>_<layer>.tif`` on the DEM's grid.
 
     Args:
@@ -208,6 +221,7 @@ def write_map_geotiffs(terrain: torch.nn.Module, tile: DemTile, out_dir: str | o
         layers: Any of `LAYERS`.
         stem: File name prefix.
         nodata: No-data value (see `write_geotiff`).
+        cog: Cloud Optimized GeoTIFFs (see `write_geotiff`).
 
     Returns:
         Layer name -> path.
@@ -223,7 +237,7 @@ def write_map_geotiffs(terrain: torch.nn.Module, tile: DemTile, out_dir: str | o
     _check_folder(out_dir)
     values = map_layers(terrain, tile)
     return {name: write_geotiff(out_dir / f"{stem}_{name}.tif", values[name], tile,
-                                nodata=nodata, description=_DESCRIPTIONS[name])
+                                nodata=nodata, description=_DESCRIPTIONS[name], cog=cog)
             for name in layers}
 
 

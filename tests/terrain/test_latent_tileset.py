@@ -270,6 +270,12 @@ def test_export_per_tile_geotiff(fitted: dict, tmp_path: Path) -> None:
     assert sorted(without[(1, 1)]) == ["height", "slope"]
     with pytest.raises(NeuralMapError, match="residual layer needs the DEM"):
         export_tileset_geotiffs(ts, tmp_path / "x", layers=("residual",))
+    # Cloud Optimized GeoTIFF: GDAL's COG layout, the same values as the plain file
+    cog = export_tileset_geotiffs(ts, tmp_path / "cog", region=region, cog=True)
+    with rasterio.open(cog[(0, 0)]["height"]) as src:
+        assert src.tags(ns="IMAGE_STRUCTURE").get("LAYOUT") == "COG"
+        np.testing.assert_array_equal(src.read(1), a)
+    assert not list((tmp_path / "cog").glob(".*"))  # no temporary file left behind
 
 
 def test_navigator_map_source_resolves_the_index(fitted: dict) -> None:

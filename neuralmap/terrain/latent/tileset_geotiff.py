@@ -56,7 +56,8 @@ def _map_region(tileset: LatentTileset) -> DemTile:
 
 def export_tileset_geotiffs(tileset: LatentTileset, out_dir: str | os.PathLike[str], *,
                             region: DemTile | None = None, layers: tuple[str, ...] | None = None,
-                            stem: str = "latent_tileset") -> dict[tuple[int, int], dict[str, Path]]:
+                            stem: str = "latent_tileset", cog: bool = False,
+                            ) -> dict[tuple[int, int], dict[str, Path]]:
     """Writes every tile's layers as GeoTIFF (module docstring).
 
     Args:
@@ -66,6 +67,7 @@ def export_tileset_geotiffs(tileset: LatentTileset, out_dir: str | os.PathLike[s
         layers: Any of ``("height", "residual", "slope")``; default all with ``region``,
             ``("height", "slope")`` without.
         stem: File name prefix.
+        cog: Cloud Optimized GeoTIFFs (`neuralmap.terrain.geotiff.write_geotiff`).
 
     Returns:
         ``(row, col)`` -> layer -> path.
@@ -96,5 +98,5 @@ def export_tileset_geotiffs(tileset: LatentTileset, out_dir: str | os.PathLike[s
                 core.heights = tileset(xy).numpy().reshape(core.shape)
         written[(entry.row, entry.col)] = write_map_geotiffs(
             view, core, out_dir, layers=tuple(layers),
-            stem=f"{stem}_r{entry.row:03d}_c{entry.col:03d}")
+            stem=f"{stem}_r{entry.row:03d}_c{entry.col:03d}", cog=cog)
     return written

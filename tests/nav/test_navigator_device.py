@@ -22,7 +22,12 @@ TINY = {"sensor": {"dt_s": 1.0, "altimeter_sigma_m": 3.0},
 WIDE = dict(TINY, initial={"position_sigma_m": 150.0, "altitude_sigma_m": 10.0,
                            "velocity_sigma_mps": 0.2}, acquisition={"above_sigma_m": 100.0})
 EKF = dict(TINY, method="neural", policy="raf")
-CONFIGS = {"tracker": TINY, "grid_then_tracker": WIDE, "ekf": EKF}
+# a biased altimeter (+50 m below) with a short lost-lock window: lost locks, re-acquired on
+# the grid from the open-loop prior
+REACQUIRE = dict(WIDE, integrity={"lost_window": 3, "lost_prob": 0.5},
+                 acquisition={"above_sigma_m": 15.0})
+CONFIGS = {"tracker": TINY, "grid_then_tracker": WIDE, "ekf": EKF, "reacquire": REACQUIRE}
+RADAR_BIAS_M = {"reacquire": 50.0}
 FIELDS = ("xy", "altitude", "velocity", "cov", "status", "nis")
 
 
@@ -37,7 +42,8 @@ def tiny_flight():
     return truth, k, radar, GridTerrain(tile, method="bilinear"), tile
 
 
-def _replay(nav: Navigator, truth, k: int, radar: torch.Tensor) -> FixTrack:
+def _replay(nav: Navigator, truth, k: int, radar: torch.Tensor, name: str) -> FixTrack:
+    radar = radar + RADAR_BIAS_M.get(name, 0.0)
     return nav.replay(truth.t[:k], truth.ins_pos[:, :k, :2], truth.ins_pos[:, :k, 2], radar)
 
 
@@ -49,9 +55,9 @@ def test_device_cpu_is_the_default_bit_for_bit(tiny_flight, name: str) -> None:
     on_cpu = Navigator(grid, cfg, n_vehicles=3, device="cpu")
     by_object = Navigator(grid, cfg, n_vehicles=3, device=torch.device("cpu"))
     assert default.device == on_cpu.device == by_object.device == torch.device("cpu")
-    ref = _replay(default, truth, k, radar)
+    ref = _replay(default, truth, k, radar, name)
     for nav in (on_cpu, by_object):
-        got = _replay(nav, truth, k, radar)
+        got = _replay(nav, truth, k, radar, name)
         for f in FIELDS:  # NaN (no velocity at the prior, no NIS yet) at the same places
             a, b = getattr(got, f), getattr(ref, f)
             assert torch.equal(a.isnan(), b.isnan()), (name, f)
@@ -59,6 +65,8 @@ def test_device_cpu_is_the_default_bit_for_bit(tiny_flight, name: str) -> None:
         assert got.counts == ref.counts
     if name == "grid_then_tracker":
         assert ref.counts["handoffs"] > 0  # the grid ran and handed off
+    if name == "reacquire":
+        assert ref.counts["reacquisitions"] > 0
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
@@ -86,11 +94,11 @@ def test_a_map_elsewhere_than_the_device_is_refused(tiny_flight) -> None:
 def test_cuda_matches_the_cpu(tiny_flight, name: str) -> None:
     truth, k, radar, grid, tile = tiny_flight
     cfg = CONFIGS[name]
-    ref = _replay(Navigator(grid, cfg, n_vehicles=3), truth, k, radar)
+    ref = _replay(Navigator(grid, cfg, n_vehicles=3), truth, k, radar, name)
     grid_gpu = GridTerrain(tile, method="bilinear").to("cuda")
     nav = Navigator(grid_gpu, cfg, n_vehicles=3)  # the map's device
     assert nav.device.type == "cuda"
-    got = _replay(nav, truth, k, radar)  # CPU inputs are moved
+    got = _replay(nav, truth, k, radar, name)  # CPU inputs are moved
     assert got.xy.device.type == "cpu"  # replay returns on the CPU
     assert torch.equal(got.status, ref.status), name
     assert got.counts == ref.counts

@@ -125,7 +125,7 @@ for bench in bench_filter bench_point_mass bench_navigator; do
   if [ -s "$OUT/$bench-gpu.log" ]; then
     echo
     echo "== benchmarks/$bench.py on $GPU (small size; its table):"
-    grep -E '^\||cell-upd/s|^batched|^point-mass|^NumPy|^memory|memory bandwidth|^grid |^latent map|vehicles batched|^targets met' \
+    grep -E '^\||cell-upd/s|^batched|^point-mass|^NumPy|^memory|memory bandwidth|^neuralmap Navigator|^map  |^grid \(|^latent map  |^latent map baked|vehicles batched|^targets met' \
       "$OUT/$bench-gpu.log" | head -n 40
   fi
 done

@@ -24,9 +24,9 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.terrain.base import TerrainModel
 from neuralmap.terrain.latent.basis import LatentBasis, make_basis
 from neuralmap.terrain.latent.bspline import bspline_matrix, cell_position
+from neuralmap.terrain.latent.evaluated import EvaluatedTerrain
 from neuralmap.terrain.latent.regions import RegionCodes
 from neuralmap.terrain.latent.synthesis import Synthesis
 
@@ -69,7 +69,7 @@ def polynomial_table(coeffs: torch.Tensor, shape: tuple[int, int]) -> torch.Tens
     return table.reshape((ny - 1) * (nx - 1), -1)
 
 
-class LatentTerrainMap(TerrainModel):
+class LatentTerrainMap(EvaluatedTerrain):
     """A latent-grid neural map decoded from its stored form.
 
     Points outside `extent` are clamped to the border (height of the nearest border
@@ -183,14 +183,8 @@ class LatentTerrainMap(TerrainModel):
         maps = self.regions.step_maps([tuple(s.shape) for s in self.symbols])
         return [q * torch.from_numpy(m) for q, m in zip(out, maps, strict=True)]
 
-    def _check_xy(self, xy: torch.Tensor) -> torch.Tensor:
-        if not isinstance(xy, torch.Tensor) or xy.ndim < 1 or xy.shape[-1] != 2:
-            shape = tuple(xy.shape) if isinstance(xy, torch.Tensor) else type(xy).__name__
-            raise NeuralMapError(
-                f"LatentTerrainMap: xy must be a tensor of shape (..., 2) (east, north "
-                f"metres), got {shape}."
-            )
-        return xy if xy.is_floating_point() else xy.to(self.coeffs.dtype)
+    def _query_dtype(self) -> torch.dtype:
+        return self.coeffs.dtype
 
     def _evaluate(self, xy: torch.Tensor, *, with_slope: bool
                   ) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -230,35 +224,6 @@ class LatentTerrainMap(TerrainModel):
             gy = gy + (gv[:, 1:] * w).sum(-1)
         slope = torch.stack([gx * (1.0 / dx) * in_u, gy * (1.0 / dy) * in_v], dim=-1)
         return height, slope
-
-    def forward(self, xy: torch.Tensor) -> torch.Tensor:
-        """Heights, differentiable in ``xy``.
-
-        Args:
-            xy: ``(..., 2)`` east/north metres.
-
-        Returns:
-            ``(...)`` heights in metres, dtype of ``xy``.
-        """
-        xy = self._check_xy(xy)
-        height, _ = self._evaluate(xy.reshape(-1, 2), with_slope=False)
-        return height.view(xy.shape[:-1])
-
-    def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Heights and analytic slopes ``(dh/dx, dh/dy)`` (forward mode, no autograd).
-
-        Args:
-            xy: ``(..., 2)`` east/north metres.
-
-        Returns:
-            ``(height (...), slope (..., 2))``, metres and metres per metre.
-        """
-        xy = self._check_xy(xy)
-        lead = xy.shape[:-1]
-        with torch.no_grad():
-            height, slope = self._evaluate(xy.reshape(-1, 2), with_slope=True)
-        assert slope is not None
-        return height.view(lead), slope.view(*lead, 2)
 
     def node_heights(self) -> torch.Tensor:
         """``(ny, nx)`` heights at the tile's nodes (float64 decode, for metrics)."""

@@ -31,8 +31,8 @@ from typing import Any
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.terrain.base import TerrainModel
 from neuralmap.terrain.latent.bitstream import decode_latent_map
+from neuralmap.terrain.latent.evaluated import EvaluatedTerrain
 from neuralmap.terrain.latent.map import LatentTerrainMap
 from neuralmap.terrain.latent.tile_cache import DEFAULT_CACHE_BYTES, DecodedTileCache
 from neuralmap.terrain.latent.tileset_index import TileEntry, file_sha256, read_tileset_index
@@ -40,7 +40,7 @@ from neuralmap.terrain.latent.tileset_index import TileEntry, file_sha256, read_
 __all__ = ["LatentTileset"]
 
 
-class LatentTileset(TerrainModel):
+class LatentTileset(EvaluatedTerrain):
     """A latent tileset (index + one bitstream per tile), decoded lazily.
 
     Args:
@@ -140,13 +140,6 @@ class LatentTileset(TerrainModel):
                     f"col {entry.col}) is missing or damaged (sha256 differs from the index); "
                     "copy the whole tileset folder again.")
 
-    def _check_xy(self, xy: torch.Tensor) -> torch.Tensor:
-        if not isinstance(xy, torch.Tensor) or xy.ndim < 1 or xy.shape[-1] != 2:
-            shape = tuple(xy.shape) if isinstance(xy, torch.Tensor) else type(xy).__name__
-            raise NeuralMapError(f"LatentTileset: xy must be a tensor of shape (..., 2) (east, "
-                                 f"north metres), got {shape}.")
-        return xy if xy.is_floating_point() else xy.to(torch.float32)
-
     def _pairs(self, flat: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """(point, tile, weight, d weight/dx, d weight/dy) of every pair with weight > 0,
         sorted by tile.
@@ -224,31 +217,3 @@ class LatentTileset(TerrainModel):
             slope = torch.where(finite.unsqueeze(-1), slope, nan)
         return height, slope
 
-    def forward(self, xy: torch.Tensor) -> torch.Tensor:
-        """Heights, differentiable in ``xy``.
-
-        Args:
-            xy: ``(..., 2)`` east/north metres in the region's frame.
-
-        Returns:
-            ``(...)`` heights in metres, dtype of ``xy``.
-        """
-        xy = self._check_xy(xy)
-        height, _ = self._evaluate(xy.reshape(-1, 2), with_slope=False)
-        return height.view(xy.shape[:-1])
-
-    def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Heights and analytic slopes ``(dh/dx, dh/dy)`` of the blended map (no autograd).
-
-        Args:
-            xy: ``(..., 2)`` east/north metres.
-
-        Returns:
-            ``(height (...), slope (..., 2))``, metres and metres per metre.
-        """
-        xy = self._check_xy(xy)
-        lead = xy.shape[:-1]
-        with torch.no_grad():
-            height, slope = self._evaluate(xy.reshape(-1, 2), with_slope=True)
-        assert slope is not None
-        return height.view(lead), slope.view(*lead, 2)

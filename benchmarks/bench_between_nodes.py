@@ -435,10 +435,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="also publish a stamped run (summary.md + results.json) into "
                              "DIR/version_N for `python -m neuralmap.docs update`")
     parser.add_argument("--tiny", action="store_true",
-                        help="volcano only, tiny budgets (seconds; the test's run)")
+                        help="one synthetic tile, tiny budgets (seconds; the test's run)")
     args = parser.parse_args(argv)
     if args.tiny:
-        args.tiles, args.prior_tiles = ["volcano"], ["volcano", "synthetic:40x40"]
+        # synthetic tiles only: the test extra alone runs it (no sample packages)
+        args.tiles, args.prior_tiles = ["synthetic:61x87"], ["synthetic:61x87", "synthetic:40x40"]
         args.epochs, args.latent_steps, args.prior_steps, args.prior_patch = 2, 3, 3, 8
     args.overrides = {"model": {}, "data": {}}
     for item in args.set:

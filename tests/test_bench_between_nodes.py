@@ -86,7 +86,7 @@ def test_tiny_run_writes_the_table_it_prints(bench: ModuleType, tmp_path: Path,
     saved = json.loads((tmp_path / "results.json").read_text())
     assert (tmp_path / "results.md").read_text().strip() in printed
     assert [(r["tile"], r["pattern"]) for r in saved["results"]] == [
-        ("volcano", "x2"), ("volcano", "random25")]
+        ("synthetic:61x87", "x2"), ("synthetic:61x87", "random25")]
     assert saved["target_met"] == out["target_met"]
     for row in saved["results"]:
         base = row["bicubic"]["rmse_m"]

@@ -3,7 +3,7 @@
 Measures in one run, on the scenario's tile (default: jacksboro), and prints ratios:
 
 (a) the 5-state TAN filter step (predict + linearise + update,
-    `neuralmap.nav.tan.tan_filter_step` on `neuralmap.filters.ekf.BatchedEKF`)
+    `neuralmap.tan.ekf_step.tan_filter_step` on `neuralmap.filters.ekf.BatchedEKF`)
     with the bilinear grid (first-order Taylor), float32 and float64, N = 100 000;
 (b) the same step with the neural map and autograd linearisation (the newest trained
     ``runs/*/version_*/neural_map.pt`` of the tile when present, else an untrained
@@ -120,7 +120,7 @@ def _rates(work: float, times: tuple[float, float]) -> tuple[float, float]:
 
 def load_bench_tile(scenario_name: str) -> tuple[Any, DemTile, str]:
     """The scenario and its tile (falls back to the tiny synthetic scenario)."""
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
 
     try:
         scenario = load_scenario(scenario_name)
@@ -161,8 +161,8 @@ def bench_tan_step(
     """(median, best) trajectory-steps per second of the batched TAN filter over K steps
     (filter, inputs and ``linearizer`` on ``device``)."""
     from neuralmap.filters.ekf import BatchedEKF
-    from neuralmap.nav.model import N_STATES, TanModel
-    from neuralmap.nav.tan import tan_filter_step
+    from neuralmap.tan.model import N_STATES, TanModel
+    from neuralmap.tan.ekf_step import tan_filter_step
 
     n, k_steps = truth.n_runs, truth.n_steps
     ins_pos = truth.ins_pos.to(device, dtype)
@@ -235,7 +235,8 @@ def bench_policy_steps(
     """
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.filters.policies import quality_members
-    from neuralmap.nav.tan import N_STATES, tan_filter_step, transition_matrix
+    from neuralmap.tan.model import N_STATES, transition_matrix
+    from neuralmap.tan.ekf_step import tan_filter_step
 
     n, k_steps = truth.n_runs, truth.n_steps
     ins_pos = truth.ins_pos.to(device, dtype)
@@ -296,7 +297,7 @@ def filterpy_tan(
 ) -> tuple[float, np.ndarray]:
     """FilterPy EKF in a Python loop with scipy interpolation; returns (rate, final states).
 
-    The measurement model matches `neuralmap.nav.tan.tan_filter_step`:
+    The measurement model matches `neuralmap.tan.ekf_step.tan_filter_step`:
     ``z = −h_radar``, ``h(δX) = −(h_ins − δh) + h_map(p_ins − δX[:2])`` so that the
     innovation ``z − h(δX̂⁻) = (ĥ − h_map(p̂)) − h_radar`` and the Jacobian is
     ``H = [−h_x, −h_y, 1, 0, 0]`` (SEEDS 004). The slope is the central difference of the
@@ -361,8 +362,8 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
     """
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.model import N_STATES, TanModel
-    from neuralmap.nav.tan import tan_filter_step
+    from neuralmap.tan.model import N_STATES, TanModel
+    from neuralmap.tan.ekf_step import tan_filter_step
 
     lin = make_linearizer("bilinear", tile=tile, variance="zero")
     dtype = torch.float64
@@ -515,7 +516,7 @@ def bench_latent_queries(tile: DemTile, *, n_points: int, repeats: int,
 def run(args: argparse.Namespace) -> list[Row]:
     """Runs every benchmark and returns the rows (also printed)."""
     from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.simulator import simulate
+    from neuralmap.lab.simulator import simulate
 
     torch.set_num_threads(args.threads)
     device = check_device(args.device)

@@ -6,9 +6,9 @@ For each tile and rate weight ``lambda``, two latent maps are fitted in the same
 * ``factorized``: the factorized Laplace model, noise then straight-through rounding;
 * ``context``: the context model (`neuralmap.terrain.latent.context_model`), soft rounding
   annealed then straight-through, symbols chosen by RDOQ (`neuralmap.terrain.latent.rdoq`).
-* ``factorized+regions`` / ``context+regions`` (``--variants``): the same with per-region
-  steps and entropy scales on an ``R x R`` grid (``--regions``,
-  `neuralmap.terrain.latent.regions`).
+* ``factorized+zones`` / ``context+zones`` (``--variants``): the same with per-zone
+  steps and entropy scales on an ``R x R`` grid of zones (``--zones``,
+  `neuralmap.terrain.latent.zones`).
 
 Codecs in the same run: JPEG 2000 over a PSNR sweep on 16-bit heights, and the toolkit's
 error-bounded JPEG 2000, JPEG-LS, LERC and SZ3 (`neuralmap.terrain.codecs.compress_grid`)
@@ -44,7 +44,13 @@ for path in (REPO_ROOT, REPO_ROOT / "benchmarks"):
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))
 
-from bench_latent_rd import bd_rate_span, get_tile, jpeg2k_psnr_sweep, node_rmse  # noqa: E402
+from bench_latent_rd import (  # noqa: E402
+    bd_rate_span,
+    get_tile,
+    jpeg2k_psnr_sweep,
+    node_rmse,
+    refuse_renamed,
+)
 
 from neuralmap.dem import load_tile  # noqa: E402
 from neuralmap.docs.bench_run import add_out_option, start_bench  # noqa: E402
@@ -61,18 +67,21 @@ VARIANTS = {
     "factorized+rdoq": {"rdoq": True},
     "context-noise": {"entropy": "context"},
     "context-soft": {"entropy": "context", "relaxation": "soft"},
-    # per-region steps and entropy scales (neuralmap.terrain.latent.regions), R = --regions
-    "factorized+regions": {"regions": -1},
-    "context+regions": {"entropy": "context", "relaxation": "soft", "rdoq": True,
-                        "regions": -1},
+    # per-zone steps and entropy scales (neuralmap.terrain.latent.zones), R = --zones
+    "factorized+zones": {"zones": -1},
+    "context+zones": {"entropy": "context", "relaxation": "soft", "rdoq": True,
+                      "zones": -1},
 }
+#: Options and variants of this script that were renamed: old spelling -> new one.
+RENAMED = {"--regions": "--zones", "factorized+regions": "factorized+zones",
+           "context+regions": "context+zones"}
 
 
 def variant_kwargs(variant: str, args: argparse.Namespace) -> dict[str, Any]:
-    """`fit_latent_map` keywords of a variant (``regions: -1`` = ``--regions``)."""
+    """`fit_latent_map` keywords of a variant (``zones: -1`` = ``--zones``)."""
     kwargs = dict(VARIANTS[variant])
-    if kwargs.get("regions") == -1:
-        kwargs["regions"] = args.regions
+    if kwargs.get("zones") == -1:
+        kwargs["zones"] = args.zones
     return kwargs
 
 
@@ -108,9 +117,9 @@ def run_tile(name: str, args: argparse.Namespace) -> list[str]:
             nbytes = len(encode_latent_map(latent_map))
             rmse = node_rmse(latent_map.node_heights().numpy(), tile)
             maps[variant].append((nbytes, rmse))
-            kept = ("" if "regions" not in variant else
-                    "; regions kept" if latent_map.regions is not None else
-                    "; regions dropped (they did not pay)")
+            kept = ("" if "zones" not in variant else
+                    "; zones kept" if latent_map.zones is not None else
+                    "; zones dropped (they did not pay)")
             print(f"#   {variant} lambda {lam:g}: {nbytes} B, node RMSE {rmse:.3f} m{kept}, "
                   f"{time.perf_counter() - clock:.0f} s", flush=True)
     codecs = codec_curves(tile, args)
@@ -188,8 +197,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--lambdas", nargs="+", type=float, default=[0.3, 1.0, 3.0, 10.0])
     parser.add_argument("--steps", type=int, default=600)
     parser.add_argument("--levels", type=int, default=6)
-    parser.add_argument("--regions", type=int, default=4,
-                        help="region grid side R of the +regions variants")
+    parser.add_argument("--zones", type=int, default=4,
+                        help="zone grid side R of the +zones variants")
     parser.add_argument("--between_weight", type=float, default=0.5,
                         help="weight of the between-node term (0: nodes only)")
     parser.add_argument("--psnr_levels", nargs="+", type=float,
@@ -201,6 +210,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
     add_out_option(parser, "bench_latent_context")
+    refuse_renamed(parser, argv, RENAMED)
     args = parser.parse_args(argv)
     if args.quick:
         args.tiles, args.lambdas, args.steps = ["synthetic:64x64"], [1.0, 8.0], 30

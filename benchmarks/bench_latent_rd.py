@@ -17,7 +17,7 @@ RMSE at the tile's nodes; the BD-rate (Bjøntegaard) of the latent map against e
 curves within 0.5-5 m (cubic fits; fewer points, lower degree). Both are also set against
 the Gaussian rate-distortion bound of the tile's smoothed spectrum (reverse water-filling,
 `gaussian_rd`): how much room a linear transform coder has left. Between the nodes, every
-map is compared with the subgrid truth terrain (`neuralmap.nav.truth_terrain.true_terrain`,
+map is compared with the subgrid truth terrain (`neuralmap.lab.truth_terrain.true_terrain`,
 bicubic DEM on a 4x finer grid plus fractal detail continuing the tile's spectrum) at
 random points: the latent map itself, bicubic of the DEM, and bicubic of the latent map's
 own node values.
@@ -28,8 +28,8 @@ Usage:
     python benchmarks/bench_latent_rd.py --tiles synthetic --steps 400
     python benchmarks/bench_latent_rd.py --starts sweeps exact  # both pyramid starts
     python benchmarks/bench_latent_rd.py --bases wavelet        # the wavelet basis only
-    python benchmarks/bench_latent_rd.py --bases wavelet --regions 0 4  # with / without
-                                                                # per-region steps
+    python benchmarks/bench_latent_rd.py --bases wavelet --zones 0 4  # with / without
+                                                              # per-zone steps
 """
 
 from __future__ import annotations
@@ -223,7 +223,7 @@ def gaussian_rd(tile: DemTile, rmses: list[float]) -> list[dict[str, Any]]:
 
 def between_truth(tile: DemTile, n_points: int) -> tuple[Any, np.ndarray, np.ndarray]:
     """Subgrid truth heights at random between-node points: ``(truth model, xy, heights)``."""
-    from neuralmap.nav.truth_terrain import true_terrain
+    from neuralmap.lab.truth_terrain import true_terrain
 
     scenario = types.SimpleNamespace(truth_model="subgrid", subgrid_factor=4,
                                      dem_error_sigma_m=0.0, dem_error_corr_m=0.0)
@@ -250,12 +250,12 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
     rms = lambda a: float(np.sqrt(np.mean((a - truth) ** 2)))  # noqa: E731
     bicubic_dem = rms(bicubic_of(tile, tile.heights, xy))
     rows: list[dict[str, Any]] = []
-    variants = [(basis, start, regions) for basis in args.bases
+    variants = [(basis, start, zones) for basis in args.bases
                 for start in (args.starts if basis == "pyramid" else ["exact"])
-                for regions in args.regions]
-    latent_kinds = [f"latent {basis} ({start} start{f', {r} x {r} regions' if r else ''})"
+                for zones in args.zones]
+    latent_kinds = [f"latent {basis} ({start} start{f', {r} x {r} zones' if r else ''})"
                     for basis, start, r in variants]
-    for (basis, start, regions), kind in zip(variants, latent_kinds, strict=True):
+    for (basis, start, zones), kind in zip(variants, latent_kinds, strict=True):
         for lam in args.lambdas:
             clock = time.perf_counter()
             latent_map, _ = fit_latent_map(
@@ -263,7 +263,7 @@ def run_tile(name: str, args: argparse.Namespace) -> dict[str, Any]:
                 levels=args.wavelet_levels if basis == "wavelet" else args.levels,
                 init_sweeps=args.init_sweeps, exact_start=start == "exact",
                 between_weight=args.between_weight, basis=basis, wavelet=args.wavelet,
-                init_step=args.init_step, regions=regions)
+                init_step=args.init_step, zones=zones)
             nodes = latent_map.node_heights().numpy()
             with torch.no_grad():
                 own = latent_map(torch.from_numpy(xy).float()).double().numpy()
@@ -319,6 +319,20 @@ def format_tile(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: Options of this script that were renamed: old spelling -> new one.
+RENAMED = {"--regions": "--zones"}
+
+
+def refuse_renamed(parser: argparse.ArgumentParser, argv: list[str] | None,
+                   renamed: dict[str, str]) -> None:
+    """Exits with a usage error naming the new spelling when ``argv`` (default
+    ``sys.argv[1:]``) uses a renamed option or value (``renamed``: old -> new)."""
+    words = sys.argv[1:] if argv is None else argv
+    for old, new in renamed.items():
+        if any(w == old or w.startswith(old + "=") for w in words):
+            parser.error(f"{old} is renamed {new}")
+
+
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tiles", nargs="+", default=["jacksboro", "topobathy", "synthetic"])
@@ -335,9 +349,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--starts", nargs="+", choices=["sweeps", "exact"], default=["exact"],
                         help="latent starts to compare: pyramid sweeps only, or + exact nodes")
     parser.add_argument("--between_weight", type=float, default=0.5)
-    parser.add_argument("--regions", nargs="+", type=int, default=[0],
-                        help="region grid sides R to compare (0 = one step per subband; "
-                             "neuralmap.terrain.latent.regions)")
+    parser.add_argument("--zones", nargs="+", type=int, default=[0],
+                        help="zone grid sides R to compare (0 = one step per subband; "
+                             "neuralmap.terrain.latent.zones)")
     parser.add_argument("--psnr_levels", nargs="+", type=float,
                         default=[40, 45, 50, 55, 60, 65, 70, 75, 80, 85, 90])
     parser.add_argument("--bounds", nargs="+", type=float, default=[1, 2, 4, 8, 16])
@@ -345,6 +359,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--quick", action="store_true")
     add_out_option(parser, "bench_latent_rd")
+    refuse_renamed(parser, argv, RENAMED)
     args = parser.parse_args(argv)
     if args.quick:
         args.tiles, args.lambdas, args.steps = ["synthetic"], [1.0, 8.0], 30

@@ -44,8 +44,8 @@ import torch
 from neuralmap.docs.bench_run import add_out_option, start_bench
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.nav.navigator import Navigator
-from neuralmap.nav.scenario import load_scenario, scenario_tile
-from neuralmap.nav.simulator import simulate
+from neuralmap.lab.scenario import load_scenario, scenario_tile
+from neuralmap.lab.simulator import simulate
 from neuralmap.studies.base import check_device
 from neuralmap.terrain.grid import GridTerrain
 

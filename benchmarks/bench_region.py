@@ -10,7 +10,7 @@ Every measurement runs in a fresh child process (so peak RSS is its own):
   2-process/1-process ratio, the peak RSS of the largest rank, and the projected time of
   a whole map (every block, ``--full_steps`` steps of 256 points: the trainer's defaults)
   for the paper's region and an SRTM 1″ tile (3601 × 3601 at 30 m).
-* **Monte Carlo** (`neuralmap.nav.chunked.run_monte_carlo_chunked`): the jacksboro
+* **Monte Carlo** (`neuralmap.lab.chunked.run_monte_carlo_chunked`): the jacksboro
   scenario (200 steps), bilinear method, at ``--mc_runs`` runs; runs/s and the peak RSS
   of the chunked run itself (the peak is reset after the setup through
   ``/proc/self/clear_refs``, so the truth-terrain build is not counted; its own peak is
@@ -92,9 +92,9 @@ def _child_mc(job: dict) -> dict:
     import torch
 
     from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.chunked import run_monte_carlo_chunked
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
-    from neuralmap.nav.truth_terrain import true_terrain
+    from neuralmap.lab.chunked import run_monte_carlo_chunked
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.truth_terrain import true_terrain
 
     torch.set_num_threads(1)
     scenario = load_scenario(job["scenario"])

@@ -66,7 +66,7 @@ row "train.py, one epoch" "$cpu" "$gpu"
 MAP="$OUT/tiny_map.pt"
 python - "$MAP" <<'PY'
 import sys, torch
-from neuralmap.nav.scenario import load_scenario, scenario_tile
+from neuralmap.lab.scenario import load_scenario, scenario_tile
 from neuralmap.terrain.blockwise import BlockwiseTerrainNet
 from neuralmap.terrain.export import save_map
 torch.manual_seed(0)

@@ -3,14 +3,16 @@
 Every writer goes through a temporary file in the destination folder and
 `os.replace`, so a reader (or a crash) never sees a half-written file. Files get the
 permission bits a plain ``open`` would give under the current umask (``tempfile`` alone
-would leave them owner-only). Run folders are built under a hidden temporary name and
-published as the next free ``version_<N>`` (or in place of an earlier output:
-`replacing_dir`); the number is reserved with an atomic
-``mkdir`` so two concurrent runs can never take the same folder.
+would leave them owner-only). Several files of one output are written all or nothing
+(`atomic_files`: all to temporary names first, renamed together at the end). Run folders
+are built under a hidden temporary name and published as the next free ``version_<N>``
+(or in place of an earlier output: `replacing_dir`); the number is reserved with an
+atomic ``mkdir`` so two concurrent runs can never take the same folder.
 """
 
 from __future__ import annotations
 
+import errno
 import io as _io
 import json
 import math
@@ -30,6 +32,8 @@ import yaml
 from neuralmap.exceptions import NeuralMapError
 
 __all__ = [
+    "AtomicFiles",
+    "atomic_files",
     "atomic_write",
     "atomic_write_bytes",
     "atomic_write_figure",
@@ -38,6 +42,7 @@ __all__ = [
     "atomic_write_torch",
     "check_writable_dir",
     "default_mode",
+    "json_text",
     "next_version_dir",
     "publish_dir",
     "replacing_dir",
@@ -56,6 +61,27 @@ def default_mode(*, directory: bool = False) -> int:
     return (0o777 if directory else 0o666) & ~mask
 
 
+def _write_temp(path: Path, write: Callable[[IO[bytes]], None]) -> str:
+    """Writes a hidden temporary file beside ``path`` through ``write(handle)``.
+
+    The low-level writer of every atomic write: the file gets the umask's permission
+    bits; on any error (a full disk included) it is removed again and the error re-raised.
+
+    Returns:
+        The temporary file's path (same folder as ``path``, so `os.replace` is atomic).
+    """
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            write(handle)
+        os.chmod(tmp, default_mode())
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return tmp
+
+
 def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], None]) -> Path:
     """Writes ``path`` through ``write(handle)`` on a temporary file, then renames it.
 
@@ -69,17 +95,134 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[IO[bytes]], None
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    tmp = _write_temp(path, write)
     try:
-        with os.fdopen(fd, "wb") as handle:
-            write(handle)
-        os.chmod(tmp, default_mode())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
     return path
+
+
+class AtomicFiles:
+    """Several output files written all or nothing (`atomic_files`).
+
+    Each `write` goes to a hidden temporary file in the destination's folder at once (the
+    bytes are not held in memory); `commit` renames them all into place at the end. Until
+    then the destinations keep their earlier content; `discard` removes the temporary
+    files, and the folders this batch created when they are left empty.
+
+    Attributes:
+        option: How the messages name the output (``--out``, ``outputpath``).
+    """
+
+    def __init__(self, *, option: str = "--out") -> None:
+        self.option = option
+        self._pending: list[tuple[str, Path]] = []
+        self._remove: list[Path] = []
+        self._created: list[Path] = []
+
+    def _folder(self, folder: Path) -> None:
+        missing = [p for p in (folder, *folder.parents) if not p.exists()]
+        folder.mkdir(parents=True, exist_ok=True)
+        self._created.extend(missing)  # deepest first: removed in this order
+
+    def write(self, path: str | os.PathLike[str], write: Callable[[IO[bytes]], None]) -> Path:
+        """Writes ``path``'s future content to a temporary file (see `atomic_write`).
+
+        Raises:
+            NeuralMapError: The file cannot be written (a full disk, a read-only folder, a
+                folder in the way), with the path, the reason and the fix.
+        """
+        path = Path(path)
+        try:
+            self._folder(path.parent)
+            self._pending.append((_write_temp(path, write), path))
+        except OSError as exc:
+            raise self._error(path, exc) from None
+        return path
+
+    def write_bytes(self, path: str | os.PathLike[str], data: bytes) -> Path:
+        """`write` of bytes."""
+        return self.write(path, lambda handle: handle.write(data))
+
+    def write_text(self, path: str | os.PathLike[str], text: str) -> Path:
+        """`write` of UTF-8 text."""
+        return self.write_bytes(path, text.encode("utf-8"))
+
+    def write_json(self, path: str | os.PathLike[str], obj: Any) -> Path:
+        """`write` of strict, indented JSON (as `atomic_write_json`)."""
+        return self.write_text(path, json_text(obj))
+
+    def remove(self, path: str | os.PathLike[str]) -> None:
+        """Removes ``path`` (when present) at `commit`: an earlier output this run replaces
+        with nothing, which would otherwise sit beside the new files as if it were theirs."""
+        self._remove.append(Path(path))
+
+    def commit(self) -> list[Path]:
+        """Renames every temporary file into place, then removes the files marked with
+        `remove`; returns the destinations."""
+        done = []
+        try:
+            for tmp, path in self._pending:
+                os.replace(tmp, path)
+                done.append(path)
+            for path in self._remove:
+                if path not in done:
+                    path.unlink(missing_ok=True)
+        except OSError as exc:
+            raise self._error(path, exc) from None
+        self._pending = []
+        self._created = []
+        return done
+
+    def discard(self) -> None:
+        """Removes the temporary files not yet renamed and the empty folders this batch
+        created; the destinations keep their earlier content."""
+        for tmp, _ in self._pending:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        self._pending = []
+        for folder in self._created:
+            try:
+                folder.rmdir()
+            except OSError:  # not empty (another writer's files) or already gone
+                continue
+        self._created = []
+
+    def _error(self, path: Path, exc: OSError) -> NeuralMapError:
+        if exc.errno == errno.ENOSPC:
+            fix = "the disk is full: free space or pick a folder on another disk"
+        elif exc.errno == errno.EDQUOT:
+            fix = "the disk quota is used up: free space or pick another folder"
+        else:
+            fix = "pick a writable folder"
+        return NeuralMapError(
+            f"{self.option}: cannot write '{path}' ({exc.strerror or exc}); {fix}. Nothing "
+            "was written: earlier outputs there are unchanged.")
+
+
+@contextmanager
+def atomic_files(*, option: str = "--out") -> Iterator[AtomicFiles]:
+    """Writes several files all or nothing.
+
+    ``with atomic_files(option="--out") as files: files.write_bytes(a, ...);
+    files.write_text(b, ...)``: every file goes to a temporary name as it is written and
+    all are renamed into place when the block ends without an exception. An exception,
+    Ctrl-C or a full disk in the block leaves the earlier outputs as they were, no new
+    file and no temporary file (nor a folder the block created). The renames at the end
+    are a few microseconds; they do not need free space.
+
+    Raises:
+        NeuralMapError: A file cannot be written (full disk, read-only folder), naming it.
+    """
+    files = AtomicFiles(option=option)
+    try:
+        yield files
+        files.commit()
+    finally:
+        files.discard()
 
 
 def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
@@ -123,10 +266,14 @@ def to_jsonable(value: Any) -> Any:
     return str(value)
 
 
+def json_text(obj: Any) -> str:
+    """``obj`` as strict, indented JSON text (see `to_jsonable`), ending in a newline."""
+    return json.dumps(to_jsonable(obj), indent=2, allow_nan=False, ensure_ascii=False) + "\n"
+
+
 def atomic_write_json(path: str | os.PathLike[str], obj: Any) -> Path:
     """Writes ``obj`` as strict, indented JSON (see `to_jsonable`) atomically."""
-    text = json.dumps(to_jsonable(obj), indent=2, allow_nan=False, ensure_ascii=False)
-    return atomic_write_text(path, text + "\n")
+    return atomic_write_text(path, json_text(obj))
 
 
 def atomic_write_torch(path: str | os.PathLike[str], obj: Any) -> Path:

@@ -174,9 +174,8 @@ def stage_progress(desc: str, total: float, unit: str, *, enabled: bool = True
     """A bar (or log lines) for one stage, as a callback of the fraction of it done.
 
     Library loops take ``progress: Callable[[float], None] | None`` and call it with the
-    share of their work each step finishes (`neuralmap.nav.acquisition.
-    run_acquisition`, `neuralmap.nav.tracking.run_tracker`, the PCRB, the noise
-    derivation); a study wraps each stage in this: the bar counts ``total`` units of
+    share of their work each step finishes (`neuralmap.nav.navigator.Navigator.replay`,
+    the PCRB, the noise derivation); a study wraps each stage in this: the bar counts ``total`` units of
     ``unit`` (steps, runs), prints a heartbeat line at least every `HEARTBEAT_S`
     seconds while the stage runs when stdout is not a terminal, and its last line when
     the stage ends.

@@ -19,7 +19,7 @@ from neuralmap.docs import check_page, config_sha256, read_stamp, update_page
 from neuralmap.docs.__main__ import main as docs_main
 from neuralmap.docs.stamp import TINY_NOTE, RunStamp
 from neuralmap.docs.trace import check_study_page, untraced_numbers
-from neuralmap.studies.outputs import SUMMARY_MARK, StudyOutputs
+from neuralmap.outputs import SUMMARY_MARK, StudyOutputs
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "docs" / "results"

@@ -41,7 +41,7 @@ def evaluate() -> ModuleType:
 
 @pytest.fixture(scope="module")
 def tiny_tile():  # noqa: ANN201 - DemTile
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
 
     return scenario_tile(load_scenario("tiny"))
 
@@ -152,14 +152,14 @@ def test_evaluate_end_to_end(
     assert results["methods"]["bilinear"]["rmse_pos_converged_m"] < 0.7 * prior
     # the point-mass-started EKF: R = altimeter + the DEM table at sigma = 0 (both filters)
     # + the table's excess over it (the EKF), so the EKF's R is the measured table
-    started = results["point_mass_ekf"]
+    started = results["navigator"]["point_mass_ekf"]
     table = started["table"]
-    assert started["R_shared_m2"] == pytest.approx(
+    assert started["R_m2"] == pytest.approx(
         results["scenario"]["R_m2"] + table["variance_m2"][0], rel=1e-12)
     assert table["sigmas_m"][0] == 0.0
     # the tracker flown again with the R a user has (altimeter + stated DEM accuracy²); its
     # truth-tuned RMSE is the metrics' all-run last-half RMSE of the tracker's row
-    stated = results["tracker"]["stated_R"]
+    stated = results["navigator"]["point_mass_tracker"]["stated_R"]
     assert stated["R_m2"] == pytest.approx(
         results["scenario"]["R_m2"] + results["scenario"]["dem_error_sigma_m"] ** 2, rel=1e-12)
     assert stated["truth_tuned_rmse_last_half_m"] == pytest.approx(

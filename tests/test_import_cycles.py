@@ -90,3 +90,66 @@ def test_the_checker_finds_a_circle_through_a_function_level_import(tmp_path: Pa
     (tmp_path / "d.py").write_text("from neuralmap.a import x\n")
     modules = {f"neuralmap.{p.stem}": p for p in tmp_path.glob("*.py")}
     assert circles(import_graph(modules)) == [["neuralmap.a", "neuralmap.b", "neuralmap.c"]]
+
+
+#: Packages each package must not import (lower layers never import upper ones; the lab
+#: uses the product, the product the methods, never the other way).
+FORBIDDEN: dict[str, tuple[str, ...]] = {
+    "neuralmap.dem": ("neuralmap.terrain", "neuralmap.linearize", "neuralmap.filters",
+                      "neuralmap.tan", "neuralmap.nav", "neuralmap.lab", "neuralmap.studies",
+                      "neuralmap.training"),
+    "neuralmap.filters": ("neuralmap.terrain", "neuralmap.linearize", "neuralmap.tan",
+                          "neuralmap.nav", "neuralmap.lab", "neuralmap.studies",
+                          "neuralmap.training", "lightning"),
+    "neuralmap.terrain": ("neuralmap.tan", "neuralmap.nav", "neuralmap.lab",
+                          "neuralmap.studies"),
+    "neuralmap.tan": ("neuralmap.nav", "neuralmap.lab", "neuralmap.studies",
+                      "neuralmap.training", "neuralmap.learning"),
+    "neuralmap.nav": ("neuralmap.lab", "neuralmap.studies", "neuralmap.training",
+                      "neuralmap.learning"),
+    "neuralmap.lab": ("neuralmap.studies", "neuralmap.training"),
+}
+
+
+def _imports(path: Path) -> list[tuple[str, list[str]]]:
+    """``(module, names)`` of every absolute import in ``path`` (any depth)."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            out.append((node.module, [a.name for a in node.names]))
+        elif isinstance(node, ast.Import):
+            out.extend((a.name, []) for a in node.names)
+    return out
+
+
+def upward_imports(modules: dict[str, Path]) -> list[str]:
+    """``"a -> b"`` for every import of a package `FORBIDDEN` for ``a``'s package."""
+    found = []
+    for name, path in sorted(modules.items()):
+        for layer, banned in FORBIDDEN.items():
+            if name != layer and not name.startswith(layer + "."):
+                continue
+            found.extend(f"{name} -> {target}" for target, _ in _imports(path)
+                         if any(target == b or target.startswith(b + ".") for b in banned))
+    return found
+
+
+def test_no_package_imports_an_upper_layer() -> None:
+    assert upward_imports(_modules()) == []
+
+
+def test_the_navigation_packages_import_no_private_name_of_another_module() -> None:
+    found = []
+    for name, path in _modules().items():
+        if not name.startswith(("neuralmap.tan", "neuralmap.nav", "neuralmap.lab")):
+            continue
+        for target, names in _imports(path):
+            if target != name and target.startswith("neuralmap."):
+                found.extend(f"{name}: {target}.{n}" for n in names if n.startswith("_"))
+    assert found == []
+
+
+def test_the_layer_check_finds_an_upward_import(tmp_path: Path) -> None:
+    (tmp_path / "m.py").write_text("def f():\n    from neuralmap.nav.navigator import Navigator\n")
+    assert upward_imports({"neuralmap.tan.m": tmp_path / "m.py"}) == [
+        "neuralmap.tan.m -> neuralmap.nav.navigator"]

@@ -14,6 +14,8 @@ below 1e-4. Heights are unchanged.
 from __future__ import annotations
 
 import math
+import re
+from typing import Any
 
 from neuralmap.dem.tile import GeoReference
 from neuralmap.exceptions import NeuralMapError
@@ -26,6 +28,61 @@ WGS84_F = 1.0 / 298.257223563
 WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 #: Description stored in ``GeoReference.model``.
 EARTH_MODEL = "WGS-84 ellipsoid, radii of curvature M, N at the centre latitude"
+
+
+#: The CRS of SRTM ``.hgt`` tiles (WGS-84 lon/lat), as rasterio and pyproj read it.
+SRTM_CRS = "EPSG:4326"
+#: The CRS name SRTM mosaics recorded before they kept `SRTM_CRS`.
+LEGACY_SRTM_CRS = "WGS 84 (SRTM)"
+
+_WKT_NAME = re.compile(r'^\s*[A-Z_]+\s*\[\s*"([^"]*)"')
+
+
+def crs_name(crs: str | None) -> str | None:
+    """A short name of a CRS text for messages: the name of a WKT (``PROJCS["WGS 84 / UTM
+    zone 16N", ...]`` gives ``WGS 84 / UTM zone 16N``), else the text itself (``EPSG:32616``).
+    """
+    if crs is None:
+        return None
+    match = _WKT_NAME.match(crs)
+    return match.group(1) if match else crs
+
+
+def pyproj_crs(crs: str, where: str) -> Any:
+    """A CRS text as a `pyproj.CRS`: WKT, ``EPSG:<code>``, or only a CRS *name*.
+
+    Tiles read before the readers kept the ``.prj`` WKT (and ``.prj`` files whose WKT is
+    incomplete) record a name such as ``"WGS 84 / UTM zone 16N"``; pyproj looks it up in
+    its database. ``"WGS 84 (SRTM)"``, the name SRTM mosaics recorded, is `SRTM_CRS`.
+
+    Args:
+        crs: The CRS text a tile records.
+        where: What records it, for the messages (``"GeoTIFF export"``, ``"map 'x'"``).
+
+    Raises:
+        NeuralMapError: pyproj missing (the ``nav`` extra), or a text that is neither a CRS
+            nor a name pyproj knows, with the fix.
+    """
+    try:
+        import pyproj
+    except ImportError:
+        raise NeuralMapError(
+            f"{where}: the CRS {crs_name(crs)!r} has to be turned into a CRS by pyproj, which "
+            "is not installed. Install it with pip install 'neuralmap[nav]' (pyproj and "
+            "rasterio), or give the DEM with its full CRS (a GeoTIFF with a CRS, an .asc "
+            "whose .prj holds the WKT)."
+        ) from None
+    for text in dict.fromkeys((crs, crs_name(crs))):
+        text = SRTM_CRS if text == LEGACY_SRTM_CRS else text
+        try:
+            return pyproj.CRS.from_user_input(text)
+        except pyproj.exceptions.CRSError:
+            continue
+    raise NeuralMapError(
+        f"{where}: the CRS {crs_name(crs)!r} is neither WKT, an EPSG code nor a CRS name "
+        "pyproj knows. Give the DEM with its full CRS: a GeoTIFF with a CRS, or an .asc whose "
+        ".prj holds the WKT (gdalsrsinfo -o wkt1 EPSG:<code> > file.prj)."
+    )
 
 
 def metres_per_degree(lat_deg: float) -> tuple[float, float]:
@@ -237,11 +294,14 @@ def decide_units(
 
 __all__ = [
     "EARTH_MODEL",
+    "LEGACY_SRTM_CRS",
     "MAX_DEGREE_CELL",
     "MIN_METRE_CELL",
+    "SRTM_CRS",
     "UNITS_HINT",
     "UNIT_NAMES",
     "canonical_units",
+    "crs_name",
     "decide_units",
     "WGS84_A",
     "WGS84_E2",
@@ -249,4 +309,5 @@ __all__ = [
     "geographic_grid",
     "geographic_reference",
     "metres_per_degree",
+    "pyproj_crs",
 ]

@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from neuralmap.dem.geo import geographic_grid, metres_per_degree
+from neuralmap.dem.geo import SRTM_CRS, crs_name, geographic_grid, metres_per_degree
 from neuralmap.dem.load import load_tile
 from neuralmap.dem.tile import DemTile, ProjectedReference
 from neuralmap.exceptions import NeuralMapError
@@ -101,7 +101,7 @@ def _native(tile: DemTile, path: Path) -> _Native:
             lat, lon = meta["sw_corner_deg"]
             arc = float(meta["arcsec"]) / 3600.0
             first, step = (float(lon), float(lat)), (arc, arc)
-            crs: str | None = "WGS 84 (SRTM)"
+            crs: str | None = meta.get("crs") or SRTM_CRS
         else:
             lon, lat = geo.to_geographic(*tile.origin)
             first = (float(meta.get("first_node", (lon, lat))[0]),
@@ -118,12 +118,13 @@ def _native(tile: DemTile, path: Path) -> _Native:
 
 
 def _same_datum(a: str | None, b: str | None) -> bool:
-    """CRS names agree (unknown on either side counts as agreement; SRTM is WGS 84)."""
+    """CRS names agree (unknown on either side counts as agreement; SRTM is WGS 84); a WKT
+    is compared by its name (`crs_name`)."""
     if a is None or b is None:
         return True
 
     def norm(s: str) -> str:
-        s = s.upper().replace("_", " ").replace("-", " ")
+        s = str(crs_name(s)).upper().replace("_", " ").replace("-", " ")
         return "WGS 84" if ("WGS 84" in s or "WGS84" in s.replace(" ", "") or "4326" in s) else s
 
     return norm(a) == norm(b)
@@ -141,7 +142,8 @@ class MosaicPlan:
         first: Native coordinates of mosaic node ``[0, 0]`` (lon/lat or easting/northing).
         step: Native node steps.
         units: ``"degrees"`` or ``"metres"``.
-        crs: The common CRS name (or None).
+        crs: The common CRS as text rasterio and pyproj read (WKT or ``EPSG:<code>``), or
+            None.
     """
 
     tiles: list[DemTile]
@@ -179,9 +181,9 @@ def plan_mosaic(
             )
         if not _same_datum(nat.crs, ref.crs):
             raise NeuralMapError(
-                f"load_mosaic: '{p}' uses datum/CRS {nat.crs!r} but '{paths[0]}' uses "
-                f"{ref.crs!r}; heights and positions would not match. Reproject the files "
-                "to one CRS (gdalwarp -t_srs) first."
+                f"load_mosaic: '{p}' uses datum/CRS {crs_name(nat.crs)!r} but '{paths[0]}' "
+                f"uses {crs_name(ref.crs)!r}; heights and positions would not match. "
+                "Reproject the files to one CRS (gdalwarp -t_srs) first."
             )
         for axis in (0, 1):
             if not math.isclose(nat.step[axis], ref.step[axis], rel_tol=GRID_RTOL):
@@ -239,7 +241,7 @@ def _check_connected(boxes: list[tuple[int, int, int, int]], paths: list[Path]) 
         )
 
 
-def _stitch_into(plan: MosaicPlan, out: np.ndarray, tolerance_m: float) -> int:
+def stitch_into(plan: MosaicPlan, out: np.ndarray, tolerance_m: float) -> int:
     """Writes the tiles into ``out`` (NaN-filled), checking shared nodes; returns overlaps."""
     n_shared = 0
     filled = np.zeros(out.shape, dtype=bool)
@@ -302,7 +304,7 @@ def projection_distortion(
     }
 
 
-def _mosaic_tile(plan: MosaicPlan, heights: np.ndarray, name: str, n_shared: int) -> DemTile:
+def mosaic_tile(plan: MosaicPlan, heights: np.ndarray, name: str, n_shared: int) -> DemTile:
     """The DemTile of a stitched mosaic in one metric frame."""
     ny, nx = plan.shape
     sources = ";".join(str(p) for p in plan.paths)
@@ -323,7 +325,7 @@ def _mosaic_tile(plan: MosaicPlan, heights: np.ndarray, name: str, n_shared: int
         meta["projection"] = projection_distortion(lon_range, lat_range)
         return DemTile(heights=heights, spacing=spacing, origin=origin, name=name, geo=geo,
                        source=sources, meta=meta)
-    meta["projection"] = {"name": f"the files' own projected CRS ({plan.crs})",
+    meta["projection"] = {"name": f"the files' own projected CRS ({crs_name(plan.crs)})",
                           "max_scale_error_ew": 0.0, "max_scale_error_ns": 0.0,
                           "max_position_error_m": 0.0}
     projected = ProjectedReference(x_offset=plan.first[0], y_offset=plan.first[1], crs=plan.crs)
@@ -376,9 +378,9 @@ def load_mosaic(
             "write_mosaic(sources, 'area.npy') and train from the memory-mapped file."
         )
     heights = np.full(plan.shape, np.nan)
-    n_shared = _stitch_into(plan, heights, tolerance_m)
+    n_shared = stitch_into(plan, heights, tolerance_m)
     label = name or f"mosaic_{plan.paths[0].stem}_{len(plan.paths)}"
-    return _mosaic_tile(plan, heights, label, n_shared)
+    return mosaic_tile(plan, heights, label, n_shared)
 
 
 def write_mosaic(
@@ -414,10 +416,10 @@ def write_mosaic(
         )
     array = np.lib.format.open_memmap(out, mode="w+", dtype=np.float32, shape=(ny, nx))
     array[:] = np.nan
-    n_shared = _stitch_into(plan, array, tolerance_m)
+    n_shared = stitch_into(plan, array, tolerance_m)
     array.flush()
     del array
-    small = _mosaic_tile(plan, np.zeros((2, 2)), out.stem, n_shared)  # frame only
+    small = mosaic_tile(plan, np.zeros((2, 2)), out.stem, n_shared)  # frame only
     reference = small.georeference
     info = {"path": str(out), "shape": [ny, nx], "spacing": list(small.spacing),
             "georeference": None if reference is None else reference.describe(),

@@ -57,7 +57,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neuralmap.dem.readers import _make_tile, read_geotiff
+from neuralmap.dem.readers import make_tile, read_geotiff
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import atomic_write_bytes
@@ -295,7 +295,7 @@ def load_package_sample(
         version = importlib.metadata.version(spec.distribution) if _installed(spec) else "?"
     source = f"sample:{sample} ({spec.distribution} {spec.path})"
     if sample == "volcano":
-        tile = _make_tile(
+        tile = make_tile(
             volcano_heights(),
             spacing=(VOLCANO_SPACING_M, VOLCANO_SPACING_M),
             origin=origin,

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from neuralmap.dem.geo import (
+    SRTM_CRS,
     canonical_units,
     decide_units,
     geographic_grid,
@@ -204,7 +205,7 @@ def _heights_2d(array: Any, where: str) -> np.ndarray:
     return arr.astype(np.float64)
 
 
-def _make_tile(
+def make_tile(
     heights: np.ndarray,
     *,
     spacing: tuple[float, float],
@@ -328,7 +329,7 @@ def _generic_grid(
     spacing_pair = as_pair(spacing, "spacing", where, positive=True)
     if nodata is not None:
         heights = np.where(nodata_mask(heights, nodata), np.nan, heights)
-    return _make_tile(
+    return make_tile(
         heights,
         spacing=spacing_pair,
         origin=origin,
@@ -389,7 +390,7 @@ def read_matplotlib_arrays(
     spacing, origin_m, geo = geographic_grid(
         lon_first, lat_first, dlon, dlat, (ny, nx), origin=origin, where=where
     )
-    return _make_tile(
+    return make_tile(
         np.flipud(heights),
         spacing=spacing,
         origin=origin_m,
@@ -482,7 +483,7 @@ def read_hgt(
         float(lon_sw), float(lat_sw), step, step, (side, side), origin=origin,
         where=f"SRTM file '{path}'",
     )
-    return _make_tile(
+    return make_tile(
         heights,
         spacing=spacing,
         origin=origin_m,
@@ -491,6 +492,7 @@ def read_hgt(
         geo=geo,
         meta={
             "format": "srtm-hgt",
+            "crs": SRTM_CRS,
             "units": "degrees",
             "units_reason": "SRTM .hgt tiles are 1 degree x 1 degree lon/lat grids",
             "arcsec": HGT_SIZES[side],
@@ -509,21 +511,26 @@ _ASC_KEYS = {
 }
 
 
-def _prj_units(path: Path) -> tuple[str | None, str | None]:
+def _prj_crs(path: Path) -> tuple[str | None, str | None, str | None]:
     """Reads a ``.prj`` sidecar: (``"metres"`` for PROJCS / ``"degrees"`` for GEOGCS only /
-    None, the CRS name or None)."""
+    None, the CRS name or None, the WKT itself (whitespace collapsed) or None).
+
+    The WKT is kept whole so that the CRS can be written back (GeoTIFF export) and
+    converted (pyproj); the name is for messages.
+    """
     for candidate in (path.with_suffix(".prj"), path.with_suffix(".PRJ")):
         if candidate.is_file():
             text = candidate.read_text(errors="replace")
+            wkt = " ".join(text.split()) or None
             upper = text.upper()
             name_match = re.search(r'(?:PROJCS|PROJCRS|GEOGCS|GEOGCRS)\s*\[\s*"([^"]*)"', text,
                                    re.IGNORECASE)
             name = name_match.group(1) if name_match else None
             if "PROJCS" in upper or "PROJCRS" in upper:
-                return "metres", name
+                return "metres", name, wkt
             if "GEOGCS" in upper or "GEOGCRS" in upper:
-                return "degrees", name
-    return None, None
+                return "degrees", name, wkt
+    return None, None, None
 
 
 def _decide_units(
@@ -695,12 +702,14 @@ def read_asc(
         n_nodata = int(mask.sum())
         grid = np.where(mask, np.nan, grid)
     heights = np.flipud(grid)
-    prj_units, crs = _prj_units(path)
+    prj_units, crs_label, crs = _prj_crs(path)
     kind = "a projected" if prj_units == "metres" else "a geographic"
-    declared = (prj_units, f"the .prj sidecar names {kind} CRS ({crs})")
+    declared = (prj_units, f"the .prj sidecar names {kind} CRS ({crs_label})")
     decided, reason = _decide_units(
         units, declared, x_first, y_first, dx, dy, (nrows, ncols), where
     )
+    if prj_units != decided:  # units forced against the .prj: its CRS is not this grid's
+        crs = None
     meta = {
         "format": "esri-ascii",
         "nodata": nodata,
@@ -709,6 +718,7 @@ def read_asc(
         "units": decided,
         "units_reason": reason,
         "first_node": [x_first, y_first],
+        "crs": crs,
     }
     return _grid_tile(heights, x_first, y_first, dx, dy, decided, origin=origin,
                       name=name or path.stem, source=str(path), meta=meta, crs=crs, where=where)
@@ -735,17 +745,65 @@ def _grid_tile(
         spacing, origin_m, geo = geographic_grid(
             x_first, y_first, dx, dy, (ny, nx), origin=origin, where=where
         )
-        return _make_tile(heights, spacing=spacing, origin=origin_m, name=name, source=source,
+        return make_tile(heights, spacing=spacing, origin=origin_m, name=name, source=source,
                           geo=geo, meta=meta)
     local = (0.0, 0.0) if origin is None else origin
     projected = ProjectedReference(
         x_offset=float(x_first) - local[0], y_offset=float(y_first) - local[1], crs=crs
     )
-    return _make_tile(heights, spacing=(dx, dy), origin=local, name=name, source=source,
+    return make_tile(heights, spacing=(dx, dy), origin=local, name=name, source=source,
                       meta=meta, projected=projected)
 
 
 # --------------------------------------------------------------------------- GeoTIFF
+
+
+#: GDAL drivers of the files `read_geotiff` accepts.
+_TIFF_DRIVERS = ("GTiff", "COG")
+#: First bytes of a TIFF / BigTIFF file (little- and big-endian).
+_TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+#: First bytes of formats that turn up renamed ``.tif`` -> their name.
+_OTHER_SIGNATURES = (
+    (b"\x89PNG\r\n\x1a\n", "a PNG image"),
+    (b"\xff\xd8\xff", "a JPEG image"),
+    (b"GIF8", "a GIF image"),
+    (b"\x00\x00\x00\x0cjP  ", "a JPEG 2000 image"),
+    (b"\x89HDF", "an HDF5/netCDF-4 file"),
+    (b"CDF", "a netCDF file"),
+    (b"PK\x03\x04", "a zip archive (an .npz?)"),
+    (b"\x93NUMPY", "a NumPy .npy array"),
+)
+_NOT_TIFF_FIX = (
+    "Give the file its real extension, or convert it with its georeference "
+    "(gdal_translate -of GTiff -a_srs EPSG:<code> -a_ullr <west> <north> <east> <south> "
+    "in out.tif)."
+)
+
+
+def _check_tiff_signature(path: Path, where: str) -> None:
+    """Refuses a local file whose first bytes are not a TIFF's (e.g. a PNG renamed .tif),
+    naming the format it is (``where`` names the file when it cannot be read)."""
+    if not path.is_file():
+        return  # rasterio reports a missing file
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(16)
+    except OSError as exc:
+        raise NeuralMapError(f"{where} could not be read ({exc.strerror or exc}).") from None
+    if head[:4] in _TIFF_SIGNATURES:
+        return
+    if not head:
+        what = "an empty file"
+    else:
+        what = next((name for magic, name in _OTHER_SIGNATURES if head.startswith(magic)),
+                    None)
+        if what is None:
+            text = all(32 <= byte < 127 or byte in b"\t\r\n" for byte in head)
+            what = "a text file" if text else f"an unknown format (first bytes {head[:4]!r})"
+    raise NeuralMapError(
+        f"DEM file '{path}' is not a GeoTIFF: its first bytes are those of {what}, not a "
+        f"TIFF's ('II*' or 'MM*'). {_NOT_TIFF_FIX}"
+    )
 
 
 def read_geotiff(
@@ -765,8 +823,10 @@ def read_geotiff(
     coordinates of a metric file in ``tile.projected``).
 
     Raises:
-        NeuralMapError: rasterio missing (says how to install it), more than one band,
-            rotated or sheared transform, unreadable file, ambiguous units, all-void tile.
+        NeuralMapError: rasterio missing (says how to install it), a file that is not a
+            GeoTIFF (another format renamed ``.tif``: its first bytes or GDAL's driver),
+            more than one band, rotated or sheared transform, unreadable file, ambiguous
+            units, all-void tile.
     """
     path = Path(path)
     where = f"GeoTIFF '{path}'"
@@ -781,8 +841,12 @@ def read_geotiff(
             "pip install 'neuralmap[geotiff]' (or pip install rasterio), or convert the file "
             "to .asc/.npz."
         ) from exc
+    _check_tiff_signature(path, where)
     try:
         with rasterio.open(path) as src:
+            if src.driver not in _TIFF_DRIVERS:
+                raise NeuralMapError(f"DEM file '{path}' is not a GeoTIFF: GDAL reads it as "
+                                     f"{src.driver}. {_NOT_TIFF_FIX}")
             if src.count != 1:
                 raise NeuralMapError(
                     f"{where} has {src.count} bands; a DEM is one band of heights. Extract "

@@ -3,7 +3,7 @@
 SEEDS 004's map is 361 km × 127 km at 100 m (3610 × 1270 nodes, about 4.6 M). The region
 is a Gaussian random field with the jacksboro sample's measured power spectrum: a power law
 ``P(k) = A k^(−β)`` (two-sided 2-D PSD, m⁴, ``k`` in cycles/m) with ``A`` and ``β`` fitted to
-jacksboro's periodogram near its Nyquist band (``neuralmap.nav.truth_terrain.spectral_slope``
+jacksboro's periodogram near its Nyquist band (``neuralmap.lab.truth_terrain.spectral_slope``
 gives `JACKSBORO_SPECTRUM`). The power law cannot hold down to ``k = 0`` (its variance
 diverges), so it is held flat below a corner wavenumber ``k_c`` chosen in closed form so
 that the field's height standard deviation equals jacksboro's (`JACKSBORO_STD_M`):
@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from neuralmap.dem.synthetic import _fast_length
+from neuralmap.dem.synthetic import fast_length
 from neuralmap.exceptions import NeuralMapError
 
 __all__ = [
@@ -102,7 +102,7 @@ def synthetic_region(
         )
     amplitude, beta = float(spectrum[0]), float(spectrum[1])
     k_c = corner_wavenumber(amplitude, beta, std_m)
-    py, px = _fast_length(ny + ny // 4), _fast_length(nx + nx // 4)
+    py, px = fast_length(ny + ny // 4), fast_length(nx + nx // 4)
     rng = np.random.default_rng([int(seed), 0x5E610])
     ky = np.fft.fftfreq(py, d=spacing)[:, None]
     kx = np.fft.rfftfreq(px, d=spacing)[None, :]

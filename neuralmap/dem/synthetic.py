@@ -19,7 +19,7 @@ def _as_pair(value: object, what: str, cast: type) -> tuple:
     return tuple(cast(v) for v in broadcast_pair(value, what, "synthetic_tile"))
 
 
-def _fast_length(n: int) -> int:
+def fast_length(n: int) -> int:
     """Smallest 5-smooth integer ≥ n (fast FFT length; unchanged when n already is one)."""
     best = 2 * n
     p2 = 1
@@ -59,7 +59,7 @@ def fractal_surface(
         ``(ny, nx)`` float64 array scaled to ``[0, 1]``.
     """
     ny, nx = shape
-    py, px = _fast_length(2 * ny), _fast_length(2 * nx)
+    py, px = fast_length(2 * ny), fast_length(2 * nx)
     rng = np.random.default_rng(seed)
     ky = np.fft.fftfreq(py)[:, None]
     kx = np.fft.rfftfreq(px)[None, :]

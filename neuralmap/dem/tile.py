@@ -94,8 +94,10 @@ class ProjectedReference:
     Attributes:
         x_offset: Source-system x (easting) of the tile-frame point ``(0, 0)``, metres.
         y_offset: Source-system y (northing) of the tile-frame point ``(0, 0)``, metres.
-        crs: The source coordinate reference system as text (``.prj`` WKT name, GeoTIFF
-            CRS), or ``None`` when the file names none.
+        crs: The source coordinate reference system as text that rasterio and pyproj
+            read back (the ``.prj`` sidecar's WKT, the GeoTIFF's CRS as ``EPSG:<code>`` or
+            WKT), or ``None`` when the file names none; `neuralmap.dem.geo.crs_name` gives
+            its name for messages.
     """
 
     x_offset: float
@@ -281,6 +283,7 @@ class DemTile:
             "height_range": [float(np.nanmin(self.heights)), float(np.nanmax(self.heights))],
             "geo": None if self.geo is None else self.geo.describe(),
             "projected": None if self.projected is None else self.projected.describe(),
+            "crs": self.meta.get("crs"),
             "units": self.meta.get("units"),
             "units_reason": self.meta.get("units_reason"),
         }

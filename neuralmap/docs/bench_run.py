@@ -36,7 +36,7 @@ from neuralmap.io import (
     to_jsonable,
 )
 from neuralmap.machine import machine
-from neuralmap.studies.outputs import SUMMARY_MARK, run_provenance
+from neuralmap.outputs import SUMMARY_MARK, run_provenance
 
 __all__ = ["BenchRun", "add_out_option", "machine", "markdown_of_output", "script_sha256",
            "start_bench"]

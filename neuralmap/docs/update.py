@@ -29,7 +29,7 @@ import yaml
 from neuralmap.docs.stamp import TINY_NOTE, RunStamp, config_sha256
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import atomic_write_text, load_yaml, to_jsonable
-from neuralmap.studies.outputs import SUMMARY_MARK
+from neuralmap.outputs import SUMMARY_MARK
 
 __all__ = ["IGNORED_OPTIONS", "IGNORED_TRAIN_OPTIONS", "find_config", "update_page"]
 

@@ -149,8 +149,8 @@ def run_example(out_dir: str | Path, *, size: str = "tiny", seed: int = 0,
     from neuralmap.ins.kfgins import simulated_logs, write_gnss, write_imu, write_nav
     from neuralmap.ins.trajectory import Segment, generate
     from neuralmap.io import atomic_write_text
+    from neuralmap.nav.cli import main as navigate_main
     from neuralmap.nav.georef import MapFrame
-    from neuralmap.nav.navigate_cli import main as navigate_main
     from neuralmap.terrain.grid import GridTerrain
 
     spec = SIZES[size]

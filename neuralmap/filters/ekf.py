@@ -52,6 +52,7 @@ from neuralmap.filters.kalman import (
     update_scalar_upper,
 )
 from neuralmap.filters.policy import Adaptation, FilterPolicy, Posterior, UpdateContext
+from neuralmap.filters.stats import symmetrize
 from neuralmap.filters.validation import (
     as_float_tensor,
     check_covariance,
@@ -247,6 +248,13 @@ class BatchedEKF:
     def healthy(self) -> torch.Tensor:
         """``(N,)`` bool health flags (False = frozen)."""
         return self._healthy
+
+    def reset(self, mask: torch.Tensor, x: torch.Tensor, P: torch.Tensor) -> None:
+        """Filters ``mask (N,)`` restart from ``x (N, n)``, ``P (N, n, n)`` (rows outside the
+        mask are kept) and are healthy again."""
+        self.x = torch.where(mask[:, None], x.to(self.x.dtype), self.x)
+        self.P = torch.where(mask[:, None, None], P.to(self.x.dtype), self.P)
+        self._healthy = self._healthy | mask.to(self._healthy.device)
 
     @property
     def num_states(self) -> int:
@@ -455,7 +463,7 @@ class BatchedEKF:
                 if tuple(adapted.shape) != (batch, n, n):
                     raise shape_error("BatchedEKF.predict (policy)", "Q",
                                       f"(N, n, n) = ({batch}, {n}, {n})", adapted.shape)
-                Q = 0.5 * (adapted + adapted.transpose(1, 2))
+                Q = symmetrize(adapted)
                 q_min = q_max = 0.0
         self._last_Q = Q
         certified = self._check_pd and self._certified_pd(plan, q_min, q_max)
@@ -535,7 +543,7 @@ class BatchedEKF:
             if mask is not None:
                 sel = sel & mask
             check_covariance(R[sel], name="R", where=where, definite=True, symmetrize=False)
-            return 0.5 * (R + R.transpose(1, 2))
+            return symmetrize(R)
         raise shape_error(
             where, "R",
             f"a float, (m, m) = ({m}, {m}) or (N, m, m) = ({batch}, {m}, {m})"
@@ -705,7 +713,7 @@ class BatchedEKF:
         hpht = torch.matmul(torch.matmul(H, p_prior), H.transpose(1, 2))
         context = UpdateContext(
             x_prior=x_prior, P_prior=p_prior, residual=r, H=H, R=R,
-            HPHt=0.5 * (hpht + hpht.transpose(1, 2)), mask=active,
+            HPHt=symmetrize(hpht), mask=active,
             process_noise=None if self._last_Q is None else (
                 self._last_Q if self._last_Q.ndim == 3 else self._last_Q.expand(batch, n, n)
             ),

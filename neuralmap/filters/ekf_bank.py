@@ -25,6 +25,7 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.ekf import BatchedEKF
+from neuralmap.filters.stats import symmetrize
 
 __all__ = ["GaussianSumEKF", "lattice_prior"]
 
@@ -54,26 +55,28 @@ def lattice_prior(
 
     Args:
         x0: ``(N, n)`` prior means.
-        P0: ``(n, n)`` prior covariance (positive definite; diagonal on ``axes`` assumed).
+        P0: ``(n, n)`` prior covariance, or ``(N, n, n)`` one per run (positive definite;
+            diagonal on ``axes`` assumed).
         per_axis: Components per axis (K = per_axis²).
         span_sigma: Lattice half-width in prior standard deviations.
         axes: The two state indices spread over.
         shrink: Aimed component standard deviation as a fraction of the lattice spacing.
 
     Returns:
-        ``(means (N, K, n), covs (K, n, n), log_weights (N, K))``; the mixture's mean is
-        ``x0`` and its covariance ``P0``.
+        ``(means (N, K, n), covs (K, n, n) or (N, K, n, n), log_weights (N, K))``; the
+        mixture's mean is ``x0`` and its covariance ``P0``.
     """
     if per_axis < 1:
         raise NeuralMapError(f"lattice_prior: per_axis must be >= 1, got {per_axis}.")
     dtype = x0.dtype
-    P0 = torch.as_tensor(P0, dtype=dtype)
+    P0 = torch.as_tensor(P0, dtype=dtype, device=x0.device)
     i, j = axes
-    si, sj = float(P0[i, i]) ** 0.5, float(P0[j, j]) ** 0.5
+    si = P0[..., i, i].sqrt()[..., None]  # (1,) or (N, 1): σ per run
+    sj = P0[..., j, j].sqrt()[..., None]
     if per_axis == 1:
-        unit = torch.zeros(1, dtype=dtype)
+        unit = torch.zeros(1, dtype=dtype, device=x0.device)
     else:
-        unit = torch.linspace(-span_sigma, span_sigma, per_axis, dtype=dtype)
+        unit = torch.linspace(-span_sigma, span_sigma, per_axis, dtype=dtype, device=x0.device)
     # component σ / prior σ, aimed at shrink · spacing and at most 0.8
     aim = 1.0 if per_axis == 1 else min(shrink * 2.0 * span_sigma / (per_axis - 1), 0.8)
     spread = max(1.0 - aim**2, 1e-12)  # lattice weights' variance, in prior σ²
@@ -86,10 +89,10 @@ def lattice_prior(
     means = x0[:, None, :].expand(-1, k, -1).clone()
     means[..., i] += gi * si
     means[..., j] += gj * sj
-    covs = P0.expand(k, -1, -1).clone()
-    covs[:, i, i] = component * si**2
-    covs[:, j, j] = component * sj**2
-    covs[:, i, j] = covs[:, j, i] = 0.0
+    covs = P0.unsqueeze(-3).expand(*P0.shape[:-2], k, *P0.shape[-2:]).clone()
+    covs[..., i, i] = component * si**2
+    covs[..., j, j] = component * sj**2
+    covs[..., i, j] = covs[..., j, i] = 0.0
     logw = -0.5 * (gi**2 + gj**2) / spread
     logw = logw - torch.logsumexp(logw, 0)
     return means, covs, logw.expand(x0.shape[0], k).clone()
@@ -240,7 +243,7 @@ class GaussianSumEKF:
             dx = xs - mean[:, None]
             cov = (gw[..., None, None] * (Ps + dx[..., :, None] * dx[..., None, :])).sum(1)
             cov = cov / tot[:, None, None]
-            cov = 0.5 * (cov + cov.transpose(1, 2))
+            cov = symmetrize(cov)
             x[rr, i] = mean
             P[rr, i] = cov
             wn = torch.where(g, 0.0, ws)
@@ -260,7 +263,7 @@ class GaussianSumEKF:
         mean = (w[..., None] * x).sum(1)
         dx = x - mean[:, None]
         cov = (w[..., None, None] * (P + dx[..., :, None] * dx[..., None, :])).sum(1)
-        return mean, 0.5 * (cov + cov.transpose(1, 2))
+        return mean, symmetrize(cov)
 
     def best(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean ``(N, n)`` and covariance ``(N, n, n)`` of each run's heaviest component."""

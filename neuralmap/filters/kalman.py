@@ -26,6 +26,8 @@ from typing import NamedTuple
 
 import torch
 
+from neuralmap.filters.stats import symmetrize
+
 __all__ = [
     "SMALL_STATE_MAX",
     "KalmanUpdate",
@@ -152,7 +154,7 @@ def predict_upper(
     P = pt.permute(2, 0, 1)
     x_new = torch.einsum("bij,jb->ib", F, xt)
     fpf = torch.matmul(torch.matmul(F, P), F.transpose(1, 2))
-    full = (0.5 * (fpf + fpf.transpose(1, 2)) + Q).permute(1, 2, 0)
+    full = (symmetrize(fpf) + Q).permute(1, 2, 0)
     return x_new, [full[i, j] for i, j in upper]
 
 
@@ -239,7 +241,7 @@ def update_dense(
     batch = x.shape[0]
     pht = torch.matmul(P, H.transpose(1, 2))  # P Hᵀ (N, n, m)
     S = torch.matmul(H, pht) + R
-    S = 0.5 * (S + S.transpose(1, 2))
+    S = symmetrize(S)
     chol, info = torch.linalg.cholesky_ex(S)
     gain = torch.cholesky_solve(pht.transpose(1, 2), chol).transpose(1, 2)  # (N, n, m)
     x_new = x + torch.matmul(gain, residual.unsqueeze(-1)).squeeze(-1)
@@ -247,7 +249,7 @@ def update_dense(
     ikh = eye - torch.matmul(gain, H)
     p_new = torch.matmul(torch.matmul(ikh, P), ikh.transpose(1, 2))
     p_new = p_new + torch.matmul(torch.matmul(gain, R), gain.transpose(1, 2))
-    p_new = 0.5 * (p_new + p_new.transpose(1, 2))  # Joseph form, symmetrised
+    p_new = symmetrize(p_new)  # Joseph form, symmetrised
     white = torch.linalg.solve_triangular(chol, residual.unsqueeze(-1), upper=False)
     nis = white.squeeze(-1).square().sum(-1)  # rᵀ S⁻¹ r = |L⁻¹ r|²
     log_det = 2.0 * torch.diagonal(chol, dim1=-2, dim2=-1).log().sum(-1)
@@ -271,7 +273,7 @@ def add_information(P: torch.Tensor, info: torch.Tensor) -> torch.Tensor:
     """
     eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
     post = torch.linalg.solve(eye + P @ info, P)
-    return 0.5 * (post + post.transpose(-1, -2))
+    return symmetrize(post)
 
 
 def gaussian_log_likelihood(nis: torch.Tensor, log_det_S: torch.Tensor, m: int) -> torch.Tensor:

@@ -30,8 +30,8 @@ the Rao-Blackwellised point-mass filter, in the log domain; a run whose likeliho
 (or not finite) in every cell keeps its prior weights, counted in
 `PointMassFilter.recoveries` — never NaN.
 
-Prediction and the adaptive grid are the ``fixed`` / ``adaptive`` lattice policy
-(`neuralmap.filters.lattice.grid_policy.GridLattice`: deferred diffusion by separable
+Prediction and the adaptive grid are the ``fixed`` / ``adaptive`` lattice rule
+(`neuralmap.filters.lattice.grid_rule.GridLattice`: deferred diffusion by separable
 convolution, re-centring and re-sizing as the posterior moves and shrinks).
 """
 
@@ -42,7 +42,7 @@ from collections.abc import Callable
 import torch
 
 from neuralmap.filters.lattice.filter import LatticeFilter, LatticeUpdate
-from neuralmap.filters.lattice.grid_policy import DIFFUSE_MIN_CELLS, GridLattice, PointMassConfig
+from neuralmap.filters.lattice.grid_rule import DIFFUSE_MIN_CELLS, GridLattice, PointMassConfig
 from neuralmap.filters.lattice.kernels import BANDED_MIN_HALF_LEN, convolve_axis, gaussian_kernels
 from neuralmap.filters.lattice.kernels import toeplitz_kernels as toeplitz_kernels
 
@@ -57,7 +57,7 @@ PointMassUpdate = LatticeUpdate
 
 class PointMassFilter(LatticeFilter):
     """N point-mass filters over a 2-D state with a Rao-Blackwellised scalar, in lock-step:
-    the lattice filter with the grid policy (``fixed`` or ``adaptive``) and the scalar model.
+    the lattice filter with the grid rule (``fixed`` or ``adaptive``) and the scalar model.
 
     Args:
         mean: ``(N, 2)`` prior mean of the grid state.
@@ -132,7 +132,7 @@ class PointMassFilter(LatticeFilter):
             NeuralMapError: ``cov`` not positive definite (names the first bad run), or a
                 fixed spacing that cannot cover ``± span_sigma · σ``.
         """
-        self.policy.reset(self, mean, cov, scalar_mean, scalar_var, mask)
+        self.rule.reset(self, mean, cov, scalar_mean, scalar_var, mask)
 
     # ------------------------------------------------------------------ views
     @property
@@ -152,17 +152,17 @@ class PointMassFilter(LatticeFilter):
 
     @property
     def _pending(self) -> torch.Tensor:
-        """``(N, 2)`` process noise not yet convolved into the masses (the policy's)."""
-        return self.policy.pending
+        """``(N, 2)`` process noise not yet convolved into the masses (the rule's)."""
+        return self.rule.pending
 
     def mean(self) -> torch.Tensor:
         """``(N, 2)`` posterior mean ``Σ w s``."""
-        return self.policy.mean_cov(self)[0]
+        return self.rule.mean_cov(self)[0]
 
     def cov(self) -> torch.Tensor:
         """``(N, 2, 2)`` posterior covariance ``Σ w (s − s̄)(s − s̄)ᵀ`` plus the process
         noise not yet applied to the grid (see `DIFFUSE_MIN_CELLS`); symmetric."""
-        return self.policy.mean_cov(self)[1] + self.policy.deferred_cov(self)
+        return self.rule.mean_cov(self)[1] + self.rule.deferred_cov(self)
 
     def scalar_moments(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Mixture mean and variance ``(N,)`` of the scalar part over the grid."""
@@ -174,7 +174,7 @@ class PointMassFilter(LatticeFilter):
     def _gaussian_weights(self, mean: torch.Tensor, cov: torch.Tensor, centre: torch.Tensor,
                           spacing: torch.Tensor) -> torch.Tensor:
         """Normalised masses of ``N(mean, cov)`` on the grid ``(centre, spacing)``."""
-        return self.policy.gaussian_weights(self, mean, cov, centre, spacing)
+        return self.rule.gaussian_weights(self, mean, cov, centre, spacing)
 
     def gaussian_affinity(self, index: torch.Tensor | None = None) -> torch.Tensor:
         """``(N,)`` (or ``(K,)`` for ``index``) Bhattacharyya coefficient between the grid
@@ -188,7 +188,7 @@ class PointMassFilter(LatticeFilter):
             index: ``(K,)`` runs to evaluate (None = all); the value of a run does not
                 depend on the others.
         """
-        return self.policy.gaussian_affinity(self, index)
+        return self.rule.gaussian_affinity(self, index)
 
     # ------------------------------------------------------------------ predict / update
     def predict(
@@ -211,7 +211,7 @@ class PointMassFilter(LatticeFilter):
         Returns:
             ``(N,)`` bool, runs moved to a new grid before the convolution.
         """
-        return self.policy.predict(self, Q=Q, shift=shift, scalar_q=scalar_q)
+        return self.rule.predict(self, Q=Q, shift=shift, scalar_q=scalar_q)
 
     def update(
         self,
@@ -253,4 +253,4 @@ class PointMassFilter(LatticeFilter):
         Returns:
             ``(N,)`` bool, runs moved.
         """
-        return self.policy.regrid(self, candidates, extra_cov=extra_cov)
+        return self.rule.regrid(self, candidates, extra_cov=extra_cov)

@@ -3,7 +3,7 @@
 The tracking configuration of the one lattice filter
 (`neuralmap.filters.lattice.filter.LatticeFilter`): the point-mass filter of Bergman, Ljung
 and Gustafsson run for the whole flight, for N independent runs at once, with the
-``follow`` lattice policy (`neuralmap.filters.lattice.follow_policy.FollowLattice`: an
+``follow`` lattice rule (`neuralmap.filters.lattice.follow_rule.FollowLattice`: an
 affine lattice along the posterior's principal axes, moment-exact prediction and regrid,
 lost-track test and open-loop re-acquisition). The state splits into ``s`` (2-D, the
 horizontal INS error, on the lattice) and ``z`` (``nz``-D, altitude and velocity errors, a
@@ -16,7 +16,9 @@ Kalman part per cell)::
 with ``g`` given per cell by the caller (a callable on the cell coordinates, e.g. a
 `TerrainModel` lookup — a grid or a neural map). The update is the lattice filter's; the
 prediction, the regrid, the moment correction and the lost-track rules are described in
-`neuralmap.filters.lattice.follow_policy`.
+`neuralmap.filters.lattice.follow_rule`; the step's kernels (static shapes, one host read
+per step, optionally under ``torch.compile``: ``TrackerConfig.compile``) in
+`neuralmap.filters.lattice.follow_step`.
 """
 
 from __future__ import annotations
@@ -27,16 +29,20 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.lattice.filter import LatticeFilter, LatticeUpdate
-from neuralmap.filters.lattice.follow_policy import (
+from neuralmap.filters.lattice.follow_rule import (
     BLUR_MIN_CELLS,
     MIN_CELL_VARIANCE,
     FollowLattice,
     TrackerConfig,
-    _chi2_mean_threshold,
 )
+from neuralmap.filters.stats import chi2_mean_threshold
 
 __all__ = ["BLUR_MIN_CELLS", "MIN_CELL_VARIANCE", "PointMassTracker", "TrackerConfig",
-           "TrackerUpdate", "_chi2_mean_threshold"]
+           "TrackerUpdate", "chi2_mean_threshold"]
+
+#: Deprecated private name of `neuralmap.filters.stats.chi2_mean_threshold` (kept for the
+#: navigator's import until it uses the public one).
+_chi2_mean_threshold = chi2_mean_threshold
 
 #: Per-run results of `PointMassTracker.update` (the lattice filter's).
 TrackerUpdate = LatticeUpdate
@@ -44,7 +50,7 @@ TrackerUpdate = LatticeUpdate
 
 class PointMassTracker(LatticeFilter):
     """N Rao-Blackwellised point-mass trackers in lock-step: the lattice filter with the
-    ``follow`` policy (model: module docstring).
+    ``follow`` lattice rule (model: module docstring).
 
     Args:
         mean: ``(N, 2 + nz)`` prior mean ``[s, z]``.
@@ -93,16 +99,16 @@ class PointMassTracker(LatticeFilter):
         self.reset(mean, cov)
         self.set_open_loop(mean, cov)
 
-    # ------------------------------------------------------------------ policy state
+    # ------------------------------------------------------------------ rule state
     @property
     def widenings(self) -> torch.Tensor:
-        """``(N,)`` int64, lost-track widenings (the policy's)."""
-        return self.policy.widenings
+        """``(N,)`` int64, lost-track widenings (the rule's)."""
+        return self.rule.widenings
 
     @property
     def lost(self) -> torch.Tensor:
-        """``(N,)`` bool, lost beyond recovery (the policy's)."""
-        return self.policy.lost
+        """``(N,)`` bool, lost beyond recovery (the rule's)."""
+        return self.rule.lost
 
     # ------------------------------------------------------------------ set-up
     def reset(self, mean: torch.Tensor, cov: torch.Tensor,
@@ -118,7 +124,7 @@ class PointMassTracker(LatticeFilter):
             NeuralMapError: ``cov`` not positive definite (names the first bad run); a prior
                 that needs cells coarser than ``max_spacing``.
         """
-        self.policy.reset(self, mean, cov, mask)
+        self.rule.reset(self, mean, cov, mask)
 
     def set_open_loop(self, mean: torch.Tensor, cov: torch.Tensor) -> None:
         """Sets the open-loop prior a lost run re-acquires from (`FollowLattice.set_open_loop`).
@@ -130,16 +136,16 @@ class PointMassTracker(LatticeFilter):
         Raises:
             NeuralMapError: Bad shapes, non-finite entries or ``cov`` not positive definite.
         """
-        self.policy.set_open_loop(self, mean, cov)
+        self.rule.set_open_loop(self, mean, cov)
 
     def open_loop(self) -> tuple[torch.Tensor, torch.Tensor]:
         """The open-loop prior ``(m_ol (N, 2+nz), P_ol (N, 2+nz, 2+nz))``."""
-        return self.policy.open_loop(self)
+        return self.rule.open_loop(self)
 
     def match_moments(self, mean: torch.Tensor, cov: torch.Tensor) -> None:
         """Imposes mean ``(N, 2+nz)`` and covariance ``(N, 2+nz, 2+nz)`` exactly (affine
         lattice map + per-cell linear-part shift; `FollowLattice.match_moments`)."""
-        self.policy.match_moments(self, mean, cov)
+        self.rule.match_moments(self, mean, cov)
 
     # ------------------------------------------------------------------ predict / update
     def predict(self, *, Q_s: torch.Tensor, Q_z: torch.Tensor,
@@ -151,7 +157,7 @@ class PointMassTracker(LatticeFilter):
             Q_z: ``(nz, nz)`` or ``(N, nz, nz)`` process noise of ``z``.
             shift: ``(N, 2)`` known displacement ``u`` of ``s`` (None = 0).
         """
-        self.policy.predict(self, Q_s=Q_s, Q_z=Q_z, shift=shift)
+        self.rule.predict(self, Q_s=Q_s, Q_z=Q_z, shift=shift)
 
     def update(self, measurement: torch.Tensor,
                predicted: torch.Tensor | Callable[[torch.Tensor], torch.Tensor], *,
@@ -185,16 +191,16 @@ class PointMassTracker(LatticeFilter):
         Returns:
             ``(N,)`` bool, runs moved.
         """
-        return self.policy.regrid(self, force)
+        return self.rule.regrid(self, force)
 
     # ------------------------------------------------------------------ lattice helpers
     def _gaussian_state(self, mean: torch.Tensor, cov: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """Lattice, masses and linear part of ``N(mean, cov)`` (moments matched exactly)."""
-        return self.policy._gaussian_state(self, mean, cov)
+        return self.rule._gaussian_state(self, mean, cov)
 
     def _set_subset(self, mask: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> None:
         """Runs ``mask (N,)`` restart from ``N(mean, cov)`` (their Gaussian lattice only)."""
-        self.policy._set_subset(self, mask, mean, cov)
+        self.rule._set_subset(self, mask, mean, cov)
 
     def _state(self) -> tuple[torch.Tensor, ...]:
         return self.state()

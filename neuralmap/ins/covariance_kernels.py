@@ -28,9 +28,10 @@ from collections.abc import Iterator
 import numpy as np
 import torch
 
+from neuralmap.filters.stats import symmetrize
 from neuralmap.ins import kernels
 from neuralmap.ins.error_model import continuous_noise, discretize, error_dynamics
-from neuralmap.ins.kernels import HAVE_NUMBA, _error_model_nb, _njit, _propagation_scratch
+from neuralmap.ins.kernels import HAVE_NUMBA, error_model_nb, njit, propagation_scratch
 
 __all__ = ["F_PATTERN", "LANES", "PHI_PATTERN", "propagate_block", "propagate_lanes"]
 
@@ -130,7 +131,7 @@ def _store(dst, acc):  # type: ignore[no-untyped-def]
 _ZERO = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-@_njit
+@njit
 def _load_lane(F, G, w, Fl, Gl, f_idx, f_count):  # type: ignore[no-untyped-def]
     """Copies one run's F (structural nonzeros) and G (its blocks) into lane w."""
     for i in range(15):
@@ -145,9 +146,9 @@ def _load_lane(F, G, w, Fl, Gl, f_idx, f_count):  # type: ignore[no-untyped-def]
         Gl[d, d, w] = G[d, d]
 
 
-@_njit
+@njit
 def _discretize_lanes(Fl, Gl, T, ft, phi, pg, qd, f_idx, f_count, p_idx, p_count):  # type: ignore[no-untyped-def]
-    """Φ and Q_d of the 8 lanes (as kernels._discretize_nb, element by element).
+    """Φ and Q_d of the 8 lanes (as kernels.discretize_nb, element by element).
 
     ``ft``, ``phi``, ``pg`` and ``qd`` are ``(15, 15, 8)`` work arrays whose entries
     outside the patterns are zero.
@@ -191,9 +192,9 @@ def _discretize_lanes(Fl, Gl, T, ft, phi, pg, qd, f_idx, f_count, p_idx, p_count
                 qd[j, i, w] = v
 
 
-@_njit
+@njit
 def _sandwich_lanes(phi, P, qd, tmp, p_idx, p_count):  # type: ignore[no-untyped-def]
-    """``P ← Φ P Φᵀ + Q_d`` on the 8 lanes (lower triangle, mirrored), as kernels._sandwich.
+    """``P ← Φ P Φᵀ + Q_d`` on the 8 lanes (lower triangle, mirrored), as kernels.sandwich_nb.
 
     ``tmp[k, j] = (Φ P)[j, k]`` (written transposed, so that both products read 8-lane
     rows); every element is a sum over ascending k.
@@ -217,11 +218,11 @@ def _sandwich_lanes(phi, P, qd, tmp, p_idx, p_count):  # type: ignore[no-untyped
                 P[j, i, w] = v
 
 
-@_njit
+@njit
 def _propagate_lanes_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_last,  # type: ignore[no-untyped-def]
                         qd_last, f_idx, f_count, p_idx, p_count):
     n_runs, n_points = states.shape[0], states.shape[1]
-    F, G, _phi, _qd, _tmp, _tmp2, _idx, _count, C, fn = _propagation_scratch()
+    F, G, _phi, _qd, _tmp, _tmp2, _idx, _count, C, fn = propagation_scratch()
     Fl = np.zeros((15, 15, LANES))
     Gl = np.zeros((15, 15, LANES))
     ft = np.zeros((15, 15, LANES))
@@ -240,7 +241,7 @@ def _propagate_lanes_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, 
         for s in range(n_points):
             for w in range(LANES):
                 r = r0 + min(w, nw - 1)
-                _error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)
+                error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)
                 _load_lane(F, G, w, Fl, Gl, f_idx, f_count)
             _discretize_lanes(Fl, Gl, intervals[s], ft, phi, pg, qd, f_idx, f_count,
                               p_idx, p_count)
@@ -338,5 +339,5 @@ def propagate_block(
         phi, qd = discretize(F, continuous_noise(states[:, s], qc), intervals[s])
         if s < points - 1:
             fpf = torch.matmul(torch.matmul(phi, P), phi.transpose(1, 2))
-            P = torch.where(ok, 0.5 * (fpf + fpf.transpose(1, 2)) + qd, P)
+            P = torch.where(ok, symmetrize(fpf) + qd, P)
     return P, phi, qd

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import torch
 
+from neuralmap.filters.stats import symmetrize
 from neuralmap.ins.earth import earth_rate_ned, normal_gravity, radii, transport_rate_ned
 from neuralmap.ins.imu_model import ImuGrade, imu_grade
 from neuralmap.ins.rotation import dcm_from_quat, skew
@@ -130,6 +131,6 @@ def discretize(
     if order >= 2:
         phi = phi + 0.5 * ft @ ft
     q = 0.5 * (phi @ gqg @ phi.transpose(-1, -2) + gqg) * interval
-    return phi, 0.5 * (q + q.transpose(-1, -2))
+    return phi, symmetrize(q)
 
 

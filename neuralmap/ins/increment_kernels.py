@@ -2,7 +2,7 @@
 
 A logged IMU gives one increment per interval, entered as the constant rate
 ``Δθ_k / Δt_k`` over ``(t_{k−1}, t_k]`` (intervals may differ). The mechanisation step is
-the one of `neuralmap.ins.kernels` (``_step`` with equal rates at both ends, i.e.
+the one of `neuralmap.ins.kernels` (``mechanize_step_nb`` with equal rates at both ends, i.e.
 `strapdown_step` ``(y, w, f, w, f, Δt_k)``), looped over
 the block of intervals between two GNSS epochs; the covariance propagation is that of
 `propagate_block` (same error model, discretisation and
@@ -16,20 +16,21 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from neuralmap.filters.stats import symmetrize
 from neuralmap.ins import kernels
 from neuralmap.ins.kernels import (
-    _discretize_nb,
-    _error_model_nb,
-    _njit,
-    _propagation_scratch,
-    _sandwich,
-    _step,
+    discretize_nb,
+    error_model_nb,
+    mechanize_step_nb,
+    njit,
+    propagation_scratch,
+    sandwich_nb,
 )
 
 __all__ = ["mechanize_increments", "propagate_with_sigma"]
 
 
-@_njit
+@njit
 def _mechanize_increments_nb(y, gyro, accel, bg, ba, dt, stops, out):  # type: ignore[no-untyped-def]
     n_runs, n_steps = gyro.shape[0], gyro.shape[1]
     w = np.empty(3)
@@ -41,7 +42,7 @@ def _mechanize_increments_nb(y, gyro, accel, bg, ba, dt, stops, out):  # type: i
             for i in range(3):
                 w[i] = gyro[r, k, i] - bg[r, i]
                 f[i] = accel[r, k, i] - ba[r, i]
-            _step(yr, w, f, w, f, dt[k])
+            mechanize_step_nb(yr, w, f, w, f, dt[k])
             if stop < stops.shape[0] and stops[stop] == k + 1:
                 for i in range(10):
                     out[r, stop, i] = yr[i]
@@ -91,16 +92,16 @@ def mechanize_increments(
     return states, y
 
 
-@_njit
+@njit
 def _propagate_sigma_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, var):  # type: ignore[no-untyped-def]
     n_runs, n_points = states.shape[0], states.shape[1]
-    F, G, phi, qd, tmp, tmp2, idx, count, C, fn = _propagation_scratch()
+    F, G, phi, qd, tmp, tmp2, idx, count, C, fn = propagation_scratch()
     for r in range(n_runs):
         for s in range(n_points):
             if healthy[r]:
-                _error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)
-                _discretize_nb(F, G, intervals[s], phi, qd, tmp, idx, count)
-                _sandwich(phi, P[r], tmp2, tmp, idx, count)
+                error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)
+                discretize_nb(F, G, intervals[s], phi, qd, tmp, idx, count)
+                sandwich_nb(phi, P[r], tmp2, tmp, idx, count)
                 for i in range(15):
                     for j in range(i + 1):
                         v = tmp2[i, j] + qd[i, j]
@@ -155,6 +156,6 @@ def propagate_with_sigma(
                            accel_corr_time=tau_a)
         phi, qd = discretize(F, continuous_noise(states[:, s], qc), intervals[s])
         fpf = torch.matmul(torch.matmul(phi, P), phi.transpose(1, 2))
-        P = torch.where(ok, 0.5 * (fpf + fpf.transpose(1, 2)) + qd, P)
+        P = torch.where(ok, symmetrize(fpf) + qd, P)
         var.append(P.diagonal(dim1=-2, dim2=-1))
     return P, (torch.stack(var, 1) if var else P.new_empty(n, 0, 15))

@@ -38,18 +38,18 @@ except ImportError:  # pragma: no cover - exercised where numba is missing
 _LAT_LIMIT = math.radians(89.0)
 
 
-def _njit(fn):  # type: ignore[no-untyped-def]
+def njit(fn):  # type: ignore[no-untyped-def]
     if numba is None:
         return fn
     return numba.njit(cache=True, fastmath=False, error_model="numpy")(fn)
 
 
-@_njit
+@njit
 def _cross(a0, a1, a2, b0, b1, b2):  # type: ignore[no-untyped-def]
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
-@_njit
+@njit
 def _rotvec_quat(p0, p1, p2):  # type: ignore[no-untyped-def]
     angle2 = (p0 * p0 + p1 * p1) + p2 * p2
     angle = math.sqrt(angle2)
@@ -60,15 +60,15 @@ def _rotvec_quat(p0, p1, p2):  # type: ignore[no-untyped-def]
     return math.cos(0.5 * angle), scale * p0, scale * p1, scale * p2
 
 
-@_njit
+@njit
 def _qmul(p0, p1, p2, p3, q0, q1, q2, q3):  # type: ignore[no-untyped-def]
     c0, c1, c2 = _cross(p1, p2, p3, q1, q2, q3)
     return (p0 * q0 - ((p1 * q1 + p2 * q2) + p3 * q3),
             (p0 * q1 + q0 * p1) + c0, (p0 * q2 + q0 * p2) + c1, (p0 * q3 + q0 * p3) + c2)
 
 
-@_njit
-def _step(y, w0, f0, w1, f1, dt):  # type: ignore[no-untyped-def]
+@njit
+def mechanize_step_nb(y, w0, f0, w1, f1, dt):  # type: ignore[no-untyped-def]
     """One increment-algorithm step of one run, in place on ``y`` (10,)."""
     lat, lon, h = y[0], y[1], y[2]
     v0, v1, v2 = y[3], y[4], y[5]
@@ -132,7 +132,7 @@ def _step(y, w0, f0, w1, f1, dt):  # type: ignore[no-untyped-def]
     y[6], y[7], y[8], y[9] = p0 * inv, p1 * inv, p2 * inv, p3 * inv
 
 
-@_njit
+@njit
 def _mechanize_block_nb(y, y_good, failed, gyro, accel, bg, ba, dt, stops, out):  # type: ignore[no-untyped-def]
     n_runs, n_samples = gyro.shape[0], gyro.shape[1]
     w0 = np.empty(3)
@@ -150,7 +150,7 @@ def _mechanize_block_nb(y, y_good, failed, gyro, accel, bg, ba, dt, stops, out):
                 w0[i], f0[i] = w1[i], f1[i]
                 w1[i] = gyro[r, k, i] - bg[r, i]
                 f1[i] = accel[r, k, i] - ba[r, i]
-            _step(yr, w0, f0, w1, f1, dt)
+            mechanize_step_nb(yr, w0, f0, w1, f1, dt)
             if stop < stops.shape[0] and stops[stop] == k:
                 bad = False
                 for i in range(10):
@@ -170,7 +170,7 @@ def _mechanize_block_nb(y, y_good, failed, gyro, accel, bg, ba, dt, stops, out):
                 stop += 1
 
 
-@_njit
+@njit
 def _gauss_markov_nb(gm, phi, drive_sigma, drive, hist):  # type: ignore[no-untyped-def]
     n_steps, n_runs, width = drive.shape
     for t in range(n_steps):
@@ -266,15 +266,15 @@ def mechanize_block(
     return torch.stack(kept, dim=1), y, y_good
 
 
-@_njit
+@njit
 def _skew_into(M, r, c, x, y, z, sign):  # type: ignore[no-untyped-def]
     M[r, c + 1], M[r, c + 2] = -z * sign, y * sign
     M[r + 1, c], M[r + 1, c + 2] = z * sign, -x * sign
     M[r + 2, c], M[r + 2, c + 1] = -y * sign, x * sign
 
 
-@_njit
-def _error_model_nb(state, accel, qc, tau_g, tau_a, F, G, C, fn):  # type: ignore[no-untyped-def]
+@njit
+def error_model_nb(state, accel, qc, tau_g, tau_a, F, G, C, fn):  # type: ignore[no-untyped-def]
     """F and G Q_c Gᵀ (15, 15) of one solution (as error_dynamics / continuous_noise);
     ``C`` (3, 3) and ``fn`` (3,) are scratch buffers."""
     lat, h = state[0], state[2]
@@ -330,7 +330,7 @@ def _error_model_nb(state, accel, qc, tau_g, tau_a, F, G, C, fn):  # type: ignor
         G[9 + i, 9 + i] = qc[6 + i]
 
 
-@_njit
+@njit
 def _matmul_into(A, B, out):  # type: ignore[no-untyped-def]
     """out = A B (15×15), skipping the zeros of A (i-k-j order: contiguous inner loop)."""
     for i in range(15):
@@ -343,7 +343,7 @@ def _matmul_into(A, B, out):  # type: ignore[no-untyped-def]
                     out[i, j] += a * B[k, j]
 
 
-@_njit
+@njit
 def _nonzeros(A, idx, count):  # type: ignore[no-untyped-def]
     """Column indices of the nonzeros of each row of A (15×15) into idx, count."""
     for i in range(15):
@@ -355,8 +355,8 @@ def _nonzeros(A, idx, count):  # type: ignore[no-untyped-def]
         count[i] = c
 
 
-@_njit
-def _sandwich(A, B, out, tmp, idx, count):  # type: ignore[no-untyped-def]
+@njit
+def sandwich_nb(A, B, out, tmp, idx, count):  # type: ignore[no-untyped-def]
     """out = A B Aᵀ (15×15) for a symmetric B: ``A (A B)ᵀ`` on the lower triangle, mirrored.
 
     ``idx``/``count``: the nonzeros of A's rows (`_nonzeros`). Both products run
@@ -379,7 +379,7 @@ def _sandwich(A, B, out, tmp, idx, count):  # type: ignore[no-untyped-def]
             out[j, i] = out[i, j]
 
 
-@_njit
+@njit
 def _lower_products(A, M, out, idx, count, first):  # type: ignore[no-untyped-def]
     """out[i, j] = Σ_k A[i, k] M[j, k] for j ≤ i over A's nonzeros with k ≥ ``first``
     (ascending k). Uses M's transpose, written into M's rows in place (M is scratch)."""
@@ -399,8 +399,8 @@ def _lower_products(A, M, out, idx, count, first):  # type: ignore[no-untyped-de
                     out[i, j] += a * M[k, j]
 
 
-@_njit
-def _discretize_nb(F, G, T, phi, qd, tmp, idx, count):  # type: ignore[no-untyped-def]
+@njit
+def discretize_nb(F, G, T, phi, qd, tmp, idx, count):  # type: ignore[no-untyped-def]
     """Φ = I + FT + (FT)²/2, Q_d = ½ (Φ G Φᵀ + G) T (as discretize; G block diagonal).
 
     G = G Q_c Gᵀ is zero outside the 3×3 blocks at 3:6 and 6:9 and the diagonal 9:15,
@@ -441,8 +441,8 @@ def _discretize_nb(F, G, T, phi, qd, tmp, idx, count):  # type: ignore[no-untype
             qd[j, i] = v
 
 
-@_njit
-def _propagation_scratch():  # type: ignore[no-untyped-def]
+@njit
+def propagation_scratch():  # type: ignore[no-untyped-def]
     """Work arrays of one covariance propagation point: F, G, Φ, Q_d, two 15 × 15 scratch
     matrices, the sparsity index and counts, the attitude matrix and the specific force."""
     return (np.empty((15, 15)), np.empty((15, 15)), np.empty((15, 15)), np.empty((15, 15)),
@@ -450,22 +450,22 @@ def _propagation_scratch():  # type: ignore[no-untyped-def]
             np.empty(15, dtype=np.int64), np.empty((3, 3)), np.empty(3))
 
 
-@_njit
+@njit
 def _propagate_nb(P, healthy, states, accel, intervals, qc, tau_g, tau_a, phi_last, qd_last):  # type: ignore[no-untyped-def]
     """The covariance propagation run by run (the reference of the lane-vectorised
     `propagate_lanes`, which gives the same
     numbers and is what `propagate_block` calls)."""
     n_runs, n_points = states.shape[0], states.shape[1]
-    F, G, phi, qd, tmp, tmp2, idx, count, C, fn = _propagation_scratch()
+    F, G, phi, qd, tmp, tmp2, idx, count, C, fn = propagation_scratch()
     for r in range(n_runs):
         for s in range(n_points):
-            _error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)
-            _discretize_nb(F, G, intervals[s], phi, qd, tmp, idx, count)
+            error_model_nb(states[r, s], accel[r, s], qc, tau_g, tau_a, F, G, C, fn)
+            discretize_nb(F, G, intervals[s], phi, qd, tmp, idx, count)
             if s == n_points - 1:
                 phi_last[r] = phi
                 qd_last[r] = qd
             elif healthy[r]:
-                _sandwich(phi, P[r], tmp2, tmp, idx, count)
+                sandwich_nb(phi, P[r], tmp2, tmp, idx, count)
                 for i in range(15):
                     for j in range(i + 1):
                         v = tmp2[i, j] + qd[i, j]

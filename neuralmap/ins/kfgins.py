@@ -51,11 +51,16 @@ __all__ = [
     "ImuLog",
     "KfGinsConfig",
     "NavLog",
+    "bridge_gaps",
+    "imu_error_text",
+    "nav_text",
     "read_config",
     "read_gnss",
     "read_imu",
     "read_nav",
     "simulated_logs",
+    "std_text",
+    "table_text",
     "write_gnss",
     "write_imu",
     "write_imu_error",
@@ -68,6 +73,8 @@ _HOUR = 3600.0
 _MGAL = 1e-5  # m/s² per mGal
 #: An IMU interval longer than this many nominal intervals is a gap.
 GAP_FACTOR = 1.5
+#: Standard gravity (m/s²): the scale of the specific force `bridge_gaps` tells apart.
+STANDARD_GRAVITY = 9.80665
 
 
 @dataclass(frozen=True)
@@ -224,11 +231,12 @@ def read_imu(path: str | Path, *, rate_hz: float | None = None, columns: int = 7
 
     A logging gap (an interval longer than `GAP_FACTOR` nominal intervals) is refused
     unless ``max_gap`` accepts it: the filter then propagates across it as one interval of
-    its true length (the increment of the record after the gap kept as it is, spread over
-    the gap; gravity and transport rate over the true length: what KF-GINS does silently),
-    and counts it
-    (`neuralmap.ins.log_run.run_on_log`). The INS error grows over a gap with no
-    IMU data; ``max_gap`` is the longest the user accepts.
+    its true length (`neuralmap.ins.log_run.run_on_log`), with the rate of the record
+    after the gap held over the gap when that record holds one interval's increments (the
+    KF-GINS format: a missing record means missing increments), or with its increments as
+    they are when they were accumulated over the gap (`bridge_gaps` tells the two apart),
+    and counts it. The INS error grows over a gap with no IMU data; ``max_gap`` is the
+    longest the user accepts.
 
     Args:
         path: The file.
@@ -286,6 +294,48 @@ def read_imu(path: str | Path, *, rate_hz: float | None = None, columns: int = 7
         )
     return ImuLog(time=time.copy(), dtheta=table[:, 1:4].copy(), dvel=table[:, 4:7].copy(),
                   dt=dt)
+
+
+def bridge_gaps(time: np.ndarray, dtheta: np.ndarray, dvel: np.ndarray,
+                dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The increments that bridge IMU logging gaps over their true length.
+
+    A KF-GINS IMU record holds the increments of *one* interval, the one since the record
+    before it. When records are missing (a gap: an interval longer than `GAP_FACTOR`
+    nominal ones), their increments are missing too, and the record after the gap holds
+    its own interval's increments only: taking them as the whole gap's would integrate
+    gravity over the gap with one period's specific force (a vehicle at rest falls at
+    ``g · gap``). So the rate of that record (``Δθ/dt``, ``Δv/dt``) is held over the gap:
+    its increments are scaled by ``gap / dt``. Some loggers instead accumulate the
+    increments over a gap into the next record; that record's velocity increment is then
+    about ``g · gap`` rather than ``g · dt``. The two are told apart by the specific force
+    each reading implies, which for any vehicle that is not in free fall is near ``g``: a
+    record with ``|Δv| > g · √(dt · gap)`` (its specific force over the gap nearer ``g``
+    than over one period) is taken to hold the gap's accumulated increments and is kept as
+    it is.
+
+    Args:
+        time: ``(K,)`` record times (s), increasing.
+        dtheta, dvel: ``(K, 3)`` increments (rad, m/s).
+        dt: Nominal interval (s).
+
+    Returns:
+        ``(dtheta, dvel, held)``: the increments (copies; records after a gap scaled where
+        they hold one period) and ``(K,)`` bool, True where a rate was held over a gap.
+    """
+    dtheta = np.array(dtheta, dtype=np.float64)
+    dvel = np.array(dvel, dtype=np.float64)
+    held = np.zeros(time.shape[0], dtype=bool)
+    steps = np.diff(time)
+    gap = np.nonzero(steps > GAP_FACTOR * dt)[0] + 1
+    if gap.size:
+        length = steps[gap - 1]
+        one_period = np.linalg.norm(dvel[gap], axis=1) <= STANDARD_GRAVITY * np.sqrt(dt * length)
+        rows, scale = gap[one_period], (length / dt)[one_period, None]
+        dtheta[rows] *= scale
+        dvel[rows] *= scale
+        held[rows] = True
+    return dtheta, dvel, held
 
 
 def read_gnss(path: str | Path) -> GnssLog:
@@ -347,16 +397,17 @@ def read_nav(path: str | Path) -> NavLog:
 # --------------------------------------------------------------------------- writing
 
 
-def _write_table(path: str | Path, table: np.ndarray) -> Path:
-    """Writes rows of numbers with 17 significant digits (exact float64 round trip)."""
+def table_text(table: np.ndarray) -> str:
+    """Rows of numbers as text with 17 significant digits (exact float64 round trip)."""
     buffer = _io.StringIO()
     np.savetxt(buffer, np.asarray(table, dtype=np.float64), fmt="%.17g", delimiter=" ")
-    return atomic_write_text(path, buffer.getvalue())
+    return buffer.getvalue()
 
 
 def write_imu(path: str | Path, log: ImuLog) -> Path:
     """Writes an `ImuLog` as a KF-GINS IMU file (7 columns)."""
-    return _write_table(path, np.column_stack([log.time, log.dtheta, log.dvel]))
+    return atomic_write_text(path, table_text(np.column_stack([log.time, log.dtheta,
+                                                               log.dvel])))
 
 
 def write_gnss(path: str | Path, log: GnssLog) -> Path:
@@ -367,18 +418,22 @@ def write_gnss(path: str | Path, log: GnssLog) -> Path:
     else:
         sigma_vel = log.sigma_vel if log.sigma_vel is not None else np.full_like(log.velocity, 0.1)
         table = np.column_stack([*head, log.velocity, log.sigma_pos, sigma_vel])
-    return _write_table(path, table)
+    return atomic_write_text(path, table_text(table))
+
+
+def nav_text(log: NavLog) -> str:
+    """A `NavLog` as the text of a KF-GINS navigation result (11 columns)."""
+    return table_text(np.column_stack([log.week, log.time, log.position, log.velocity,
+                                       log.euler]))
 
 
 def write_nav(path: str | Path, log: NavLog) -> Path:
-    """Writes a `NavLog` as a KF-GINS navigation result (11 columns)."""
-    table = np.column_stack([log.week, log.time, log.position, log.velocity, log.euler])
-    return _write_table(path, table)
+    """Writes a `NavLog` as a KF-GINS navigation result (`nav_text`)."""
+    return atomic_write_text(path, nav_text(log))
 
 
-def write_imu_error(path: str | Path, time: np.ndarray, gyro_bias: np.ndarray,
-                    accel_bias: np.ndarray) -> Path:
-    """Writes estimated IMU errors as a KF-GINS IMU error file (13 columns).
+def imu_error_text(time: np.ndarray, gyro_bias: np.ndarray, accel_bias: np.ndarray) -> str:
+    """Estimated IMU errors as the text of a KF-GINS IMU error file (13 columns).
 
     Args:
         time: ``(K,)`` s.
@@ -388,13 +443,18 @@ def write_imu_error(path: str | Path, time: np.ndarray, gyro_bias: np.ndarray,
     The scale-factor columns are 0: the 15-state filter does not estimate them.
     """
     k = time.shape[0]
-    table = np.column_stack([time, gyro_bias / _DEG * _HOUR, accel_bias / _MGAL,
-                             np.zeros((k, 6))])
-    return _write_table(path, table)
+    return table_text(np.column_stack([time, gyro_bias / _DEG * _HOUR, accel_bias / _MGAL,
+                                       np.zeros((k, 6))]))
 
 
-def write_std(path: str | Path, time: np.ndarray, std: np.ndarray) -> Path:
-    """Writes filter standard deviations as a KF-GINS state σ file (22 columns).
+def write_imu_error(path: str | Path, time: np.ndarray, gyro_bias: np.ndarray,
+                    accel_bias: np.ndarray) -> Path:
+    """Writes estimated IMU errors as a KF-GINS IMU error file (`imu_error_text`)."""
+    return atomic_write_text(path, imu_error_text(time, gyro_bias, accel_bias))
+
+
+def std_text(time: np.ndarray, std: np.ndarray) -> str:
+    """Filter standard deviations as the text of a KF-GINS state σ file (22 columns).
 
     Args:
         time: ``(K,)`` s.
@@ -404,10 +464,14 @@ def write_std(path: str | Path, time: np.ndarray, std: np.ndarray) -> Path:
     vehicle); the scale-factor σ columns are NaN (no such states).
     """
     k = time.shape[0]
-    table = np.column_stack([time, std[:, :6], std[:, 6:9] / _DEG,
-                             std[:, 9:12] / _DEG * _HOUR, std[:, 12:15] / _MGAL,
-                             np.full((k, 6), np.nan)])
-    return _write_table(path, table)
+    return table_text(np.column_stack([time, std[:, :6], std[:, 6:9] / _DEG,
+                                       std[:, 9:12] / _DEG * _HOUR, std[:, 12:15] / _MGAL,
+                                       np.full((k, 6), np.nan)]))
+
+
+def write_std(path: str | Path, time: np.ndarray, std: np.ndarray) -> Path:
+    """Writes filter standard deviations as a KF-GINS state σ file (`std_text`)."""
+    return atomic_write_text(path, std_text(time, std))
 
 
 # --------------------------------------------------------------------------- config

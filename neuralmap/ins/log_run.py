@@ -11,9 +11,12 @@ on an `ImuLog` and a `GnssLog`
 (SEEDS 003), and records the solution itself.
 
 An increment ``Δθ_k`` over ``(t_{k−1}, t_k]`` enters the mechanisation as the constant rate
-``Δθ_k / Δt_k`` over that interval (the increment is kept exactly), over its true interval
-also across a logging gap (`read_imu`'s ``max_gap``; gaps are
-counted in `LogSolution.counts`). A GNSS epoch updates at its own time: the IMU
+``Δθ_k / Δt_k`` over that interval (the increment is kept exactly). A logging gap
+(`read_imu`'s ``max_gap``) is propagated across as one interval of its true length with
+the increments that bridge it (`bridge_gaps`): the rate of the record after the gap held
+over the whole gap when that record holds one nominal interval's increments (the KF-GINS
+format), its increments as they are when they were accumulated over the gap; gaps are
+counted in `LogSolution.counts`. A GNSS epoch updates at its own time: the IMU
 interval that holds it is split there, each part with its share of the increment, as
 KF-GINS does (`neuralmap.ins.epoch_alignment`); the solution is recorded at the IMU
 records only. Run 0 processes the log as recorded from the configured
@@ -47,7 +50,7 @@ from neuralmap.ins.error_model import (
 from neuralmap.ins.error_state import correct, inject, total_attitude_error
 from neuralmap.ins.imu_model import ImuGrade
 from neuralmap.ins.increment_kernels import mechanize_increments, propagate_with_sigma
-from neuralmap.ins.kfgins import GAP_FACTOR, GnssLog, ImuLog, NavLog
+from neuralmap.ins.kfgins import GAP_FACTOR, GnssLog, ImuLog, NavLog, bridge_gaps
 from neuralmap.ins.loosely_coupled import LooselyCoupledConfig, initial_covariance
 from neuralmap.ins.measurement import antenna_velocity, check_lever_arm, gnss_measurement_model
 from neuralmap.ins.rotation import dcm_from_quat, euler_from_dcm, quat_from_euler
@@ -70,7 +73,9 @@ class LogSolution:
         counts: Updates applied (``updates``), of them between two IMU records
             (``gnss_between_records``), GNSS epochs outside the processed interval
             (``gnss_outside``), IMU records, logging gaps propagated over (``imu_gaps``, an
-            interval > 1.5 nominal ones) and the longest (``imu_longest_gap_s``), ….
+            interval > 1.5 nominal ones), of them bridged by holding the rate of the record
+            after the gap (``imu_gaps_rate_held``; the others held accumulated
+            increments), and the longest (``imu_longest_gap_s``), ….
     """
 
     time: torch.Tensor
@@ -158,8 +163,11 @@ def run_on_log(
     t_imu = t_all[lo:hi]
     real_steps = np.diff(t_imu)
     gaps = real_steps > GAP_FACTOR * imu.dt
+    # a gap's missing increments: the rate of the record after it held over the gap
+    bridged_dtheta, bridged_dvel, held = bridge_gaps(t_imu, imu.dtheta[lo:hi],
+                                                     imu.dvel[lo:hi], imu.dt)
     # GNSS epochs at their own time: the IMU interval holding one is split there (KF-GINS)
-    line = split_at_epochs(t_imu, imu.dtheta[lo:hi], imu.dvel[lo:hi], gnss.time)
+    line = split_at_epochs(t_imu, bridged_dtheta, bridged_dvel, gnss.time)
     time = torch.as_tensor(line.time, **kw)
     steps = torch.diff(time)
     dtheta = torch.as_tensor(line.dtheta, **kw)
@@ -203,6 +211,7 @@ def run_on_log(
     counts = {"gnss_epochs": int(g_index.size), "gnss_outside": int(gnss.n_epochs - g_index.size),
               "updates": 0, "imu_records": int(real_index.size),
               "gnss_between_records": line.n_split, "imu_gaps": int(gaps.sum()),
+              "imu_gaps_rate_held": int(held.sum()),
               "imu_longest_gap_s": float(real_steps[gaps].max()) if gaps.any() else 0.0}
 
     def record(k: int) -> None:

@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.stats import symmetrize
 
 __all__ = [
     "COVARIANCE_KINDS",
@@ -56,7 +57,7 @@ def check_positive_definite(matrix: torch.Tensor, *, name: str) -> torch.Tensor:
     scale = float(m.abs().max()) or 1.0
     if float((m - m.T).abs().max()) > 1e-9 * scale:
         raise NeuralMapError(f"{name}: the initial covariance is not symmetric: {m.tolist()}.")
-    eig = torch.linalg.eigvalsh(0.5 * (m + m.T))
+    eig = torch.linalg.eigvalsh(symmetrize(m))
     if float(eig.min()) <= 0.0:
         raise NeuralMapError(
             f"{name}: the initial covariance is not positive definite (smallest eigenvalue "
@@ -140,7 +141,7 @@ class LogCholeskyCovariance(nn.Module):
         chol = torch.zeros(self._n, self._n, dtype=self.theta.dtype, device=self.theta.device)
         chol = chol.index_put((self.rows, self.cols), entries)
         cov = chol @ chol.T
-        return 0.5 * (cov + cov.T)
+        return symmetrize(cov)
 
 
 def make_covariance(kind: str, initial: torch.Tensor | list[float] | float) -> nn.Module:

@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import csv
 import os
-import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from neuralmap.columns import read_columns
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.learning.flights import FlightBatch
 
@@ -36,74 +36,6 @@ __all__ = ["LOG_COLUMNS", "read_flight_log", "write_flight_log"]
 
 #: Required columns of a flight log.
 LOG_COLUMNS = ("time", "ins_x", "ins_y", "ins_h", "radar")
-
-
-def _read_npz(path: Path) -> dict[str, np.ndarray]:
-    """The columns of an NPZ log: 1-D arrays of numbers (``flight`` may hold text)."""
-    if not zipfile.is_zipfile(path):
-        raise NeuralMapError(
-            f"{path}: not a readable .npz flight log (not a zip archive); write it with "
-            "numpy.savez or neuralmap.learning.flight_log.write_flight_log.")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            columns = {k: np.asarray(data[k]) for k in data.files}
-    except ValueError as exc:
-        if "allow_pickle" in str(exc):
-            raise NeuralMapError(
-                f"{path}: a column holds Python objects (an object array); a flight log "
-                "holds plain numbers. Save each column as a float array, e.g. "
-                "np.savez(path, time=t.astype(float), ...).") from None
-        raise NeuralMapError(f"{path}: not a readable .npz flight log ({exc}).") from None
-    except Exception as exc:  # noqa: BLE001 - BadZipFile, EOFError, OSError: not an archive
-        raise NeuralMapError(
-            f"{path}: not a readable .npz flight log ({type(exc).__name__}: {exc}).") from None
-    for name, values in columns.items():
-        if name not in (*LOG_COLUMNS, "flight"):
-            continue
-        if values.ndim != 1:
-            raise NeuralMapError(
-                f"{path}: column {name!r} has shape {values.shape}; every column of a flight "
-                "log is 1-D (one value per row).")
-        if name != "flight" and not (np.issubdtype(values.dtype, np.number)
-                                     or values.dtype == np.bool_):
-            raise NeuralMapError(
-                f"{path}: column {name!r} holds {values.dtype} values, not numbers.")
-    return columns
-
-
-def _read_csv(path: Path) -> dict[str, np.ndarray]:
-    """The columns of a CSV log (UTF-8, with or without a byte-order mark)."""
-    try:
-        with path.open(newline="", encoding="utf-8-sig") as handle:
-            reader = csv.DictReader(handle)
-            if reader.fieldnames is None:
-                raise NeuralMapError(f"{path}: empty flight log (no header line).")
-            rows = list(reader)
-            names = [n.strip() for n in reader.fieldnames]
-    except UnicodeDecodeError as exc:
-        raise NeuralMapError(
-            f"{path}: not UTF-8 text (byte {exc.start} cannot be decoded: "
-            f"{exc.object[exc.start:exc.start + 1]!r}); save the flight log as UTF-8 CSV."
-        ) from None
-    columns: dict[str, np.ndarray] = {}
-    for raw, name in zip(reader.fieldnames, names, strict=True):
-        values = [(r.get(raw) or "").strip() for r in rows]
-        if name == "flight":
-            columns[name] = np.asarray(values)
-            continue
-        try:
-            columns[name] = np.asarray([float(v) if v else np.nan for v in values])
-        except ValueError as exc:
-            raise NeuralMapError(f"{path}: column {name!r} has a non-number ({exc}).") from None
-    return columns
-
-
-def _read_columns(path: Path) -> dict[str, np.ndarray]:
-    if path.suffix.lower() == ".npz":
-        return _read_npz(path)
-    if path.suffix.lower() == ".csv":
-        return _read_csv(path)
-    raise NeuralMapError(f"{path}: a flight log must be a .csv or .npz file.")
 
 
 def read_flight_log(path: str | os.PathLike[str], *, dtype: torch.dtype = torch.float64
@@ -119,7 +51,7 @@ def read_flight_log(path: str | os.PathLike[str], *, dtype: torch.dtype = torch.
     path = Path(path)
     if not path.is_file():
         raise NeuralMapError(f"read_flight_log: no such file {str(path)!r}.")
-    columns = _read_columns(path)
+    columns = read_columns(path, what="flight log")
     missing = [c for c in LOG_COLUMNS if c not in columns]
     if missing:
         raise NeuralMapError(

@@ -190,7 +190,7 @@ def tan_log_likelihood(
 ) -> LikelihoodPass:
     """Innovation log-likelihood of TAN flights through the 5-state EKF (SEEDS 004).
 
-    The step is `neuralmap.nav.tan.tan_filter_step`'s (predict, linearise at
+    The step is `neuralmap.tan.ekf_step.tan_filter_step`'s (predict, linearise at
     ``p̂ = p_ins − δX̂⁻[:2]``, residual ``(h_ins − δĥ⁻) − h_map(p̂) − h_radar``, update
     with ``R + lin.variance``), written on the pure functional core so that it is
     differentiable in Q, R and the map.
@@ -210,7 +210,7 @@ def tan_log_likelihood(
     Returns:
         `LikelihoodPass`.
     """
-    from neuralmap.nav.tan import linearizer_extent
+    from neuralmap.tan.ekf_step import linearizer_extent
 
     stop = flights.n_steps + 1 if stop is None else stop
     n_flights = flights.n_flights

@@ -2,7 +2,8 @@
 
 Autograd on any terrain model (neural maps, SEEDS 004) and the classical DEM methods of
 SEEDS 000: first-order Taylor on the bilinear grid, nine-point fit, mean-point selection,
-least-squares plane over a fixed or covariance-adaptive region.
+least-squares plane over a fixed or covariance-adaptive window Omega around the estimate
+(SEEDS 000 calls it the region).
 """
 
 from neuralmap.linearize.autograd import AutogradLinearizer
@@ -11,14 +12,14 @@ from neuralmap.linearize.factory import LINEARIZER_NAMES, describe_linearizer, m
 from neuralmap.linearize.mean_point import MeanPointLinearizer
 from neuralmap.linearize.nine_point import NinePointLinearizer
 from neuralmap.linearize.plane_fit import PlaneFitLinearizer
-from neuralmap.linearize.region import (
+from neuralmap.linearize.region_variance import RegionReport, region_miss_variance
+from neuralmap.linearize.taylor import TaylorLinearizer
+from neuralmap.linearize.window import (
     SIGMA_MAX_M,
     SIGMA_MEAN_M,
     SIGMA_MIN_M,
-    RegionPlaneLinearizer,
+    WindowPlaneLinearizer,
 )
-from neuralmap.linearize.region_variance import RegionReport, region_miss_variance
-from neuralmap.linearize.taylor import TaylorLinearizer
 
 __all__ = [
     "LINEARIZER_NAMES",
@@ -31,9 +32,9 @@ __all__ = [
     "MeanPointLinearizer",
     "NinePointLinearizer",
     "PlaneFitLinearizer",
-    "RegionPlaneLinearizer",
     "RegionReport",
     "TaylorLinearizer",
+    "WindowPlaneLinearizer",
     "describe_linearizer",
     "make_linearizer",
     "region_miss_variance",

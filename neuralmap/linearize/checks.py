@@ -49,7 +49,7 @@ def check_pos_cov(pos_cov: torch.Tensor | None, n: int, who: str) -> torch.Tenso
     """
     if pos_cov is None:
         raise NeuralMapError(
-            f"{who}: the adaptive region needs the horizontal position covariance; call "
+            f"{who}: the adaptive window needs the horizontal position covariance; call "
             "linearizer(xy, pos_cov) with pos_cov of shape (N, 2, 2) (the filter's P[:, :2, :2]) "
             "or use a fixed sigma."
         )

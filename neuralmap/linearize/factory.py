@@ -1,4 +1,13 @@
-"""Linearisation methods by name, for configs and the Monte Carlo comparison."""
+"""Linearisation methods by name, for configs and the Monte Carlo comparison.
+
+The names (`LINEARIZER_NAMES`) are the ones configs, stamped results and the papers' tables
+use, so they keep SEEDS 000's word: the ``_region`` suffix (``neural_region``) names the
+window Omega around the estimate that SEEDS 000 calls the region, i.e. the area the
+estimate may be in given its position covariance. ``neural_region`` adds the tangent
+plane's mean squared miss over that window to the variance (`.region_variance`). In the
+code that window is the *window* (`.window`, `WindowPlaneLinearizer`); a *region* elsewhere
+in the toolkit is a large area of many tiles.
+"""
 
 from __future__ import annotations
 
@@ -16,8 +25,8 @@ from neuralmap.linearize.base import Linearizer
 from neuralmap.linearize.mean_point import MeanPointLinearizer
 from neuralmap.linearize.nine_point import NinePointLinearizer
 from neuralmap.linearize.plane_fit import PlaneFitLinearizer
-from neuralmap.linearize.region import SIGMA_MAX_M, SIGMA_MEAN_M, SIGMA_MIN_M
 from neuralmap.linearize.taylor import TaylorLinearizer
+from neuralmap.linearize.window import SIGMA_MAX_M, SIGMA_MEAN_M, SIGMA_MIN_M
 from neuralmap.terrain.grid import GridTerrain
 
 
@@ -100,10 +109,11 @@ def make_linearizer(
     """Builds a linearisation method by name.
 
     Names (`LINEARIZER_NAMES`): ``"neural"`` (AutogradLinearizer on ``terrain``),
-    ``"bilinear"`` (TaylorLinearizer), ``"bicubic"`` (AutogradLinearizer on a bicubic
-    GridTerrain), ``"nine_point"``, ``"mean_point"`` (adaptive region), ``"lsq_max"``,
-    ``"lsq_mean"``, ``"lsq_min"`` (PlaneFitLinearizer with sigma 400 / 240 / 80 m),
-    ``"lsq_adaptive"`` (sigma from the position covariance).
+    ``"neural_region"`` (the same with the variance over the window Omega, SEEDS 000's
+    region: ``region_variance=True``), ``"bilinear"`` (TaylorLinearizer), ``"bicubic"``
+    (AutogradLinearizer on a bicubic GridTerrain), ``"nine_point"``, ``"mean_point"``
+    (adaptive window), ``"lsq_max"``, ``"lsq_mean"``, ``"lsq_min"`` (PlaneFitLinearizer
+    with sigma 400 / 240 / 80 m), ``"lsq_adaptive"`` (sigma from the position covariance).
 
     Args:
         name: Method name.

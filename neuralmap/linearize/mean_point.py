@@ -5,33 +5,33 @@ from __future__ import annotations
 import torch
 
 from neuralmap.dem.tile import DemTile
-from neuralmap.linearize.region import ADAPTIVE_MAX_SIGMA_M, RegionPlaneLinearizer
+from neuralmap.linearize.window import ADAPTIVE_MAX_SIGMA_M, WindowPlaneLinearizer
 
 
-class MeanPointLinearizer(RegionPlaneLinearizer):
-    """Plane through the mean points of the halves of the region (method of group averages).
+class MeanPointLinearizer(WindowPlaneLinearizer):
+    """Plane through the mean points of the halves of the window (method of group averages).
 
     Our reading of SEEDS 000's "mean point selection" (LCK = 2), which the paper groups with
     the fits that make the *algebraic sum* of the deviations zero rather than the sum of
-    squares minimal: the region Omega = ``6 sigma_x x 6 sigma_y`` is sampled on the
-    ``n x n`` pattern and split into an east and a west half (and a north and a south
-    half). Each half is replaced by its mean point (mean position, mean height); the slope
-    along x is the central difference of the two mean points,
+    squares minimal: the window Omega = ``6 sigma_x x 6 sigma_y`` (SEEDS 000's region) is
+    sampled on the ``n x n`` pattern and split into an east and a west half (and a north
+    and a south half). Each half is replaced by its mean point (mean position, mean
+    height); the slope along x is the central difference of the two mean points,
 
     ``h_x = (mean(h | xi > 0) - mean(h | xi < 0)) / (mean(x | xi > 0) - mean(x | xi < 0))``,
 
-    likewise ``h_y``, and the plane passes through the mean point of the whole region, so
+    likewise ``h_y``, and the plane passes through the mean point of the whole window, so
     its deviations sum to zero over each half. (With odd ``n`` the centre column/row
     belongs to neither half.) Exact on a plane; on a quadratic it gives the gradient at the
     centre, like the least-squares plane, because the pattern is symmetric.
     Variance = residual variance of the samples about that plane, ``sum(r^2) / (n^2 - 3)``.
 
-    The paper uses it with the adaptive region, hence the default ``sigma="adaptive"``.
+    The paper uses it with the adaptive window, hence the default ``sigma="adaptive"``.
 
     Args:
         tile: The DEM tile.
         sigma: ``"adaptive"`` (default), or a fixed sigma in metres / ``(sigma_x, sigma_y)``.
-        n_samples: Samples per axis; see ``RegionPlaneLinearizer``.
+        n_samples: Samples per axis; see ``WindowPlaneLinearizer``.
         min_sigma: Lower clamp of the adaptive sigma (default: grid spacing).
         max_sigma: Upper clamp of the adaptive sigma, metres.
         interpolation: DEM interpolant sampled, ``"bilinear"`` or ``"bicubic"``.
@@ -60,7 +60,7 @@ class MeanPointLinearizer(RegionPlaneLinearizer):
         )
 
     def make_solver(self, pattern: torch.Tensor, design: torch.Tensor) -> torch.Tensor:
-        """Group-average rule, shape ``(3, n^2)``: region mean, then half-mean differences."""
+        """Group-average rule, shape ``(3, n^2)``: window mean, then half-mean differences."""
         rows = [torch.full((pattern.shape[0],), 1.0 / pattern.shape[0], dtype=torch.float64)]
         for axis in (0, 1):
             coord = pattern[:, axis]

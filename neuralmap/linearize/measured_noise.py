@@ -13,7 +13,7 @@ map and over ``d ~ N(0, σ² I)`` is measured here by Monte Carlo against the tr
 and it grows with ``σ`` as the tangent plane misses the terrain over the position
 uncertainty (the slope variance over the current covariance). In flight the errors
 ``d`` are not ``N(0, P)`` while the filter converges (a few runs lag behind their own
-covariance); `neuralmap.nav.noise_calibration` re-measures ``v(σ)`` on pilot flights
+covariance); `neuralmap.lab.noise_calibration` re-measures ``v(σ)`` on pilot flights
 and replaces the table's ``variance_m2`` where it has enough samples.
 
 `MeasuredNoiseLinearizer` wraps any method and returns, instead of the method's own
@@ -61,7 +61,7 @@ class NoiseTable:
         map_mean_m: ``(K,)`` ``E[e]`` over the map, m.
         variance_m2: ``(K,)`` offset ``a(σ)`` of the R term the filter gets, m²:
             ``map_mse_m2``, or the in-flight value where ``flight_samples`` is large enough
-            (`neuralmap.nav.noise_calibration.calibrate_noise`).
+            (`neuralmap.lab.noise_calibration.calibrate_noise`).
         scale: ``(K,)`` weight ``b(σ)`` of the method's own variance ``u`` (its local
             roughness measure: cell twist, plane-fit residual, region miss): the R term is
             ``a(σ) + b(σ) u``, fitted by least squares of ``e²`` on ``u`` (zeros: ``a`` alone).

@@ -32,6 +32,8 @@ from typing import NamedTuple
 
 import torch
 
+from neuralmap.filters.stats import symmetrize
+
 #: How the square root of a position covariance was taken (`RegionReport.root`).
 ROOT_CHOLESKY = 0
 ROOT_EIGEN_CLAMPED = 1
@@ -78,7 +80,7 @@ def covariance_root(cov: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         ``(root (N, d, d), status (N,) int8)``, status one of `ROOT_CHOLESKY`,
         `ROOT_EIGEN_CLAMPED`, `ROOT_NONE`.
     """
-    sym = 0.5 * (cov + cov.transpose(-1, -2))
+    sym = symmetrize(cov)
     finite = torch.isfinite(sym).all(-1).all(-1)
     safe = torch.where(finite[:, None, None], sym, torch.zeros_like(sym))
     chol, info = torch.linalg.cholesky_ex(safe)

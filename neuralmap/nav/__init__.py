@@ -1,65 +1,31 @@
-"""Terrain-aided navigation: scenarios, truth simulator, 5-state TAN EKF, Monte Carlo, metrics.
+"""The product: the Navigator and what a user needs around it to navigate a flight.
 
-Names are imported lazily from their submodules (``from neuralmap.nav import simulate``
-works; importing `neuralmap.nav` itself loads nothing heavy), so a submodule whose
-dependencies are missing does not break the others.
+* `Navigator` (`neuralmap.nav.navigator`): terrain-aided fixes of N vehicles, epoch by
+  epoch (`Navigator.step`) or for a whole log (`Navigator.replay`), over any map with any
+  registered navigation method (`neuralmap.tan`); its config (`NavigatorConfig`,
+  `load_navigator_config`); the fixes (`Fix`, `FixTrack`, `STATUS`) with their protection
+  levels (`neuralmap.nav.integrity`).
+* Flight logs in (`read_flight_input`, `FlightInput`), maps in (`resolve_map`, `MapSource`,
+  `MapFrame`), navigation out (CSV, GeoJSON, report: `neuralmap.nav.outputs`), the
+  ``neuralmap-navigate`` command (`neuralmap.nav.cli`, `neuralmap.nav.flight`).
+
+The lab (`neuralmap.lab`) flies its simulated vehicles through this Navigator; this package
+never uses the lab.
 """
 
-from __future__ import annotations
+from neuralmap.nav.config import NavigatorConfig, load_navigator_config
+from neuralmap.nav.fix import STATUS, STATUS_CODE, Fix, FixTrack
+from neuralmap.nav.flight import FlightOptions, navigate_flight, write_flight
+from neuralmap.nav.flight_input import FlightInput, read_flight_input
+from neuralmap.nav.georef import MapFrame
+from neuralmap.nav.integrity import protection_levels
+from neuralmap.nav.map_noise import MapNoise, measurement_noise
+from neuralmap.nav.map_source import MapSource, resolve_map
+from neuralmap.nav.navigator import COUNT_KEYS, Navigator
 
-import importlib
-from typing import Any
-
-_EXPORTS: dict[str, str] = {
-    "Scenario": "scenario",
-    "SCENARIO_NAMES": "scenario",
-    "load_scenario": "scenario",
-    "save_scenario": "scenario",
-    "scenario_tile": "scenario",
-    "Truth": "simulator",
-    "simulate": "simulator",
-    "nominal_path": "simulator",
-    "dem_error_field": "simulator",
-    "StepDiagnostics": "tan",
-    "transition_matrix": "tan",
-    "measurement_jacobian": "tan",
-    "tan_filter_step": "tan",
-    "FilterRun": "monte_carlo",
-    "MonteCarloResult": "monte_carlo",
-    "run_filter": "monte_carlo",
-    "run_monte_carlo": "monte_carlo",
-    "run_filters": "monte_carlo",
-    "FilterJob": "monte_carlo",
-    "check_map_matches": "monte_carlo",
-    "DIVERGENCE_RULE": "metrics",
-    "divergence_rule": "metrics",
-    "navigation_metrics": "metrics",
-    "nees": "metrics",
-    "pcrb": "pcrb",
-    "pcrb_position": "pcrb",
-    "AugmentedTanModel": "augmented",
-    "augment_information": "augmented",
-    "paper_tan_model": "augmented",
-    "MapFrame": "georef",
-    "FlightInput": "flight_input",
-    "read_flight_input": "flight_input",
-    "MapSource": "map_source",
-    "resolve_map": "map_source",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str) -> Any:
-    """Imports an exported name from its submodule on first use."""
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'neuralmap.nav' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"neuralmap.nav.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    """Module attributes including the lazily exported names."""
-    return sorted(set(globals()) | set(__all__))
+__all__ = [
+    "COUNT_KEYS", "STATUS", "STATUS_CODE", "Fix", "FixTrack", "FlightInput", "FlightOptions",
+    "MapFrame", "MapNoise", "MapSource", "Navigator", "NavigatorConfig",
+    "load_navigator_config", "measurement_noise", "navigate_flight", "protection_levels",
+    "read_flight_input", "resolve_map", "write_flight",
+]

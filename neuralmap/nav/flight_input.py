@@ -26,6 +26,7 @@ altitudes, a log of which no epoch lies on the map.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -109,10 +110,10 @@ class FlightInput:
 
 
 def _columns(path: Path) -> dict[str, np.ndarray]:
-    """The columns of a CSV/NPZ log (the flight-log reader's own parsing)."""
-    from neuralmap.learning.flight_log import _read_columns  # the one CSV/NPZ column reader
+    """The columns of a CSV/NPZ log (`neuralmap.columns.read_columns`)."""
+    from neuralmap.columns import read_columns
 
-    return _read_columns(path)
+    return read_columns(path, what="flight log")
 
 
 def _line(path: Path, row: int) -> str:
@@ -166,6 +167,65 @@ def _check_time(path: Path, names: list[str], time: np.ndarray, rows: np.ndarray
             "Sort the log by time and remove repeated epochs.")
 
 
+#: A log whose median time step is this many times the navigator's period (or its inverse)
+#: is refused: its time is most likely not in seconds.
+TIME_BASE_FACTOR = 20.0
+
+
+def _check_clearances(where: str, values: np.ndarray, lo: float, hi: float) -> None:
+    """Refuses a radar column with no usable clearance, saying what it looks like."""
+    if values.size == 0:
+        raise NeuralMapError(f"{where}: no radar clearance at all (every value empty or NaN); "
+                             "terrain-aided navigation needs the radar altimeter's readings.")
+    if (values == 0).all():
+        raise NeuralMapError(f"{where}: every clearance is 0 m: the column holds no "
+                             "readings (a placeholder?); give the radar altimeter's clearance "
+                             "above ground, m.")
+    if ((values >= lo) & (values <= hi)).any():
+        return
+    if (values <= 0).all():
+        raise NeuralMapError(
+            f"{where}: every clearance is <= 0 m (from {values.min():g} to {values.max():g}): "
+            "a clearance is the height above ground, positive; is the column the terrain "
+            "height or the altitude difference with the wrong sign?")
+    if (values > hi).all():
+        raise NeuralMapError(
+            f"{where}: every clearance is above the sensor's stated range (max "
+            f"sensor.clearance_max_m = {hi:g} m; the values run {values.min():g}-"
+            f"{values.max():g}): is the column in feet (multiply by 0.3048) or the altitude "
+            "above sea level instead of the clearance? If the sensor reads that high, raise "
+            "sensor.clearance_max_m in the navigator config.")
+    raise NeuralMapError(
+        f"{where}: no clearance lies in the sensor's stated range [{lo:g}, {hi:g}] m (the "
+        f"values run {values.min():g}-{values.max():g}); check the column's units, or set "
+        "sensor.clearance_min_m / clearance_max_m in the navigator config.")
+
+
+def check_time_base(where: str, t: np.ndarray, period_s: float) -> None:
+    """Refuses a log whose median time step is far from the navigator's period: its time
+    is most likely not in seconds (milliseconds, minutes, hours).
+
+    Raises:
+        NeuralMapError: The median step is more than `TIME_BASE_FACTOR` times the period,
+            or less than its inverse (names the likely unit and the fix).
+    """
+    steps = np.diff(np.asarray(t, dtype=np.float64))
+    if steps.size == 0 or not period_s > 0:
+        return
+    step = float(np.median(steps))
+    ratio = step / period_s
+    if 1.0 / TIME_BASE_FACTOR <= ratio <= TIME_BASE_FACTOR:
+        return
+    units = {"milliseconds": 1e-3, "minutes": 60.0, "hours": 3600.0, "microseconds": 1e-6}
+    guess = min(units, key=lambda u: abs(math.log(ratio * units[u])))
+    fix = (f"if the time is in {guess}, convert it to seconds (multiply by "
+           f"{units[guess]:g}); if the epochs really are {step:g} s apart, set the navigator's "
+           f"sensor.dt_s to the log's period")
+    raise NeuralMapError(
+        f"{where}: the median time step is {step:g}, {ratio:.3g}x the navigator's period "
+        f"sensor.dt_s = {period_s:g} s: the time does not look like seconds; {fix}.")
+
+
 def _names(path: Path) -> list[str]:
     """The CSV header names in file order (for column numbers); [] for NPZ."""
     if path.suffix.lower() != ".csv":
@@ -183,11 +243,15 @@ def _flights(path: Path, columns: dict[str, np.ndarray]) -> list[np.ndarray]:
     if "flight" not in columns:
         return [np.arange(n)]
     ids = np.asarray(columns["flight"]).astype(str)
-    starts = [0] + [i for i in range(1, n) if ids[i] != ids[i - 1]] + [n]
-    seen = [ids[s] for s in starts[:-1]]
-    if len(set(seen)) != len(seen):
-        raise NeuralMapError(f"{path}: the rows of each flight must be contiguous; flight ids "
-                             f"in row order: {seen}.")
+    starts = [0, *(np.flatnonzero(ids[1:] != ids[:-1]) + 1).tolist(), n]
+    first_row: dict[str, int] = {}
+    for s in starts[:-1]:
+        if ids[s] in first_row:
+            raise NeuralMapError(
+                f"{path}, {_line(path, s)}: flight {str(ids[s])!r} starts again after other "
+                f"flights (its rows began at {_line(path, first_row[ids[s]])}); the rows of "
+                "each flight must be contiguous: sort the log by flight, then time.")
+        first_row[ids[s]] = s
     return [np.arange(a, b) for a, b in zip(starts[:-1], starts[1:], strict=True)]
 
 
@@ -371,6 +435,7 @@ def read_flight_input(
     geoid_undulation: float | None = None,
     clearance_range: tuple[float, float] | None = None,
     gap_factor: float = GAP_FACTOR,
+    period_s: float | None = None,
     dtype: torch.dtype = torch.float64,
 ) -> FlightInput:
     """Reads a recorded flight (see the module docstring) into the map frame.
@@ -389,7 +454,9 @@ def read_flight_input(
         clearance_range: ``(min, max)`` valid clearance of the sensor, m; samples outside
             are counted (the navigator skips them). None = not counted.
         gap_factor: A step longer than this many median steps counts as a gap.
-        dtype: Tensor dtype.
+        period_s: The navigator's nominal period (``sensor.dt_s``): a log whose time steps
+            are far from it is refused (`check_time_base`); None = not checked.
+        dtype: Tensor dtype of the positions and clearances (time is always float64).
 
     Returns:
         The `FlightInput`.
@@ -420,6 +487,9 @@ def read_flight_input(
         source = str(path)
         line_path = path
     t = data["t"]
+    if period_s is not None:
+        check_time_base(f"{path} column 'time'" if kind != "kfgins" else f"{radar}",
+                        t, period_s)
     radar_values = np.where(np.isfinite(data["radar"]), data["radar"], np.nan)
     counts["rows"] = int(t.size)
     counts["missing_radar"] = int(np.isnan(radar_values).sum())
@@ -427,6 +497,7 @@ def read_flight_input(
         lo, hi = clearance_range
         ok = np.isfinite(radar_values)
         counts["out_of_range"] = int((ok & ((radar_values < lo) | (radar_values > hi))).sum())
+        _check_clearances(f"{line_path} column 'radar'", radar_values[ok], lo, hi)
     steps = np.diff(t)
     counts["gaps"] = int((steps > gap_factor * np.median(steps)).sum()) if steps.size else 0
     xy = data["xy"]
@@ -456,7 +527,8 @@ def read_flight_input(
         return torch.as_tensor(np.ascontiguousarray(a), dtype=dtype)
 
     return FlightInput(
-        t=tensor(t), ins_position=tensor(xy), ins_altitude=tensor(data["alt"]),
+        t=torch.as_tensor(t, dtype=torch.float64),  # time stays float64 (Unix seconds too)
+        ins_position=tensor(xy), ins_altitude=tensor(data["alt"]),
         clearance=tensor(radar_values),
         reference_position=tensor(data["ref_xy"]) if "ref_xy" in data else None,
         reference_altitude=tensor(data["ref_alt"]) if "ref_alt" in data else None,

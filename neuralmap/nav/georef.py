@@ -6,7 +6,8 @@ its georeference says where that frame lies:
 - `GeoReference` (a lon/lat source): the frame *is* the
   equirectangular projection about the tile centre on the WGS-84 ellipsoid
   (`neuralmap.dem.geo`), ``x = x0 + (lon − lon0)·m_lon``, ``y = y0 + (lat − lat0)·m_lat``.
-  Both directions are closed forms, exact inverses of each other.
+  Both directions are closed forms, exact inverses of each other; longitudes are taken
+  modulo 360° about ``lon0`` (a map across the antimeridian) and returned in [−180, 180).
 - `ProjectedReference` (a metric source with a CRS): the frame is
   the file's projected CRS shifted to a local origin; lat/lon go through pyproj
   (``EPSG:4326`` <-> the file's CRS, ``always_xy``) and the offset. pyproj is optional:
@@ -81,19 +82,11 @@ class MapFrame:
                     f"map '{name}' is a metric grid without a named CRS (no .prj / GeoTIFF "
                     "CRS), so latitude/longitude cannot be converted to it. Add the CRS to "
                     "the file (gdal_edit.py -a_srs EPSG:<code>) or give a map-frame log.")
-            try:
-                from pyproj import CRS, Transformer
-            except ImportError as exc:
-                raise NeuralMapError(
-                    f"map '{name}' is in the projected CRS {reference.crs!r}; converting "
-                    "latitude/longitude needs pyproj, which is not installed. Install it "
-                    "with pip install 'neuralmap[nav]' (or pip install pyproj).") from exc
-            try:
-                crs = CRS.from_user_input(reference.crs)
-            except Exception as exc:  # noqa: BLE001 - pyproj raises CRSError and friends
-                raise NeuralMapError(
-                    f"map '{name}': pyproj does not understand the CRS {reference.crs!r} "
-                    f"({exc}); give the file an EPSG code (gdal_edit.py -a_srs).") from None
+            from neuralmap.dem.geo import pyproj_crs
+
+            crs = pyproj_crs(reference.crs, f"map '{name}'")  # WKT, EPSG code or a CRS name
+            from pyproj import Transformer
+
             self._to_crs = Transformer.from_crs(WGS84_CRS, crs, always_xy=True)
             self._from_crs = Transformer.from_crs(crs, WGS84_CRS, always_xy=True)
         elif not isinstance(reference, GeoReference):
@@ -105,21 +98,6 @@ class MapFrame:
     def from_tile(cls, tile: DemTile) -> MapFrame:
         """The map frame of a DEM tile (its ``geo`` or ``projected`` reference)."""
         return cls(tile.georeference, name=tile.name)
-
-    @classmethod
-    def from_tile_info(cls, info: dict[str, Any]) -> MapFrame:
-        """The map frame from a `DemTile.describe` dict (as a map file records it).
-
-        Raises:
-            NeuralMapError: The dict holds neither ``geo`` nor ``projected``.
-        """
-        name = str(info.get("name") or "map")
-        geo, projected = info.get("geo"), info.get("projected")
-        if isinstance(geo, dict):
-            return cls(GeoReference(**geo), name=name)
-        if isinstance(projected, dict):
-            return cls(ProjectedReference(**projected), name=name)
-        return cls(None, name=name)
 
     @property
     def kind(self) -> str:
@@ -140,6 +118,10 @@ class MapFrame:
         lat_a, back = _as_float64(lat)
         lon_a, _ = _as_float64(lon)
         if isinstance(self.reference, GeoReference):
+            # longitudes wrapped to [−180, 180) unwrap about the map's centre, so a map that
+            # crosses the antimeridian takes both −179.9° and 180.1° for the same place
+            lon0 = self.reference.lon0
+            lon_a = lon0 + np.mod(lon_a - lon0 + 180.0, 360.0) - 180.0
             x, y = self.reference.to_metric(lon_a, lat_a)
         else:
             east, north = self._to_crs.transform(lon_a, lat_a)
@@ -153,6 +135,7 @@ class MapFrame:
         y_a, _ = _as_float64(y)
         if isinstance(self.reference, GeoReference):
             lon, lat = self.reference.to_geographic(x_a, y_a)
+            lon = np.mod(np.asarray(lon) + 180.0, 360.0) - 180.0  # WGS-84 longitudes in [−180, 180)
         else:
             east, north = self.reference.to_projected(x_a, y_a)
             lon, lat = self._from_crs.transform(east, north)

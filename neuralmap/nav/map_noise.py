@@ -97,7 +97,8 @@ def map_fit_rmse(terrain: Any) -> tuple[float, str]:
 
 
 def measurement_noise(config: Any, terrain: Any = None, *,
-                      map_error_variance: float | None = None) -> MapNoise:
+                      map_error_variance: float | None = None,
+                      altimeter_variance: float | None = None) -> MapNoise:
     """The navigator's ``R`` parts from its config and the map (module docstring).
 
     Args:
@@ -105,6 +106,8 @@ def measurement_noise(config: Any, terrain: Any = None, *,
         terrain: The map (its stored fit metrics are read when ``fit_rmse_m`` is None).
         map_error_variance: Overrides the whole map term ``σ_dem² + σ_fit²`` (m²), e.g. the
             DEM error measured against a truth terrain in a study.
+        altimeter_variance: The altimeter's variance (m²); None = ``sensor.altimeter_sigma_m``
+            squared (a simulation study passes its scenario's).
 
     Returns:
         `MapNoise`.
@@ -112,7 +115,8 @@ def measurement_noise(config: Any, terrain: Any = None, *,
     Raises:
         NeuralMapError: ``map_error_variance`` negative or not finite.
     """
-    alt = float(config.sensor.altimeter_sigma_m) ** 2
+    alt = (float(config.sensor.altimeter_sigma_m) ** 2 if altimeter_variance is None
+           else float(altimeter_variance))
     if map_error_variance is not None:
         v = float(map_error_variance)
         if not (math.isfinite(v) and v >= 0):

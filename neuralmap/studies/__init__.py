@@ -4,8 +4,8 @@ Each study is one module with a config dataclass and ``run(config, outputs)``; t
 one outputs writer (`StudyOutputs`).
 """
 
+from neuralmap.outputs import StudyOutputs
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import StudyOutputs
 from neuralmap.studies.registry import STUDIES, get_study
 
 __all__ = ["STUDIES", "StudyConfig", "StudyOutputs", "get_study"]

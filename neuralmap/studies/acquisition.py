@@ -2,9 +2,10 @@
 
 Flies the scenario (default jacksboro) at several initial horizontal errors σ0 (per axis,
 the filter's P0 matched), with the start moved so that ±3σ0 of the prior stays on the
-tile, and runs every acquisition method of `neuralmap.nav.acquisition` on the same
-truth, on the grid map (bilinear DEM) and, when a trained neural map is available, on the
-neural map. Reports divergences, all-run RMSE against the PCRB over the last half, time
+tile, and flies every navigation method asked for through the `Navigator` (by registered
+name, with the product's acquisition grid, hand-off and lost-lock re-acquisition) on the
+same truth, on the grid map (bilinear DEM) and, when a trained neural map is available, on
+the neural map. Reports divergences, all-run RMSE against the PCRB over the last half, time
 to acquire (first time after which the error stays below 3× the PCRB), wall time and
 grid-cell updates per second, and a flat-terrain leg (a synthetic plane: no terrain
 information) that shows the posterior staying wide.
@@ -27,20 +28,34 @@ import torch
 from neuralmap.cluster import open_cluster
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.nav.acquisition import (
-    ACQUISITION_METHODS,
-    AcquisitionConfig,
+from neuralmap.lab.metrics import (
     acquisition_time,
-    run_acquisition,
-    tan_inputs,
+    bound_rms_last_half,
+    divergence_rule,
+    navigation_metrics,
+    nees,
 )
-from neuralmap.nav.metrics import bound_rms_last_half, divergence_rule, navigation_metrics, nees
-from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
-from neuralmap.nav.simulator import simulate
+from neuralmap.lab.monte_carlo import fly, study_navigator_config
+from neuralmap.lab.pcrb import map_aware_pcrb, pcrb, pcrb_position
+from neuralmap.lab.simulator import simulate
+from neuralmap.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.progress import stage_progress
 from neuralmap.studies.cluster_options import ClusterOptions
-from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.studies.integrity_report import (
+    add_integrity_table,
+    add_stanford,
+    integrity_entry,
+)
 from neuralmap.studies.setup import dem_error_model, prepare_tan
+from neuralmap.tan.methods import (
+    EkfBank,
+    EkfMethod,
+    PointMassEkf,
+    PointMassGrid,
+    PointMassTrackerMethod,
+)
+from neuralmap.tan.model import TanModel
+from neuralmap.tan.registry import method_class, method_names
 from neuralmap.terrain.base import inside_extent
 from neuralmap.terrain.grid import GridTerrain
 from neuralmap.viz.navigation import plot_error_vs_time
@@ -60,16 +75,18 @@ class AcquisitionStudyConfig(ClusterOptions):
         scenario: Scenario name or YAML path (its flight, noise and filter tuning).
         sigmas_m: Initial horizontal errors σ0 per axis, m (P0 matched).
         n_runs: Monte Carlo runs per σ0 (the same truth for every method and map).
-        methods: Subset of ``ekf``, ``bank``, ``point_mass``, ``point_mass_ekf``,
-            ``point_mass_tracker``.
+        methods: Registered navigation methods (`neuralmap.tan.registry`): by default the
+            EKF alone, the EKF bank, the EKF started by the point-mass grid and the
+            point-mass tracker (grid acquisition, then the tracker); ``point_mass`` (the grid
+            for the whole flight) and methods of your own fly too.
         maps: ``grid`` (bilinear DEM: point-mass likelihood and ``bilinear`` EKF) and/or
             ``neural`` (the neural map: likelihood by its batched forward, EKF with
             ``neural_region``).
         map: Neural map file; None = newest ``<runs_dir>/*/version_*/neural_map.pt`` of
             the tile. Without one, the neural rows are skipped and the report says so.
-        n_runs_tracker: Runs of the ``point_mass_tracker`` rows (the first on-map runs of
-            the σ0; grid acquisition, then the tracker's lattice for the rest of the flight:
-            the study's most expensive row); None = all.
+        n_runs_per_method: Runs of a method's rows (the first on-map runs of the σ0),
+            e.g. ``{point_mass: 100}`` for an expensive one; a method not named flies
+            every run.
         neural_likelihood_oversample: The point-mass likelihoods of the neural-map rows read
             the map baked onto a grid this many times finer than the DEM (bilinear; the
             report gives the baked grid's largest deviation from the map at random points);
@@ -79,23 +96,15 @@ class AcquisitionStudyConfig(ClusterOptions):
             the expensive part); None = ``n_runs``.
         map_error_points: Seeded random points of the neural map's error against the
             truth (its extra R), as in the TAN study.
-        grid_cells: Point-mass cells per axis; None = the fewest covering ±4σ0 at
-            ``max_spacing_m`` (at most ``max_cells``).
-        max_spacing_m: Largest initial grid spacing when ``grid_cells`` is None, m.
-        max_cells: Most cells per axis when ``grid_cells`` is None.
-        adaptive_point_mass: Adaptive grid (re-centred, re-sized) for the point-mass-only
-            method, which runs the whole flight; point mass → EKF keeps the prior's grid.
-        grid_dtype: Point-mass precision.
-        min_spacing_m: Finest point-mass spacing, m.
-        handoff_sigma_m: Hand-off when the largest posterior σ is below this (m) ...
-        handoff_affinity: ... and the Bhattacharyya coefficient grid vs Gaussian fit is
-            above this, for ``handoff_hold`` steps.
-        handoff_hold: Consecutive steps the hand-off test must pass.
-        fallback_window: NIS window of the lost-lock test (0 = no fall-back).
-        fallback_prob: χ² probability of its threshold (jacksboro, σ0 = 300 m, 200 runs:
-            window 10 / 0.999 gave 16 fall-backs and RMSE/PCRB 1.30; 20 / 0.99999 gave
-            4 and 1.21; no fall-back, 2 divergences).
-        bank_per_axis: EKF-bank components per axis.
+        adaptive_point_mass: Adaptive grid (re-centred, re-sized) for the ``point_mass``
+            rows, which fly the grid for the whole flight; the acquisition grid of the other
+            methods keeps the prior's grid.
+        alert_limit_m: Horizontal alert limit of the integrity tables (per σ0: misleading
+            fixes, hazards, availability per row; a Stanford diagram of the default
+            method's rows), m.
+        navigator: Navigator options every row flies with, over the shipped
+            ``navigator.yaml`` (its sections: ``point_mass`` sizes the grid, ``acquisition``
+            the hand-off test, ``integrity`` the lost-lock test, ``ekf_bank`` the bank...).
         flat_leg: Also fly the smallest σ0 over a synthetic plane.
         n_runs_flat: Runs of the flat leg.
         pcrb_factor: Divergence when the final error exceeds this times the final PCRB.
@@ -116,30 +125,17 @@ class AcquisitionStudyConfig(ClusterOptions):
     scenario: str = "jacksboro"
     sigmas_m: list[float] = field(default_factory=lambda: [100.0, 300.0, 1000.0, 3000.0])
     n_runs: int = 1000
-    # the whole-flight point-mass row is the tracker (grid acquisition, then the tracker);
-    # the adaptive point mass alone (240 s per 50 runs at σ0 = 3 km here) is left out by
-    # default. Neural-map rows at 200 runs: each costs about as much as its grid row, and
-    # the neural EKF bank (49 EKFs per run linearising the network) 140 s per 1000 runs.
-    methods: list[str] = field(
-        default_factory=lambda: ["ekf", "bank", "point_mass_ekf", "point_mass_tracker"])
+    methods: list[str] = field(default_factory=lambda: [
+        EkfMethod.name, EkfBank.name, PointMassEkf.name, PointMassTrackerMethod.name])
     maps: list[str] = field(default_factory=lambda: ["grid", "neural"])
     map: str | None = None
     n_runs_neural: int | None = 200
-    n_runs_tracker: int | None = None
+    n_runs_per_method: dict[str, int] = field(default_factory=dict)
     neural_likelihood_oversample: int = 4
     map_error_points: int = 2000
-    grid_cells: int | None = None
-    max_spacing_m: float = 50.0
-    max_cells: int = 256
     adaptive_point_mass: bool = True
-    grid_dtype: str = "float32"
-    min_spacing_m: float = 2.0
-    handoff_sigma_m: float = 40.0
-    handoff_affinity: float = 0.9
-    handoff_hold: int = 3
-    fallback_window: int = 20
-    fallback_prob: float = 0.99999
-    bank_per_axis: int = 7
+    navigator: dict[str, Any] = field(default_factory=dict)
+    alert_limit_m: float = 100.0
     flat_leg: bool = True
     n_runs_flat: int = 100
     pcrb_factor: float = 5.0
@@ -151,46 +147,43 @@ class AcquisitionStudyConfig(ClusterOptions):
         if self.neural_likelihood_oversample < 0:
             raise NeuralMapError(f"--neural_likelihood_oversample must be >= 0, got "
                                  f"{self.neural_likelihood_oversample}.")
-        if self.n_runs < 1 or any(k is not None and k < 1 for k in (self.n_runs_neural,
-                                                                      self.n_runs_tracker)):
+        if self.n_runs < 1 or (self.n_runs_neural is not None and self.n_runs_neural < 1):
             raise NeuralMapError(
-                f"--n_runs, --n_runs_neural and --n_runs_tracker must be >= 1 (the last two may "
-                f"be null = --n_runs), got {self.n_runs}, {self.n_runs_neural}, "
-                f"{self.n_runs_tracker}.")
+                f"--n_runs and --n_runs_neural must be >= 1 (the last may be null = --n_runs), "
+                f"got {self.n_runs}, {self.n_runs_neural}.")
+        bad = {k: v for k, v in dict(self.n_runs_per_method).items()
+               if k not in self.methods or isinstance(v, bool) or not isinstance(v, int) or v < 1}
+        if bad:
+            raise NeuralMapError(f"--n_runs_per_method: {bad} must name methods of --methods "
+                                 "with run counts >= 1.")
         if self.map_error_points < 100:
             raise NeuralMapError(f"--map_error_points must be >= 100, got {self.map_error_points}.")
         if not self.sigmas_m or any(not s > 0 for s in self.sigmas_m):
             raise NeuralMapError(f"--sigmas_m must be a non-empty list of sigmas > 0 m, got "
                                  f"{self.sigmas_m}.")
-        bad = [m for m in self.methods if m not in ACQUISITION_METHODS]
+        bad = [m for m in self.methods if m not in method_names()]
         if not self.methods or bad:
             raise NeuralMapError(f"--methods: unknown or empty {bad or self.methods}; pick "
-                                 f"from {', '.join(ACQUISITION_METHODS)}.")
+                                 f"from {', '.join(method_names())}.")
         bad = [m for m in self.maps if m not in _MAP_LINEARIZERS]
         if not self.maps or bad:
             raise NeuralMapError(f"--maps: unknown or empty {bad or self.maps}; pick from "
                                  f"{', '.join(_MAP_LINEARIZERS)}.")
         if self.n_runs_flat < 1:
             raise NeuralMapError(f"--n_runs_flat must be >= 1, got {self.n_runs_flat}.")
-        if isinstance(self.bank_per_axis, bool) or not isinstance(self.bank_per_axis, int) or (
-                self.bank_per_axis < 1):
-            raise NeuralMapError(
-                f"--bank_per_axis must be an integer >= 1 (EKF-bank components per axis: 1 = "
-                f"one EKF at the prior mean, the default 7 = a 7 x 7 lattice), got "
-                f"{self.bank_per_axis!r}. Pass e.g. --bank_per_axis 7, or drop `bank` from "
-                "--methods.")
-        self.acquisition_config().validate()
+        if not isinstance(self.navigator, dict):
+            raise NeuralMapError(f"--navigator must be a mapping of navigator sections, got "
+                                 f"{self.navigator!r}.")
+        self.navigator_config()
 
-    def acquisition_config(self) -> AcquisitionConfig:
-        """The `AcquisitionConfig` of these options."""
-        return AcquisitionConfig(
-            cells=self.grid_cells, max_spacing_m=self.max_spacing_m, max_cells=self.max_cells,
-            dtype=self.grid_dtype, min_spacing_m=self.min_spacing_m,
-            handoff_sigma_m=self.handoff_sigma_m, handoff_affinity=self.handoff_affinity,
-            handoff_hold=self.handoff_hold, fallback_window=self.fallback_window,
-            fallback_prob=self.fallback_prob,
-            bank_per_axis=self.bank_per_axis,
-        )
+    def navigator_config(self) -> Any:
+        """The navigator options every row flies with (validated; `navigator`)."""
+        from neuralmap.nav.config import load_navigator_config
+
+        try:
+            return load_navigator_config(self.navigator)
+        except NeuralMapError as exc:
+            raise NeuralMapError(f"--navigator: {exc}") from exc
 
 
 def scenario_at_sigma(scenario: Any, sigma: float, extent: tuple[float, ...]) -> Any:
@@ -226,14 +219,6 @@ def scenario_at_sigma(scenario: Any, sigma: float, extent: tuple[float, ...]) ->
                                duration_s=max(duration, 10.0 * scenario.dt)).validate()
 
 
-def _runs_on_map(inputs: Any, kept: torch.Tensor) -> Any:
-    """The `TanInputs` of the runs ``kept (N,)`` only."""
-    idx = kept.nonzero().reshape(-1)
-    return dataclasses.replace(
-        inputs, ins_pos=inputs.ins_pos[idx], radar=inputs.radar[idx],
-        ins_error=inputs.ins_error[idx], on_map=inputs.on_map[idx])
-
-
 def _flat_tile(tile: DemTile) -> DemTile:
     """A plane of the tile's size, spacing and origin at its mean height."""
     heights = np.full(tile.shape, float(np.nanmean(tile.heights)))
@@ -241,16 +226,18 @@ def _flat_tile(tile: DemTile) -> DemTile:
                    name=f"{tile.name}-flat")
 
 
-def _row_metrics(res: Any, bound: torch.Tensor, config: AcquisitionStudyConfig,
+def _row_metrics(run: Any, bound: torch.Tensor, config: AcquisitionStudyConfig,
                  dt: float) -> dict[str, Any]:
-    met = navigation_metrics(res.run, bound, pcrb_factor=config.pcrb_factor,
+    met = navigation_metrics(run, bound, pcrb_factor=config.pcrb_factor,
                              divergence_sigma=config.divergence_sigma)
-    keep = ~res.run.off_map
-    err = res.run.err[keep][..., :2].norm(dim=-1).double()
+    keep = ~run.off_map
+    err = run.err[keep][..., :2].norm(dim=-1).double()
     t_acq = acquisition_time(err, bound.double(), factor=3.0, dt=dt)
     finite = t_acq[torch.isfinite(t_acq)]
-    handed = res.handoff_step[keep]
+    per = run.vehicle_counts
+    handed = per["first_handoff"][keep]
     handed = handed[handed >= 0].double() * dt
+    recoveries = sum(int(v.sum()) for k, v in per.items() if k.endswith("recoveries"))
     return {
         "n_included": met["n_included"],
         "n_diverged": met["n_diverged"],
@@ -264,10 +251,11 @@ def _row_metrics(res: Any, bound: torch.Tensor, config: AcquisitionStudyConfig,
         "time_to_acquire_median_s": float(finite.median()) if finite.numel() else None,
         "time_to_acquire_p90_s": float(finite.quantile(0.9)) if finite.numel() else None,
         "handoff_median_s": float(handed.median()) if handed.numel() else None,
-        "n_fallbacks": int(res.n_fallbacks.sum()),
-        "n_recoveries": int(res.recoveries.sum()),
-        "wall_s": float(res.elapsed_s),
-        "cell_updates_per_s": (res.cell_updates / res.elapsed_s) if res.elapsed_s > 0 else None,
+        "n_fallbacks": int(per["lost"].sum()),
+        "n_recoveries": recoveries,
+        "wall_s": float(run.elapsed_s),
+        "cell_updates_per_s": (run.counts.get("cell_updates", 0) / run.elapsed_s
+                               if run.elapsed_s > 0 else None),
     }
 
 
@@ -325,20 +313,34 @@ def _likelihood_map(setup: Any, config: AcquisitionStudyConfig, notes: list[str]
 
 
 def _run_row(_: Any, job: dict[str, Any], *, progress: Any = None) -> dict[str, Any]:
-    """One row (one method on one σ0 and map): in this process or as a cluster's task.
+    """One row (one method on one σ0 and map) through the Navigator: in this process or as
+    a cluster's task.
 
     Returns:
-        ``{"result": AcquisitionResult}``, or ``{"error": message}`` when the method refused
-        its input (the study keeps the other rows and reports this one).
+        ``{"result": FilterRun}``, or ``{"error": message}`` when the method refused its
+        input (the study keeps the other rows and reports this one).
     """
     torch.set_num_threads(int(job["threads"]))  # the caller's: the same rounding
     try:
-        return {"result": run_acquisition(job["inputs"], method=job["method"],
-                                          terrain=job["terrain"], linearizer=job["linearizer"],
-                                          config=job["config"], name=job["name"],
-                                          progress=progress)}
+        return {"result": fly(job["truth"], job["terrain"], job["config"], model=job["model"],
+                              map_error_variance=job["map_error_variance"], name=job["name"],
+                              progress=progress)}
     except NeuralMapError as exc:
         return {"error": str(exc)}
+
+
+def _row_config(config: AcquisitionStudyConfig, scenario: Any, method: str,
+                linearizer: Any) -> Any:
+    """The navigator config of one row: the study's ``navigator`` options, the method and,
+    for a method that takes a linearisation, the map's (an EKF's)."""
+    options: dict[str, Any] = {}
+    fields = {f.name for f in dataclasses.fields(method_class(method).Options)}
+    if "linearizer" in fields:
+        options["linearizer"] = linearizer
+    if issubclass(method_class(method), PointMassGrid):
+        options["adaptive"] = config.adaptive_point_mass
+    return study_navigator_config(scenario, {"method": method, method: options},
+                                  overrides=config.navigator, integrity="product")
 
 
 def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
@@ -352,7 +354,7 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
     setup, maps, notes = _maps(config, device)
     base, tile, seed = setup.scenario, setup.tile, setup.seed
     truth_terrain = setup.truth_terrain  # the same world at every sigma0
-    acq_cfg = config.acquisition_config()
+    config.navigator_config()  # refuses bad navigator options before any work
     results: dict[str, Any] = {"sigmas": {}, "notes": notes,
                                "divergence_rule": divergence_rule(config.pcrb_factor,
                                                                   config.divergence_sigma)}
@@ -371,6 +373,8 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
             truth, scenario, dem["terrain"], map_error_var=dem["mse_m2"],
             map_error_corr=dem["corr"], runs=runs)).to("cpu")
 
+    integrity: dict[str, dict[str, Any]] = {}
+    default_method = config.navigator_config().method
     headers = ["sigma0 m", "map", "method", "runs", "off-map", "diverged", "RMSE m", "PCRB m",
                "RMSE/PCRB", "conv. RMSE/PCRB", "map PCRB m", "RMSE/map PCRB", "acquired",
                "t_acq median s", "hand-off s", "fall-backs", "recoveries", "wall s",
@@ -413,23 +417,23 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                 bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
                                            runs=kept)).to("cpu")
                 bound_map = map_bound(truth, scenario, kept)
-                inputs = _runs_on_map(tan_inputs(truth, scenario), kept)
-                inputs = dataclasses.replace(inputs, R=inputs.R + extra_r)
+                model = TanModel.from_scenario(scenario)
+                on_map = truth.take(kept)
                 jobs = []
                 for method in config.methods:
-                    cfg = acq_cfg
-                    if method == "point_mass" and config.adaptive_point_mass:
-                        cfg = dataclasses.replace(acq_cfg, adaptive=True)
-                    run_inputs, run_bound, run_bound_map = inputs, bound, bound_map
-                    if method == "point_mass_tracker" and config.n_runs_tracker is not None:
-                        sub = kept & (torch.cumsum(kept.long(), 0) <= config.n_runs_tracker)
+                    run_truth, run_bound, run_bound_map = on_map, bound, bound_map
+                    limit = config.n_runs_per_method.get(method)
+                    if limit is not None:
+                        sub = kept & (torch.cumsum(kept.long(), 0) <= limit)
                         if int(sub.sum()) < int(kept.sum()):
-                            run_inputs = _runs_on_map(inputs, sub[kept])
+                            run_truth = truth.take(sub)
                             run_bound = pcrb_position(pcrb(truth, scenario, truth_terrain.model,
                                                            runs=sub)).to("cpu")
                             run_bound_map = map_bound(truth, scenario, sub)
-                    jobs.append({"inputs": run_inputs, "method": method, "terrain": terrain,
-                                 "linearizer": lin, "config": cfg, "name": f"{method}/{kind}",
+                    jobs.append({"truth": run_truth, "method": method, "terrain": terrain,
+                                 "config": _row_config(config, scenario, method, lin),
+                                 "model": model, "map_error_variance": model.fit_variance
+                                 + extra_r, "name": f"{method}/{kind}",
                                  "threads": threads, "bound": run_bound,
                                  "bound_map": run_bound_map})
                 del truth
@@ -448,6 +452,13 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                       f"{out['error']}", flush=True)
                 continue
             m = _row_metrics(out["result"], job["bound"], config, stage["scenario"].dt)
+            entry = integrity_entry(out["result"], alert_limit_m=config.alert_limit_m)
+            if entry is not None:
+                integrity.setdefault(f"sigma0 {sigma:g} m, ", {})[f"{kind}/{method}"] = entry
+                if method == default_method:
+                    add_stanford(outputs, f"{kind}/{method}", out["result"],
+                                 alert_limit_m=config.alert_limit_m,
+                                 prefix=f"sigma0 {sigma:g} m, ")
             m["n_off_map"] = n_off
             m["pcrb_map_pos_m"] = bound_rms_last_half(job["bound_map"])
             m["pcrb_map_ratio_all"] = (
@@ -502,7 +513,7 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
         try:
             with stage_progress("acquisition flat-terrain leg", 1, "leg",
                                 enabled=config.progress) as progress:
-                flat = _flat_leg(config, base, tile, acq_cfg, device, dtype, seed, progress)
+                flat = _flat_leg(config, base, tile, device, dtype, seed, progress)
         except NeuralMapError as exc:  # the finished stages stay; the leg is reported
             notes.append(f"flat-terrain leg failed: {exc}")
     results["flat_leg"] = flat
@@ -514,16 +525,22 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
         for name, m in per_sigma.items():
             for metric in ("rmse_pos_m", "pcrb_ratio_all", "acquired_fraction", "n_diverged"):
                 outputs.log_scalar(f"summary/{metric}/sigma{sigma_key}/{name}", m[metric])
+    results["integrity"] = integrity
     outputs.results.update(results)
     _write_report(outputs, config, rows, headers, results, notes)
+    for prefix, table in integrity.items():
+        add_integrity_table(outputs, table, alert_limit_m=config.alert_limit_m,
+                            targets=tuple(k for k in table if k.endswith(f"/{default_method}")),
+                            prefix=prefix)
     _figure(outputs, results, base.dt)
 
 
 def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: DemTile,
-              acq_cfg: AcquisitionConfig, device: torch.device, dtype: torch.dtype,
-              seed: int, progress: Any = None) -> dict[str, Any]:
-    """Point mass over a plane: no terrain information, the posterior must stay wide
-    (``progress``: the filter's fraction callback, `neuralmap.progress.stage_progress`)."""
+              device: torch.device, dtype: torch.dtype, seed: int,
+              progress: Any = None) -> dict[str, Any]:
+    """The EKF started by the point-mass grid over a plane: no terrain information, the
+    posterior must stay wide (``progress``: the fraction callback of the flight,
+    `neuralmap.progress.stage_progress`)."""
     flat = _flat_tile(tile)
     sigma = float(min(config.sigmas_m))
     scenario = scenario_at_sigma(base, sigma, flat.extent)
@@ -532,19 +549,20 @@ def _flat_leg(config: AcquisitionStudyConfig, base: Any, tile: DemTile,
                       map_error_points=config.map_error_points, device=device)
     truth = simulate(scenario, flat, n_runs=config.n_runs_flat, seed=seed, dtype=dtype,
                      device=device, truth_terrain=leg.truth_terrain)
-    res = run_acquisition(tan_inputs(truth, scenario), method="point_mass_ekf",
-                          terrain=GridTerrain(flat, method="bilinear").to(device),
-                          config=acq_cfg, linearizer=leg.methods["bilinear"], progress=progress)
-    P = res.run.P[:, -1, :2, :2].double()
+    model = TanModel.from_scenario(scenario)
+    run = fly(truth, GridTerrain(flat, method="bilinear").to(device),
+              _row_config(config, scenario, PointMassEkf.name, leg.methods["bilinear"]),
+              model=model, map_error_variance=model.fit_variance, progress=progress)
+    P = run.P[:, -1, :2, :2].double()
     post_sigma = torch.linalg.eigvalsh(P)[:, -1].clamp_min(0).sqrt()
-    err = res.run.err[:, -1, :2].norm(dim=-1).double()
+    err = run.err[:, -1, :2].norm(dim=-1).double()
     return {
         "sigma0_m": sigma,
         "n_runs": config.n_runs_flat,
         "final_posterior_sigma_median_m": float(post_sigma.median()),
         "final_error_rms_m": float(err.square().mean().sqrt()),
-        "handed_off_fraction": float((res.handoff_step >= 0).double().mean()),
-        "nees_final_mean": float(nees(res.run.err[:, -1, :2], P).mean()),
+        "handed_off_fraction": float((run.vehicle_counts["first_handoff"] >= 0).double().mean()),
+        "nees_final_mean": float(nees(run.err[:, -1, :2], P).mean()),
     }
 
 
@@ -554,24 +572,26 @@ def _fmt(value: Any) -> str:
 
 def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: list[list[Any]],
                   headers: list[str], results: dict[str, Any], notes: list[str]) -> None:
+    nav = config.navigator_config()
+    a, grid, i = nav.acquisition, nav.methods[PointMassGrid.name], nav.integrity
     outputs.add_text(
         "Acquisition from large initial errors. Every method of a σ0 row sees the same "
-        "truth. **Hand-off test** (point mass → EKF): the Bhattacharyya coefficient between "
-        f"the grid posterior and its Gaussian fit ≥ {config.handoff_affinity:g} and the "
-        f"largest posterior σ ≤ {config.handoff_sigma_m:g} m for {config.handoff_hold} "
-        "consecutive steps; **fall-back** when the mean NIS over the last "
-        f"{config.fallback_window} updates exceeds its χ² point at probability "
-        f"{config.fallback_prob:g}. **Time to acquire**: "
+        "truth, and every row flies the `Navigator` (the product's pipeline). **Hand-off "
+        "test** (acquisition grid → method): the Bhattacharyya coefficient between the grid "
+        f"posterior and its Gaussian fit ≥ {a.handoff_affinity:g} and the largest posterior "
+        f"σ ≤ {a.handoff_sigma_m:g} m for {a.handoff_hold} consecutive steps; **lost lock** "
+        f"when the mean NIS over the last {i.lost_window} updates exceeds its χ² point at "
+        f"probability {i.lost_prob:g}: re-acquisition from the open-loop prior (fall-backs "
+        "in the table). **Time to acquire**: "
         "the first time after which the horizontal error stays below 3× the PCRB. RMSE and "
         "PCRB are RMS over all included runs and the last half of the flight; "
         f"divergence: {results['divergence_rule']} Grid: "
-        f"{config.grid_cells or f'up to {config.max_cells}'}² cells over ±4σ0 (at most "
-        f"{config.max_spacing_m:g} m apart when the count allows), {config.grid_dtype}; "
-        "point mass → EKF and point mass → tracker (the whole-flight point-mass tracker, "
-        "started from the grid posterior's moments at hand-off) keep the prior's grid, "
-        "point mass alone re-centres and "
-        f"re-sizes it (adaptive: {config.adaptive_point_mass}). Wall time and "
-        "cell-updates/s on this machine (shared CPUs: compare within the table)."
+        f"{grid.cells or f'up to {grid.max_cells}'}² cells over ±{grid.span_sigma:g}σ0 (at "
+        f"most {grid.max_spacing:g} m apart when the count allows), {grid.dtype}; the "
+        "acquisition grid keeps the prior's grid, the point mass alone (method "
+        f"`{PointMassGrid.name}`) re-centres and re-sizes it (adaptive: "
+        f"{config.adaptive_point_mass}). Wall time and cell-updates/s on this machine "
+        "(shared CPUs: compare within the table)."
     )
     for note in notes:
         outputs.add_text(f"Note: {note}")
@@ -609,7 +629,7 @@ def _write_report(outputs: StudyOutputs, config: AcquisitionStudyConfig, rows: l
                 runs=runs,
             )
             map_ratio = m.get("pcrb_map_ratio_all")
-            if key.endswith("point_mass_tracker"):  # the tracker against the map-aware bound
+            if key.endswith(f"/{nav.method}"):  # the default method vs the map-aware bound
                 outputs.add_claim(
                     "toolkit target",
                     f"sigma0 = {sigma} m, {key}: all-run RMSE over the last half <= 1.05x the "

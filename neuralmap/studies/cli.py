@@ -27,8 +27,8 @@ from jsonargparse import ActionConfigFile, ArgumentError, ArgumentParser, set_lo
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.io import check_writable_dir, load_yaml
+from neuralmap.outputs import StudyOutputs
 from neuralmap.resources import config_file
-from neuralmap.studies.outputs import StudyOutputs
 from neuralmap.studies.registry import STUDIES, get_study
 
 __all__ = ["build_parser", "main", "parse_config", "run_study"]

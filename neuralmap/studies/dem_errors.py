@@ -48,22 +48,22 @@ from neuralmap.errors import (
 from neuralmap.errors.arma import check_stationary
 from neuralmap.errors.simulation import DEM_ERROR_AR2
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.lab.metrics import navigation_metrics
+from neuralmap.lab.monte_carlo import run_filter
+from neuralmap.lab.pcrb import pcrb, pcrb_position, pcrb_recursion, terrain_information
+from neuralmap.lab.scenario import load_scenario
+from neuralmap.lab.simulator import simulate
+from neuralmap.lab.truth_terrain import TrueTerrain
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS
-from neuralmap.nav.augmented import (
+from neuralmap.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.studies.base import StudyConfig
+from neuralmap.studies.setup import TanSetup, build_methods, prepare_tan
+from neuralmap.tan.augmented import (
     AugmentedTanModel,
     augment_information,
     paper_tan_model,
 )
-from neuralmap.nav.metrics import navigation_metrics
-from neuralmap.nav.model import TanModel
-from neuralmap.nav.monte_carlo import run_filter
-from neuralmap.nav.pcrb import pcrb, pcrb_position, pcrb_recursion, terrain_information
-from neuralmap.nav.scenario import load_scenario
-from neuralmap.nav.simulator import simulate
-from neuralmap.nav.truth_terrain import TrueTerrain
-from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
-from neuralmap.studies.setup import TanSetup, build_methods, prepare_tan
+from neuralmap.tan.model import TanModel
 from neuralmap.terrain.grid import GridTerrain
 
 __all__ = ["DemErrorsStudyConfig", "prior_estimates", "run"]

@@ -50,11 +50,13 @@ from neuralmap.ins.loosely_coupled import (
 from neuralmap.ins.measurement import check_lever_arm
 from neuralmap.ins.metrics import navigation_summary
 from neuralmap.ins.trajectory import short_drive, urban_drive
+from neuralmap.io import to_jsonable
+from neuralmap.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.progress import progress_bar
 from neuralmap.studies.cluster_options import ClusterOptions
-from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 
-__all__ = ["VARIANTS", "VARIANT_COST", "GnssInsStudyConfig", "deal_variants", "run"]
+__all__ = ["VARIANTS", "VARIANT_COST", "GnssInsStudyConfig", "deal_variants", "error_curves",
+           "plot_error_vs_time", "run"]
 
 #: Known variants (see the module docstring).
 VARIANTS = ("plain", "r_scaled", "inflation", "quality", "quality_inflation", "windowed",
@@ -244,30 +246,158 @@ def _shade(ax: Any, quality: Any) -> None:
                 start = None
 
 
+#: The error-vs-time figure's log axis reaches at most this many times the divergence
+#: threshold; a curve above it (a diverged filter) runs along the top edge, named in the
+#: legend.
+ERROR_AXIS_CAP = 5.0
+
+
+def error_curves(runs: dict[str, Any], quality: Any) -> dict[str, Any]:
+    """The curves of the error-vs-time figure, as saved in results.json (``curves``).
+
+    Args:
+        runs: Variant name -> `LooselyCoupledResult`.
+        quality: The GNSS quality record of the draws (epoch times, degraded and outage
+            epochs).
+
+    Returns:
+        ``t`` (s), ``degraded`` and ``outage`` (one flag per epoch), and per variant
+        ``<name>_horizontal_rmse_m`` (RMSE over the runs) and ``<name>_mean_3sigma_m`` (the
+        filter's horizontal 3σ, mean over the runs). `plot_error_vs_time` redraws the figure
+        from them.
+    """
+    curves: dict[str, Any] = {"t": quality.time.tolist(),
+                              "degraded": quality.degraded.tolist(),
+                              "outage": (~quality.valid).tolist()}
+    for name, res in runs.items():
+        horiz = res.position_error[..., :2].norm(dim=-1)
+        curves[f"{name}_horizontal_rmse_m"] = horiz.square().mean(0).sqrt().tolist()
+        sigma = res.std[..., :2].square().sum(-1).sqrt().mean(0)
+        curves[f"{name}_mean_3sigma_m"] = (3 * sigma).tolist()
+    return curves
+
+
+def _spans(t: Any, mask: Any) -> list[tuple[float, float]]:
+    """The time spans where ``mask`` holds (each to the next epoch)."""
+    spans, start = [], None
+    for i, flag in enumerate(list(mask) + [False]):
+        if flag and start is None:
+            start = t[i]
+        elif not flag and start is not None:
+            spans.append((start, t[min(i, len(t) - 1)]))
+            start = None
+    return spans
+
+
+def plot_error_vs_time(curves: dict[str, Any], *, divergence_m: float) -> Any:
+    """Horizontal position RMSE over the runs and each filter's mean 3σ against time, from
+    a run's saved curves (`error_curves`; results.json ``curves``, where missing 3σ
+    curves or GNSS flags are left out).
+
+    The log axis spans the band of the filters that stay bounded (RMSE at most
+    `ERROR_AXIS_CAP` × ``divergence_m``): its top is their largest value (at least the
+    divergence threshold, drawn dashed), its bottom their smallest (the 1st percentile of
+    each curve's positive values); zeros and non-finite values never set it. A curve above
+    the top (a diverged filter, or its 3σ) is drawn along the top edge from a triangle at the
+    epoch it leaves the axis, and the legend names that epoch and its largest value.
+
+    Returns:
+        The figure (`matplotlib.figure.Figure`, no pyplot state).
+    """
+    import numpy as np
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    t = np.asarray(curves["t"], dtype=np.float64)
+
+    def values(key: str) -> Any:
+        raw = curves.get(key)
+        if raw is None:
+            return np.full(t.shape, np.nan)
+        return np.array([np.nan if v is None else v for v in raw], dtype=np.float64)
+
+    def positive(v: Any) -> Any:
+        return v[np.isfinite(v) & (v > 0)]
+
+    def largest(v: Any) -> float:
+        if np.isinf(v).any():
+            return math.inf
+        p = positive(v)
+        return float(p.max()) if p.size else 0.0
+
+    suffix = "_horizontal_rmse_m"
+    names = [key[: -len(suffix)] for key in curves if key.endswith(suffix)]
+    rmse = {n: values(f"{n}{suffix}") for n in names}
+    sigma = {n: values(f"{n}_mean_3sigma_m") for n in names}
+    cap = ERROR_AXIS_CAP * divergence_m
+    bounded = [n for n in names if largest(rmse[n]) <= cap] or names
+    in_band = [v for n in bounded for v in (rmse[n], sigma[n]) if positive(v).size]
+    peak = max([float(positive(v).max()) for v in in_band if largest(v) <= cap], default=0.0)
+    top = 1.3 * min(cap, max(divergence_m, peak))
+    lows = [float(np.percentile(positive(v), 1)) for v in in_band]
+    bottom = 0.7 * min(lows) if lows else top / 1e3
+    bottom = min(bottom, top / 10)
+
+    edge = top / 1.1  # where a curve above the axis runs, just inside the frame
+
+    fig = Figure(figsize=(10.0, 4.8))
+    ax = fig.add_subplot()
+    handles = []
+    for i, name in enumerate(names):
+        color = f"C{i % 10}"
+        label = name
+        for v, style, what in ((rmse[name], "-", "RMSE"), (sigma[name], "--", "3σ")):
+            shown = np.where(v > 0, v, np.nan)
+            above = shown > top
+            if above.any():
+                first = float(t[int(np.argmax(above))])
+                most = largest(v)
+                size = "non-finite" if math.isinf(most) else f"{most:.1e} m"
+                label += f"\n  {what} off the axis from {first:.0f} s (max {size})"
+                shown = np.where(above, edge, shown)
+                ax.plot([first], [edge], marker="^", ms=6, color=color, clip_on=False)
+            ax.plot(t, shown, ls=style, lw=1.3 if style == "-" else 0.8, color=color)
+        handles.append(Line2D([], [], color=color, lw=1.3, label=label))
+    ax.axhline(divergence_m, color="k", lw=0.8, ls=":")
+    for key, color in (("degraded", "khaki"), ("outage", "0.6")):
+        if key in curves:
+            for start, end in _spans(t, [bool(f) for f in curves[key]]):
+                ax.axvspan(start, end, color=color, alpha=0.3, lw=0)
+    ax.set_yscale("log")
+    ax.set_ylim(bottom, top)
+    ax.set_xlim(float(t[0]), float(t[-1]))
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("horizontal position error (m)")
+    ax.set_title("Horizontal position error vs time")
+    ax.grid(True, which="major", alpha=0.3)
+    handles += [Line2D([], [], color="k", lw=1.3, ls="-", label="RMSE over the runs"),
+                Line2D([], [], color="k", lw=0.8, ls="--", label="filter's 3σ (mean)"),
+                Line2D([], [], color="k", lw=0.8, ls=":",
+                       label=f"divergence threshold {divergence_m:g} m")]
+    if "degraded" in curves:
+        handles.append(Patch(color="khaki", alpha=0.3, label="degraded GNSS"))
+    if "outage" in curves:
+        handles.append(Patch(color="0.6", alpha=0.3, label="GNSS outage"))
+    ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0),
+              borderaxespad=0.0)
+    fig.tight_layout()
+    return fig
+
+
 def _figures(outputs: StudyOutputs, *, traj: Any, quality: Any,
-             results: dict[str, Any]) -> None:
+             results: dict[str, Any], curves: dict[str, Any], divergence_m: float) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     t = quality.time.numpy()
-    fig, ax = plt.subplots(figsize=(9, 4))
-    for name, res in results.items():
-        horiz = res.position_error[..., :2].norm(dim=-1)
-        (line,) = ax.semilogy(t, horiz.square().mean(0).sqrt().numpy(), label=f"{name}: RMSE")
-        sig = res.std[..., :2].square().sum(-1).sqrt().mean(0)
-        ax.semilogy(t, (3 * sig).numpy(), ls="--", lw=0.8, color=line.get_color(),
-                    label=f"{name}: mean 3σ")
-    _shade(ax, quality)
-    ax.set_xlabel("time (s)")
-    ax.set_ylabel("horizontal position error (m)")
-    ax.legend(fontsize=7, loc="upper left")
-    fig.tight_layout()
+    fig = plot_error_vs_time(curves, divergence_m=divergence_m)
     outputs.add_figure("error_vs_time", fig,
-                       "Horizontal position RMSE over the runs and the filters' mean 3σ; "
-                       "degraded GNSS stretches shaded orange, outages grey")
-    plt.close(fig)
+                       "Horizontal position RMSE over the runs and the filters' mean 3σ (log "
+                       "axis over the bounded filters; a diverged filter runs along the top "
+                       "edge); degraded GNSS stretches shaded yellow, outages grey")
 
     fig, axes = plt.subplots(3, 1, figsize=(9, 6), sharex=True)
     for name, res in results.items():
@@ -458,7 +588,9 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
         "9-state NEES (ideal 9)", "NIS (ideal 6)"], cons_rows,
         note="The receiver's reported σ is optimistic by 2.5× in degraded stretches and "
              "blind to multipath jumps, so the plain filter's NEES/NIS rise there.")
-    _figures(outputs, traj=traj, quality=quality, results=runs)
+    curves = to_jsonable(error_curves(runs, quality))  # the figure is what results.json keeps
+    _figures(outputs, traj=traj, quality=quality, results=runs, curves=curves,
+             divergence_m=config.divergence_m)
 
     _claims(outputs, summaries)
     timing["total"] = time.perf_counter() - started
@@ -469,10 +601,7 @@ def run(config: GnssInsStudyConfig, outputs: StudyOutputs) -> None:
         "gnss": {"epochs": quality.n_epochs, "outage_epochs": int((~quality.valid).sum()),
                  "degraded_epochs": int((quality.degraded & quality.valid).sum()),
                  "multipath_epochs": int(quality.multipath.sum())},
-        "curves": {"t": quality.time.tolist(),
-                   **{f"{n}_horizontal_rmse_m":
-                      r.position_error[..., :2].norm(dim=-1).square().mean(0).sqrt().tolist()
-                      for n, r in runs.items()}},
+        "curves": curves,
         "timing_s": timing,
     })
 

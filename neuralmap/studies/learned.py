@@ -33,6 +33,11 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies import make_policy
+from neuralmap.lab.metrics import divergence_rule, navigation_metrics
+from neuralmap.lab.monte_carlo import FilterJob, run_filters
+from neuralmap.lab.pcrb import pcrb, pcrb_position
+from neuralmap.lab.scenario import load_scenario
+from neuralmap.lab.simulator import simulate
 from neuralmap.learning.covariance import COVARIANCE_KINDS
 from neuralmap.learning.em import em_noise
 from neuralmap.learning.flights import FlightBatch
@@ -42,15 +47,10 @@ from neuralmap.learning.map_refine import refine_map
 from neuralmap.learning.noise_fit import fit_noise
 from neuralmap.learning.noise_model import NoiseModel
 from neuralmap.linearize.factory import make_linearizer
-from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-from neuralmap.nav.model import TanModel
-from neuralmap.nav.monte_carlo import FilterJob, run_filters
-from neuralmap.nav.pcrb import pcrb, pcrb_position
-from neuralmap.nav.scenario import load_scenario
-from neuralmap.nav.simulator import simulate
+from neuralmap.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.cluster_options import ClusterOptions
-from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.setup import prepare_tan
+from neuralmap.tan.model import TanModel
 from neuralmap.terrain.grid import GridTerrain
 from neuralmap.viz.navigation import plot_error_vs_time
 
@@ -88,7 +88,7 @@ class LearnedStudyConfig(ClusterOptions):
         target_param_rel, target_em_rel, target_map_ratio: Targets.
         pcrb_factor, divergence_sigma: Divergence rule (as the tan study).
         cluster: Where the configurations' test filters run (one task per configuration on
-            a Dask cluster, `neuralmap.nav.monte_carlo.run_filters`; bit-identical);
+            a Dask cluster, `neuralmap.lab.monte_carlo.run_filters`; bit-identical);
             default this process. Noise learning, refinement and EM run here.
     """
 

@@ -27,7 +27,7 @@ position uncertainty, `neuralmap.linearize.region_variance`) and R increased by 
 map's own error variance against the truth beyond the scenario's fit variance; so a map is
 judged by its surface, and rare divergences of a point linearisation do not decide.
 Navigation RMSE is given over all runs and over the converged runs, each with a paired
-bootstrap interval (`neuralmap.nav.bootstrap`), and as a ratio to the full-resolution
+bootstrap interval (`neuralmap.lab.bootstrap`), and as a ratio to the full-resolution
 grid's with its interval.
 
 Fronts (plotted as PNG): bytes vs node RMSE, bytes vs maximum node error, bytes vs
@@ -63,14 +63,14 @@ from matplotlib.figure import Figure
 from torch import nn
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.lab.bootstrap import bootstrap_rmse, paired_ratio, resample_index
+from neuralmap.lab.metrics import navigation_metrics
+from neuralmap.lab.monte_carlo import run_monte_carlo
+from neuralmap.lab.pcrb import pcrb, pcrb_position
 from neuralmap.linearize.autograd import AutogradLinearizer
-from neuralmap.nav.bootstrap import bootstrap_rmse, paired_ratio, resample_index
-from neuralmap.nav.metrics import navigation_metrics
-from neuralmap.nav.monte_carlo import run_monte_carlo
-from neuralmap.nav.pcrb import pcrb, pcrb_position
+from neuralmap.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.maps import check_map_tile, find_tile_maps
-from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.rate_distortion import bd_rate, bytes_at_error, pareto_front
 from neuralmap.studies.setup import prepare_tan
 from neuralmap.terrain.bake import bake_to_grid

@@ -7,16 +7,16 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.lab.map_error import map_error_correlation, measure_map_error
+from neuralmap.lab.scenario import Scenario, load_scenario, scenario_tile
+from neuralmap.lab.truth_terrain import true_terrain
 from neuralmap.linearize.factory import LINEARIZER_NAMES, TERRAIN_MODEL_METHODS, make_linearizer
-from neuralmap.nav.map_error import map_error_correlation, measure_map_error
-from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
-from neuralmap.nav.truth_terrain import true_terrain
 from neuralmap.studies.base import StudyConfig
 from neuralmap.studies.maps import check_map_tile, resolve_map_path
 from neuralmap.terrain.export import load_map
@@ -67,20 +67,34 @@ class TanOptions(StudyConfig):
     pcrb_factor: float = 5.0
     divergence_sigma: float = 9.0
 
+    #: Whether ``methods`` may also name registered navigation methods
+    #: (`neuralmap.tan.registry.method_names`), flown through the Navigator by name.
+    navigation_methods: ClassVar[bool] = False
+
+    def known_methods(self) -> tuple[str, ...]:
+        """The names ``--methods`` accepts."""
+        from neuralmap.tan.registry import method_names
+
+        names = tuple(LINEARIZER_NAMES)
+        return names + method_names() if self.navigation_methods else names
+
+    @property
+    def linearized_methods(self) -> list[str]:
+        """The methods that are EKF linearisations (built by `prepare_tan`)."""
+        return [m for m in self.methods if m in LINEARIZER_NAMES]
+
     def validate(self) -> None:
         """Checks values; raises `NeuralMapError` naming the option and the fix."""
         super().validate()
         if self.n_runs < 1:
             raise NeuralMapError(f"--n_runs must be >= 1, got {self.n_runs}.")
+        known = self.known_methods()
         if not self.methods:
-            raise NeuralMapError(
-                f"--methods is empty; pick one or more of {', '.join(LINEARIZER_NAMES)}."
-            )
-        unknown = [m for m in self.methods if m not in LINEARIZER_NAMES]
+            raise NeuralMapError(f"--methods is empty; pick one or more of {', '.join(known)}.")
+        unknown = [m for m in self.methods if m not in known]
         if unknown:
             raise NeuralMapError(
-                f"--methods: unknown method(s) {unknown}; known: {', '.join(LINEARIZER_NAMES)}."
-            )
+                f"--methods: unknown method(s) {unknown}; known: {', '.join(known)}.")
         if len(set(self.methods)) != len(self.methods):
             raise NeuralMapError(f"--methods lists a method twice: {self.methods}.")
         if self.neural_fit_variance is not None and not self.neural_fit_variance >= 0:
@@ -281,7 +295,7 @@ def void_exposure(tile: Any, truth: Any) -> dict[str, int]:
 def dem_error_model(scenario: Any, tile: Any, truth_terrain: Any, *, n_points: int,
                     seed: int) -> dict[str, Any]:
     """The bilinear DEM as a map, with its error against the truth terrain: the noise of the
-    map-aware PCRB (`neuralmap.nav.pcrb.map_aware_pcrb`).
+    map-aware PCRB (`neuralmap.lab.pcrb.map_aware_pcrb`).
 
     Args:
         scenario: The study's scenario (its speed × period is the correlation lag).

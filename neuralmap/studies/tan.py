@@ -24,18 +24,16 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.lab.metrics import bound_rms_last_half, divergence_rule, navigation_metrics
+from neuralmap.lab.monte_carlo import fly, run_monte_carlo, study_navigator_config
+from neuralmap.lab.noise_calibration import derive_method_noise
+from neuralmap.lab.pcrb import map_aware_pcrb, pcrb, pcrb_position
+from neuralmap.lab.simulator import simulate
 from neuralmap.linearize.measured_noise import MeasuredNoiseLinearizer, measure_linearization_noise
-from neuralmap.nav.acquisition import AcquisitionConfig, run_acquisition, tan_inputs
-from neuralmap.nav.metrics import bound_rms_last_half, divergence_rule, navigation_metrics
-from neuralmap.nav.model import TanModel
-from neuralmap.nav.monte_carlo import run_monte_carlo
-from neuralmap.nav.noise_calibration import derive_method_noise
-from neuralmap.nav.pcrb import map_aware_pcrb, pcrb, pcrb_position
-from neuralmap.nav.simulator import simulate
-from neuralmap.nav.tracking import TRACKER_METHOD, TrackerOptions, run_tracker
+from neuralmap.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.progress import stage_progress
 from neuralmap.studies.cluster_options import ClusterOptions
-from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.studies.integrity_report import add_integrity
 from neuralmap.studies.setup import (
     DEFAULT_METHODS,
     TanOptions,
@@ -52,6 +50,9 @@ from neuralmap.studies.tan_report import (
     report_text,
 )
 from neuralmap.studies.trajectories import write_trajectories
+from neuralmap.tan.methods import PointMassEkf, PointMassTrackerMethod
+from neuralmap.tan.model import TanModel
+from neuralmap.tan.registry import method_class
 from neuralmap.viz.navigation import (
     plot_error_vs_time,
     plot_final_error_histogram,
@@ -59,14 +60,11 @@ from neuralmap.viz.navigation import (
 )
 from neuralmap.viz.tensorboard_nav import log_navigation
 
-__all__ = ["DEFAULT_METHODS", "TanStudyConfig", "run"]
+__all__ = ["DEFAULT_METHODS", "STUDY_METHODS", "TanStudyConfig", "run"]
 
-#: The EKF started by the point-mass filter (`neuralmap.nav.acquisition.run_acquisition`'s
-#: ``point_mass_ekf`` on the bilinear DEM): the toolkit's recommended EKF method.
-PM_EKF_METHOD = "point_mass_ekf"
-
-#: Methods the study runs itself (not linearisation methods of the shared setup).
-_OWN_METHODS = (TRACKER_METHOD, PM_EKF_METHOD)
+#: The registered methods the study flies by default besides the linearisations: the EKF
+#: started by the point-mass grid and the navigator's default method (`navigator.yaml`).
+STUDY_METHODS: tuple[str, ...] = (PointMassEkf.name, PointMassTrackerMethod.name)
 
 #: How the EKF methods' R is built (``--noise``).
 NOISE_MODES = ("measured", "scenario")
@@ -85,55 +83,59 @@ class TanStudyConfig(TanOptions, ClusterOptions):
 
     Attributes:
         n_plot_trajectories: Trajectories drawn over the hillshade.
-        methods: The shared linearisation methods plus ``point_mass_tracker`` (the point-mass
-            tracker on the bilinear DEM for the whole flight, `neuralmap.nav.tracking`)
-            and ``point_mass_ekf`` (the bilinear EKF started by the point-mass filter: the
-            grid acquires, the EKF takes over once the posterior is unimodal and small,
-            `neuralmap.nav.acquisition`; R = altimeter + the bilinear DEM's map table,
-            `measure_linearization_noise`).
-        tracker_cells: Lattice cells per axis of ``point_mass_tracker`` (cell = σ/3.1).
-        tracker_stated_r: Fly ``point_mass_tracker`` a second time with the R a user has
-            (the altimeter variance + the DEM's stated accuracy ``dem_error_sigma_m``², as
-            the `Navigator` builds it, no truth terrain)
+        methods: EKF linearisation methods (each the cold-started TAN EKF with that
+            linearisation, flown through the Navigator with the lost-lock test off, as in the
+            paper) and registered navigation methods (`neuralmap.tan.registry`: the
+            point-mass tracker, the EKF started by the point-mass grid, ..., or a method of
+            your own), flown through the Navigator by name with the product's integrity
+            settings on the bilinear DEM, R = altimeter + the DEM's error measured against
+            the truth; a method that takes a linearisation gets the bilinear DEM's with its
+            measured noise table (`measure_linearization_noise`).
+        navigator: Navigator options the registered methods fly with, over the shipped
+            ``navigator.yaml`` (sections as there, e.g. ``{point_mass_tracker: {cells:
+            48}}`` or ``{integrity: {lost_window: 0}}``).
+        stated_r: Fly the navigator's default method (``navigator.yaml``'s ``method``) a
+            second time with the R a user has (the altimeter variance + the DEM's stated
+            accuracy ``dem_error_sigma_m``², as the `Navigator` builds it, no truth terrain)
             and report what is lost against the truth-tuned R.
+        alert_limit_m: Horizontal alert limit of the integrity section (misleading
+            fixes, hazards, availability, Stanford diagrams; `neuralmap.lab.integrity`), m.
         noise: R of the EKF methods: ``"measured"`` = the altimeter variance + each method's
             miss against the truth terrain as a function of the position σ, measured over the
-            map and on pilot flights (`neuralmap.nav.noise_calibration`); ``"scenario"``
+            map and on pilot flights (`neuralmap.lab.noise_calibration`); ``"scenario"``
             = the scenario's ``R_m2 + fit_variance_m2`` + each method's own variance.
         noise_pilot_runs: Pilot runs of the in-flight measurement (0 = the map table only).
         noise_iterations: Pilot flights (fixed-point iterations).
         cluster: Where the EKF methods' filters run (one task per method on a Dask cluster,
-            `neuralmap.nav.monte_carlo.run_filters`; bit-identical); default this
-            process. The tracker, the point-mass EKF and the pilot flights run here.
+            `neuralmap.lab.monte_carlo.run_filters`; bit-identical); default this
+            process. The registered methods and the pilot flights run here.
     """
 
+    navigation_methods = True
     experiment: str = "evaluate"
     n_plot_trajectories: int = 5
-    methods: list[str] = field(
-        default_factory=lambda: [*DEFAULT_METHODS, PM_EKF_METHOD, TRACKER_METHOD])
-    tracker_cells: int = 32
-    tracker_stated_r: bool = True
+    methods: list[str] = field(default_factory=lambda: [*DEFAULT_METHODS, *STUDY_METHODS])
+    navigator: dict[str, Any] = field(default_factory=dict)
+    stated_r: bool = True
+    alert_limit_m: float = 100.0
     noise: str = "measured"
     noise_pilot_runs: int = 400
     noise_iterations: int = 3
 
     def validate(self) -> None:
         """Checks values; raises `NeuralMapError` naming the option and the fix."""
-        methods = list(self.methods)
-        if any(methods.count(own) > 1 for own in _OWN_METHODS):
-            raise NeuralMapError(f"--methods lists a method twice: {methods}.")
-        linearized = [m for m in methods if m not in _OWN_METHODS]
-        # the shared checks know the linearisation methods only
-        self.methods = linearized or (
-            ["bilinear"] if any(own in methods for own in _OWN_METHODS) else [])
+        super().validate()
+        if not isinstance(self.navigator, dict):
+            raise NeuralMapError(f"--navigator must be a mapping of navigator sections, got "
+                                 f"{self.navigator!r}.")
+        if not self.alert_limit_m > 0:
+            raise NeuralMapError(f"--alert_limit_m must be > 0 m, got {self.alert_limit_m!r}.")
+        from neuralmap.nav.config import load_navigator_config
+
         try:
-            super().validate()
-        finally:
-            self.methods = methods
-        if isinstance(self.tracker_cells, bool) or not isinstance(self.tracker_cells, int) or (
-                self.tracker_cells < 8):
-            raise NeuralMapError(f"--tracker_cells must be an integer >= 8, got "
-                                 f"{self.tracker_cells!r}.")
+            load_navigator_config(self.navigator)
+        except NeuralMapError as exc:
+            raise NeuralMapError(f"--navigator: {exc}") from exc
         if self.noise not in NOISE_MODES:
             raise NeuralMapError(f"--noise must be one of {', '.join(NOISE_MODES)}, got "
                                  f"{self.noise!r}.")
@@ -209,7 +211,7 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     started = time.perf_counter()
     timing: dict[str, float] = {}
     device, dtype = config.torch_device, config.torch_dtype
-    linearized = [m for m in config.methods if m not in _OWN_METHODS]
+    linearized = config.linearized_methods
     setup = prepare_tan(scenario=config.scenario, methods=linearized, map_path=config.map,
                         runs_dir=config.runs_dir, seed=config.seed,
                         neural_fit_variance=config.neural_fit_variance,
@@ -258,9 +260,8 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
                                device=device, truth_terrain=truth_terrain), {}
     dem_bound = dem_error_model(scenario, tile, truth_terrain,
                                 n_points=config.map_error_points, seed=config.seed)
-    tracker_info = _run_tracker(config, scenario, truth, dem_bound, runs)
-    pm_ekf_info = _run_point_mass_ekf(config, scenario, truth, tile, truth_terrain, dem_bound,
-                                      runs)
+    navigator_info = _fly_registered(config, scenario, truth, tile, truth_terrain, dem_bound,
+                                     runs)
     _order_runs(config, runs)
     for name, filter_run in runs.items():
         timing[f"filter_{name}"] = float(filter_run.elapsed_s)
@@ -311,12 +312,11 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     )
     _add_map_aware_bound(results, pcrb_map_pos, dem_bound)
     _add_diverged_runs(results, method_metrics, runs, scenario)
-    if tracker_info:
-        results["tracker"] = tracker_info
-    if pm_ekf_info:
-        results["point_mass_ekf"] = pm_ekf_info
+    if navigator_info:
+        results["navigator"] = navigator_info
     results["noise"] = {"mode": config.noise, **noise_info}
-    claims = check_claims(results) + _tracker_claims(results) + _consistency_claims(results)
+    claims = (check_claims(results) + _default_method_claims(results)
+              + _consistency_claims(results))
     print()
     print(format_table(results))
     print(f"bounds: {results['pcrb_map_aware']['label']} {results['pcrb_map_aware']['pos_m']:.1f} m, "
@@ -327,16 +327,21 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
         f"{config.n_runs}; per method: "
         + ", ".join(f"{k} {v}" for k, v in off_map["per_method"].items())
     )
-    results["timing_s"]["total"] = time.perf_counter() - started
     outputs.add_text(report_text(results))
-    stated = (tracker_info or {}).get("stated_R")
+    results["integrity"] = add_integrity(
+        outputs, runs, alert_limit_m=config.alert_limit_m,
+        targets=tuple(m for m in (_default_method(), PointMassEkf.name) if m in runs))
+    results["timing_s"]["total"] = time.perf_counter() - started
+    default = _default_method()
+    info = (navigator_info or {}).get(default, {})
+    stated = info.get("stated_R")
     if stated:
         outputs.add_table(
-            "Point-mass tracker: the R a user has against the truth-tuned R",
+            f"{default}: the R a user has against the truth-tuned R",
             ["R", "R [m²]", "RMSE pos, all runs, last half [m]", "lost runs"],
             [["truth-tuned (altimeter + DEM error measured against the truth)",
-              f"{tracker_info['R_m2']:.1f}", f"{stated['truth_tuned_rmse_last_half_m']:.2f}",
-              tracker_info["runs_lost"]],
+              f"{info['R_m2']:.1f}", f"{stated['truth_tuned_rmse_last_half_m']:.2f}",
+              info["runs_lost"]],
              ["stated (altimeter + the DEM's stated accuracy, as the Navigator)",
               f"{stated['R_m2']:.1f}", f"{stated['rmse_last_half_m']:.2f}",
               stated["runs_lost"]]])
@@ -372,15 +377,11 @@ def _node(table: dict[str, Any], sigma: float) -> int:
     return int(np.argmin(np.abs(np.asarray(table["sigmas_m"]) - sigma)))
 
 
-def _fly_tracker(config: Any, scenario: Any, truth: Any, terrain: Any, R: float,
-                 label: str) -> Any:
-    """The point-mass tracker over every run with measurement variance ``R`` (m²)."""
-    model = TanModel.from_scenario(scenario)
-    with stage_progress(label, truth.n_steps, "step", enabled=config.progress) as progress:
-        return run_tracker(truth, terrain, P0=model.filter_prior(),
-                           Q=model.filter_process_noise(), R=R, dt=scenario.dt,
-                           options=TrackerOptions(cells=config.tracker_cells),
-                           progress=progress)
+def _default_method() -> str:
+    """The navigator's default method (the shipped ``navigator.yaml``'s ``method``)."""
+    from neuralmap.nav.config import load_navigator_config
+
+    return load_navigator_config().method
 
 
 def _last_half_rmse(run: Any) -> float:
@@ -389,91 +390,99 @@ def _last_half_rmse(run: Any) -> float:
     return float(err.square().sum(-1).mean().sqrt())
 
 
-def _run_tracker(config: Any, scenario: Any, truth: Any, dem: dict[str, Any],
-                 runs: dict[str, Any]) -> dict[str, Any]:
-    """Runs the point-mass tracker (when asked for) on the bilinear DEM, R = altimeter
-    variance + the DEM's measured error variance; adds its run to ``runs``. With
-    ``tracker_stated_r`` it flies again with the R a user has (altimeter + the DEM's stated
-    accuracy², no truth terrain) and reports both last-half RMSEs."""
-    if TRACKER_METHOD not in config.methods:
-        return {}
-    R = float(scenario.R_m2) + dem["mse_m2"]
-    result = _fly_tracker(config, scenario, truth, dem["terrain"], R, TRACKER_METHOD)
-    runs[TRACKER_METHOD] = result.run
-    elapsed = max(result.run.elapsed_s, 1e-9)
-    print(f"{TRACKER_METHOD}: {config.tracker_cells}² cells, R {R:.1f} m² (altimeter + DEM error "
-          f"{dem['mse_m2']:.2f} m² measured) | {result.cell_updates / elapsed:.3g} cell-updates/s | "
-          f"regrids/run {float(result.regrids.double().mean()):.1f}, widened "
-          f"{int((result.widenings > 0).sum())}, lost {int(result.lost.sum())} runs", flush=True)
-    info = {"cells": config.tracker_cells, "R_m2": R, "elapsed_s": result.run.elapsed_s,
-            "cell_updates_per_s": result.cell_updates / elapsed,
-            "regrids_per_run": float(result.regrids.double().mean()),
-            "runs_widened": int((result.widenings > 0).sum()), "runs_lost": int(result.lost.sum()),
-            "recoveries": int(result.recoveries.sum())}
-    if config.tracker_stated_r:
-        R_user = float(scenario.R_m2) + float(scenario.dem_error_sigma_m) ** 2
-        user = _fly_tracker(config, scenario, truth, dem["terrain"], R_user,
-                            f"{TRACKER_METHOD} (stated R)")
-        tuned, stated = _last_half_rmse(result.run), _last_half_rmse(user.run)
-        info["stated_R"] = {"R_m2": R_user, "rmse_last_half_m": stated,
-                            "truth_tuned_rmse_last_half_m": tuned,
-                            "loss_ratio": stated / tuned if tuned > 0 else None,
-                            "runs_lost": int(user.lost.sum())}
-        print(f"{TRACKER_METHOD} with the R a user has ({R_user:.1f} m²: altimeter + stated DEM "
-              f"accuracy {scenario.dem_error_sigma_m:g} m): last-half RMSE {stated:.2f} m against "
-              f"{tuned:.2f} m with the truth-tuned R ({stated / max(tuned, 1e-12):.3f}x)",
-              flush=True)
-    return info
+def _takes_linearizer(name: str) -> bool:
+    """The registered method's options name a linearisation (an EKF family method)."""
+    return "linearizer" in {f.name for f in dataclasses.fields(method_class(name).Options)}
 
 
-def _run_point_mass_ekf(config: Any, scenario: Any, truth: Any, tile: Any, truth_terrain: Any,
-                        dem: dict[str, Any], runs: dict[str, Any]) -> dict[str, Any]:
-    """Runs the EKF started by the point-mass filter (when asked for) and adds it to ``runs``.
+def _fly_registered(config: Any, scenario: Any, truth: Any, tile: Any, truth_terrain: Any,
+                    dem: dict[str, Any], runs: dict[str, Any]) -> dict[str, Any]:
+    """Flies every registered navigation method of ``config.methods`` through the
+    Navigator over the bilinear DEM (``dem["terrain"]``) and adds its run to ``runs``.
 
-    The grid (the bilinear DEM's likelihood) acquires from the prior and hands each run to
-    the bilinear EKF once its posterior is unimodal and small
-    (`run_acquisition`, ``point_mass_ekf``, default
-    `AcquisitionConfig`). R splits into the part both
-    filters share — the altimeter variance + the DEM's error variance, the map table at
-    σ = 0 — and the EKF's linearisation excess over it, ``v(σ) − v(0)``, read from the
-    bilinear method's map table at the filter's position σ
-    (`measure_linearization_noise`: the miss
-    ``t(p) − h(p̂) − slope(p̂)·(p − p̂)`` against the truth terrain with ``p − p̂ ~ N(0, σ² I)``).
-    The table is the whole R: no pilot flights, since an EKF the grid has started does not
-    lock onto a wrong terrain match, which is what the pilot flights of a cold-started EKF
-    add to its R.
+    R = the altimeter variance + the DEM's error variance measured against the truth
+    terrain. A method that takes a linearisation (the EKF family) gets the bilinear DEM's,
+    its R split into the part every filter shares — the map table at σ = 0 — and the
+    linearisation excess over it, ``v(σ) − v(0)``, read from the bilinear method's map table
+    at the filter's position σ (`measure_linearization_noise`: the miss ``t(p) − h(p̂) −
+    slope(p̂)·(p − p̂)`` against the truth terrain with ``p − p̂ ~ N(0, σ² I)``); no pilot
+    flights, since an EKF the grid has started does not lock onto a wrong terrain match,
+    which is what the pilot flights of a cold-started EKF add to its R. With ``stated_r``
+    the navigator's default method flies again with the R a user has (the altimeter + the
+    DEM's stated accuracy², no truth terrain).
     """
-    if PM_EKF_METHOD not in config.methods:
+    registered = [m for m in config.methods if m not in config.linearized_methods]
+    if not registered:
         return {}
-    tick = time.perf_counter()
-    bilinear = build_methods(["bilinear"], tile=tile, terrain_map=None,
-                             device=truth.pos.device)["bilinear"]
-    # the map table one part, the filter over the flight the other
-    with stage_progress(PM_EKF_METHOD, 2, "part", enabled=config.progress) as progress:
-        half = None if progress is None else (lambda f: progress(0.5 * f))
-        table = measure_linearization_noise(bilinear, truth_terrain.model,
-                                            extent=tuple(float(e) for e in tile.extent),
-                                            seed=config.seed, progress=half)
-        shared = float(table.variance_m2[0])
-        excess = dataclasses.replace(
-            table, variance_m2=tuple(max(v - shared, 0.0) for v in table.variance_m2))
-        inputs = dataclasses.replace(tan_inputs(truth, scenario), R=float(scenario.R_m2) + shared)
-        result = run_acquisition(inputs, method=PM_EKF_METHOD, terrain=dem["terrain"],
-                                 linearizer=MeasuredNoiseLinearizer(bilinear, excess),
-                                 config=AcquisitionConfig(), name=PM_EKF_METHOD,
-                                 progress=half)
-    runs[PM_EKF_METHOD] = result.run
-    handed = result.handoff_step[result.handoff_step >= 0].double() * float(scenario.dt)
-    info = {"R_shared_m2": float(inputs.R), "table": table.to_dict(),
+    model = TanModel.from_scenario(scenario)
+    infos: dict[str, Any] = {}
+    table = None
+    for name in registered:
+        tick = time.perf_counter()
+        options: dict[str, Any] = {}
+        R_map = float(dem["mse_m2"])
+        with stage_progress(name, 2, "part", enabled=config.progress) as progress:
+            half = None if progress is None else (lambda f: progress(0.5 * f))
+            if _takes_linearizer(name):
+                if table is None:
+                    bilinear = build_methods(["bilinear"], tile=tile, terrain_map=None,
+                                             device=truth.pos.device)["bilinear"]
+                    table = measure_linearization_noise(
+                        bilinear, truth_terrain.model,
+                        extent=tuple(float(e) for e in tile.extent), seed=config.seed,
+                        progress=half)
+                    shared = float(table.variance_m2[0])
+                    excess = dataclasses.replace(table, variance_m2=tuple(
+                        max(v - shared, 0.0) for v in table.variance_m2))
+                    linearizer = MeasuredNoiseLinearizer(bilinear, excess)
+                options["linearizer"], R_map = linearizer, shared
+            nav_cfg = study_navigator_config(scenario, {"method": name, name: options},
+                                             overrides=config.navigator, integrity="product")
+            run = fly(truth, dem["terrain"], nav_cfg, model=model, map_error_variance=R_map,
+                      tile=tile, name=name, progress=half)
+        runs[name] = run
+        infos[name] = _navigator_info(run, R=model.R_altimeter + R_map, dt=scenario.dt,
+                                      seconds=time.perf_counter() - tick)
+        if table is not None and "linearizer" in options:
+            infos[name]["table"] = table.to_dict()
+        print(f"{name}: R {infos[name]['R_m2']:.1f} m² (altimeter + DEM error) | "
+              f"{infos[name]['cell_updates_per_s']:.3g} cell-updates/s | hand-off median "
+              f"{infos[name]['handoff_median_s']} s, lost {infos[name]['runs_lost']} runs | "
+              f"{infos[name]['elapsed_s']:.1f} s", flush=True)
+    default = _default_method()
+    if config.stated_r and default in runs:
+        R_user = float(scenario.dem_error_sigma_m) ** 2
+        nav_cfg = study_navigator_config(scenario, default, overrides=config.navigator,
+                                         integrity="product")
+        with stage_progress(f"{default} (stated R)", 1, "flight",
+                            enabled=config.progress) as progress:
+            user = fly(truth, dem["terrain"], nav_cfg, model=model, map_error_variance=R_user,
+                       tile=tile, name=default, progress=progress)
+        tuned, stated = _last_half_rmse(runs[default]), _last_half_rmse(user)
+        infos[default]["stated_R"] = {
+            "R_m2": model.R_altimeter + R_user, "rmse_last_half_m": stated,
+            "truth_tuned_rmse_last_half_m": tuned,
+            "loss_ratio": stated / tuned if tuned > 0 else None,
+            "runs_lost": int(user.lost.sum()) if user.lost is not None else 0}
+        print(f"{default} with the R a user has ({model.R_altimeter + R_user:.1f} m²: altimeter "
+              f"+ stated DEM accuracy {scenario.dem_error_sigma_m:g} m): last-half RMSE "
+              f"{stated:.2f} m against {tuned:.2f} m with the truth-tuned R "
+              f"({stated / max(tuned, 1e-12):.3f}x)", flush=True)
+    return infos
+
+
+def _navigator_info(run: Any, *, R: float, dt: float, seconds: float) -> dict[str, Any]:
+    """What a registered method's flight reports beside its metrics."""
+    counts, per = run.counts, run.vehicle_counts
+    first = per.get("first_handoff")
+    handed = (first[first >= 0].double() * dt) if first is not None else torch.zeros(0)
+    elapsed = max(run.elapsed_s, 1e-9)
+    return {"R_m2": R, "elapsed_s": run.elapsed_s, "seconds": seconds,
+            "cell_updates_per_s": counts.get("cell_updates", 0) / elapsed,
             "handoff_median_s": float(handed.median()) if handed.numel() else None,
-            "never_handed_off": int((result.handoff_step < 0).sum()),
-            "fallbacks": int(result.n_fallbacks.sum()),
-            "elapsed_s": time.perf_counter() - tick}
-    print(f"{PM_EKF_METHOD}: R {inputs.R:.1f} m² (altimeter + DEM error) + the bilinear "
-          f"linearisation excess | hand-off median {info['handoff_median_s']} s, "
-          f"{info['never_handed_off']} runs never handed off, {info['fallbacks']} fall-backs | "
-          f"{info['elapsed_s']:.1f} s", flush=True)
-    return info
+            "never_handed_off": int((first < 0).sum()) if first is not None else 0,
+            "lost_lock_events": counts.get("lost", 0), "spikes": counts.get("spikes", 0),
+            "runs_lost": int(run.lost.sum()) if run.lost is not None else 0}
 
 
 def _order_runs(config: Any, runs: dict[str, Any]) -> None:
@@ -521,18 +530,18 @@ def _add_map_aware_bound(results: dict[str, Any], bound: np.ndarray, dem: dict[s
         entry["pcrb_map_ratio_all"] = rmse / rms if rmse is not None and rms > 0 else None
 
 
-def _tracker_claims(results: dict[str, Any]) -> list[Any]:
-    """The point-mass tracker's targets against both bounds (toolkit targets), each judged
-    by the one verdict rule (`neuralmap.studies.outputs.verdict`): RMSE and
+def _default_method_claims(results: dict[str, Any]) -> list[Any]:
+    """The navigator's default method's targets against both bounds (toolkit targets),
+    each judged by the one verdict rule (`neuralmap.outputs.verdict`): RMSE and
     divergence rest on every on-map run, NEES on the converged runs."""
-    entry = results["methods"].get(TRACKER_METHOD)
+    name = _default_method()
+    entry = results["methods"].get(name)
     if not entry:
         return []
     runs = RunCounts.from_metrics(entry)
     map_ratio, true_ratio = entry.get("pcrb_map_ratio_all"), entry.get("pcrb_ratio_all")
     rate, nees_band = runs.bad_rate, entry.get("nees_in_band")
     rule = "all-run RMSE (last half) / bound (RMS, last half)"
-    name = TRACKER_METHOD
 
     def judged(ok: bool | None, counts: RunCounts) -> str:
         return verdict(ok, runs=counts)
@@ -562,8 +571,8 @@ def _ratio_text(ratio: float | None) -> str:
 
 
 #: The EKF methods whose consistency the toolkit targets, first the recommended one (the
-#: EKF started by the point-mass filter), then the neural method of a cold-started EKF.
-RECOMMENDED_EKF = (PM_EKF_METHOD, "neural_region")
+#: EKF started by the point-mass grid), then the neural method of a cold-started EKF.
+RECOMMENDED_EKF = (PointMassEkf.name, "neural_region")
 
 
 def _consistency_claims(results: dict[str, Any]) -> list[Any]:
@@ -576,8 +585,10 @@ def _consistency_claims(results: dict[str, Any]) -> list[Any]:
         return []
     band = results["methods"][name]["nees_in_band"]
     noise = results.get("noise", {}).get("mode", "?")
+    linearized = set(results.get("config", {}).get("methods", [])) - set(
+        results.get("navigator", {}))
     cold = {m: e["nees_in_band"] for m, e in results["methods"].items()
-            if m not in _OWN_METHODS and e.get("nees_in_band") is not None}
+            if m in linearized and e.get("nees_in_band") is not None}
     detail = f"R: {noise}; run-averaged NEES of the 5 states vs the two-sided chi2 band"
     if cold:
         best = max(cold.items(), key=lambda item: item[1])

@@ -2,7 +2,7 @@
 
 The scenario is flown twice on the same Monte Carlo draws: once with a clean altimeter (the
 plain EKF's reference) and once with faults — isolated spikes, patches of consecutive
-biased returns (canopy, roofs) and losses of lock (`neuralmap.nav.altimeter`). The
+biased returns (canopy, roofs) and losses of lock (`neuralmap.lab.altimeter`). The
 faulty flight is filtered with every policy: plain EKF, χ² gate, Huber, Sage-Husa, IGG-III,
 RAF (IGG-III + Yang's factor, SEEDS 002), RAF + quality R (SEEDS 003's quality factor
 before the adaptive factor), paper 003's tuned filter (quality R + innovation inflation)
@@ -28,17 +28,22 @@ from matplotlib.figure import Figure
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies.registry import POLICY_NAMES, make_policy, policy_label
 from neuralmap.filters.policy import FilterPolicy
+from neuralmap.lab.altimeter import FAULT_CODES
+from neuralmap.lab.metrics import divergence_rule, navigation_metrics
+from neuralmap.lab.monte_carlo import check_map_matches, run_filter
+from neuralmap.lab.pcrb import pcrb, pcrb_position
+from neuralmap.lab.scenario import load_scenario
+from neuralmap.lab.simulator import simulate
 from neuralmap.linearize.factory import method_label
-from neuralmap.nav.altimeter import FAULT_CODES
-from neuralmap.nav.metrics import divergence_rule, navigation_metrics
-from neuralmap.nav.model import TanModel
-from neuralmap.nav.monte_carlo import check_map_matches, run_filter
-from neuralmap.nav.pcrb import pcrb, pcrb_position
-from neuralmap.nav.scenario import load_scenario
-from neuralmap.nav.simulator import simulate
+from neuralmap.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.progress import progress_bar
-from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
+from neuralmap.studies.integrity_report import (
+    add_integrity_table,
+    add_stanford,
+    integrity_entry,
+)
 from neuralmap.studies.setup import TanOptions, prepare_tan
+from neuralmap.tan.model import TanModel
 from neuralmap.viz.navigation import plot_error_vs_time
 
 __all__ = ["POLICIES", "TanOutliersConfig", "run", "study_policy"]
@@ -82,6 +87,8 @@ class TanOutliersConfig(TanOptions):
         patch_bias_min_m: Most negative patch bias, m.
         patch_bias_max_m: Least negative patch bias, m.
         lock_loss_prob: Probability per epoch of a loss of lock.
+        alert_limit_m: Horizontal alert limit of the integrity section (misleading fixes
+            per method and policy, a Stanford diagram per method at its best policy), m.
         target_divergence: Target divergence of the best robust policy.
         target_rmse_ratio: Target all-run RMSE of the best policy over the clean run's.
     """
@@ -101,6 +108,7 @@ class TanOutliersConfig(TanOptions):
     lock_loss_prob: float = 0.02
     target_divergence: float = 0.01
     target_rmse_ratio: float = 1.3
+    alert_limit_m: float = 100.0
 
     def validate(self) -> None:
         """Checks values; raises `NeuralMapError` naming the option and the fix."""
@@ -186,6 +194,8 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
     rows: list[list[Any]] = []
     results: dict[str, Any] = {}
     curves: dict[str, dict[str, list[float | None]]] = {}
+    integrity: dict[str, Any] = {}
+    best: dict[str, tuple[float, str, Any]] = {}  # method -> the policy of least RMSE
     total = len(config.methods) * (len(config.policies) + 1)
     bar = None
     if config.progress:
@@ -214,6 +224,13 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
                                        divergence_sigma=config.divergence_sigma)
                 summary = _summary(m, filtered, faulty_epochs)
                 summary["wall_s"] = time.perf_counter() - tick
+                key = f"{method}/{name}"
+                entry_i = integrity_entry(filtered, alert_limit_m=config.alert_limit_m)
+                if entry_i is not None:
+                    integrity[key] = entry_i
+                rmse = m["rmse_pos_m"]
+                if rmse is not None and (method not in best or rmse < best[method][0]):
+                    best[method] = (rmse, key, filtered)
                 entry[name] = summary
                 curves[method][policy_label(name)] = m["rmse_pos_curve"]
                 rows.append([method_label(method), policy_label(name),
@@ -247,11 +264,14 @@ def run(config: TanOutliersConfig, outputs: StudyOutputs) -> None:
         "RMSE near faults: over epochs with a spike or patch and the 10 s after. Mean max "
         "jump: the largest one-step growth of each run's horizontal error, averaged.",
     )
+    add_integrity_table(outputs, integrity, alert_limit_m=config.alert_limit_m)
+    for _, key, run in best.values():  # a Stanford diagram per method: its best policy
+        add_stanford(outputs, key, run, alert_limit_m=config.alert_limit_m)
     targets = _targets(config, results)
     _claims(outputs, config, results)
     _figures(outputs, config, curves, pcrb_pos.numpy(), results)
     outputs.results.update({
-        "methods": results, "targets": targets, "fault_share": fault_share,
+        "methods": results, "integrity": integrity, "targets": targets, "fault_share": fault_share,
         "pcrb_pos_m": float(pcrb_pos[len(pcrb_pos) // 2:].square().mean().sqrt()),
         "truth_model": setup.truth_terrain.summary(), "map": setup.map_info(),
         "policies": POLICIES, "timing_s": {"total": time.perf_counter() - started},

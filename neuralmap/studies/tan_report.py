@@ -1,7 +1,7 @@
 """The TAN study's results: ``results.json``, ``report.md``, console table, claims check.
 
 The evaluation front end (``evaluate.py``) collects one metrics dict per linearisation
-method (`neuralmap.nav.metrics.navigation_metrics`), the posterior Cramér-Rao bound
+method (`neuralmap.lab.metrics.navigation_metrics`), the posterior Cramér-Rao bound
 and the run configuration; this module turns them into the files a user reads. It knows
 nothing about filters or maps: every input is plain numbers, lists and dicts.
 
@@ -10,7 +10,7 @@ The claims check compares the measured numbers with paper 004's statements (SEED
 25 m (1σ) better than the classical linearisations; and with the toolkit's accuracy targets
 (neural RMSE over all runs within 1.5× the PCRB, divergence ≤ 2 %). A verdict needs a
 minimum number of converged runs per method (the shared rule of
-`neuralmap.studies.outputs.verdict`); below it the claim reads "not enough converged
+`neuralmap.outputs.verdict`); below it the claim reads "not enough converged
 runs (n of N)". Numerical failures count against every claim (as not converged, and as
 failed runs in the divergence target).
 """
@@ -27,7 +27,7 @@ import numpy as np
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import METHODS as LINEARIZER_METHODS
 from neuralmap.linearize.factory import method_label
-from neuralmap.studies.outputs import (
+from neuralmap.outputs import (
     MIN_CONVERGED,
     NOT_MEASURED,
     RunCounts,
@@ -96,7 +96,7 @@ class ClaimCheck:
     Attributes:
         claim: The statement being checked (with its source).
         measured: The measured value(s), as text with units.
-        verdict: A verdict of `neuralmap.studies.outputs.VERDICTS`.
+        verdict: A verdict of `neuralmap.outputs.VERDICTS`.
         detail: How the verdict was reached (the rule), and caveats.
         paper: The claim's source, the report's "paper" column (``"SEEDS 004"`` or
             ``"toolkit target"``); the claim text does not repeat it.
@@ -112,7 +112,7 @@ class ClaimCheck:
 def _last_half_rms(curve: Sequence[float]) -> float:
     """Root mean square of the finite values of the last half of a curve (NaN when none).
 
-    The same time average as `neuralmap.nav.metrics.navigation_metrics` uses for the
+    The same time average as `neuralmap.lab.metrics.navigation_metrics` uses for the
     PCRB (samples ``(K+1)//2 … K``).
     """
     values = np.asarray(curve, dtype=np.float64)
@@ -139,12 +139,12 @@ def build_results(
 
     Args:
         method_metrics: Method name -> metrics dict from
-            `neuralmap.nav.metrics.navigation_metrics` (must hold `METHOD_KEYS`;
+            `neuralmap.lab.metrics.navigation_metrics` (must hold `METHOD_KEYS`;
             curves and counts are kept when present).
         t: ``(K+1,)`` time stamps in seconds.
         pcrb_pos: ``(K+1,)`` horizontal position PCRB in metres
-            (`neuralmap.nav.pcrb.pcrb_position`).
-        divergence_rule: The divergence rule text (``neuralmap.nav.metrics.DIVERGENCE_RULE``).
+            (`neuralmap.lab.pcrb.pcrb_position`).
+        divergence_rule: The divergence rule text (``neuralmap.lab.metrics.DIVERGENCE_RULE``).
         config: The evaluation configuration (JSON-serialisable).
         scenario: The scenario's fields.
         map_info: Map file, tile name and fingerprint, parameter count, ...
@@ -182,7 +182,7 @@ def build_results(
         if missing:
             raise NeuralMapError(
                 f"build_results: metrics of method '{name}' lack {missing}; "
-                "compute them with neuralmap.nav.metrics.navigation_metrics."
+                "compute them with neuralmap.lab.metrics.navigation_metrics."
             )
         entry: dict[str, Any] = {"label": method_label(name)}
         for key, value in metrics.items():

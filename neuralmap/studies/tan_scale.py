@@ -1,7 +1,7 @@
 """TAN Monte Carlo at scale (``study: tan_scale``): chunked runs in bounded memory.
 
 The same scenario, map and methods as the TAN study (`neuralmap.studies.setup.prepare_tan`),
-flown as `neuralmap.nav.chunked.run_monte_carlo_chunked` runs: seed blocks of 1024
+flown as `neuralmap.lab.chunked.run_monte_carlo_chunked` runs: seed blocks of 1024
 runs, chunks of ``chunk_runs`` runs dealt to a Dask cluster (``--cluster``; default
 ``local``: a LocalCluster of one single-threaded worker per core, `neuralmap.cluster`).
 Only per-run final errors and bounds and per-step sums are kept, so a million runs fit in
@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 
 from neuralmap.cluster import open_cluster
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.nav.chunked import BATCH_RUNS, SEED_BLOCK_RUNS, peak_rss_mb, run_monte_carlo_chunked
+from neuralmap.lab.chunked import BATCH_RUNS, SEED_BLOCK_RUNS, peak_rss_mb, run_monte_carlo_chunked
+from neuralmap.outputs import StudyOutputs
 from neuralmap.studies.cluster_options import ClusterOptions
-from neuralmap.studies.outputs import StudyOutputs
 from neuralmap.studies.setup import TanOptions, prepare_tan
 
 __all__ = ["TanScaleConfig", "run"]

@@ -29,8 +29,8 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.studies.base import StudyConfig
-from neuralmap.studies.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.viz.wind import plot_bands, plot_wind_estimates
 from neuralmap.wind.checks import require_in_range, require_open_unit, require_positive
 from neuralmap.wind.comparison import WindFilterSpec, make_policy, run_filters

@@ -8,8 +8,11 @@
 
 Writes ``<out>/neural_map_<layer>.tif`` (default ``out``: a ``geotiff`` folder next to the
 map; a latent tileset: ``<out>/latent_tileset_r000_c000_<layer>.tif`` per tile) in the
-source DEM's CRS, grid and no-data (`neuralmap.terrain.geotiff`). Bad input
-prints one ``error:`` line and exits 2.
+source DEM's CRS, grid and no-data (`neuralmap.terrain.geotiff`). The output folder is
+checked before any work; all files are written to hidden temporary names and renamed into
+place together at the end, so a failed run (a full disk, Ctrl-C) leaves the folder's
+earlier files as they were and no new one. Bad input, a bad option value and a full disk
+print one ``error:`` line and exit 2; Ctrl-C prints one line and exits 130.
 """
 
 from __future__ import annotations
@@ -32,7 +35,8 @@ def _parser() -> ArgumentParser:
     from neuralmap.terrain.geotiff import LAYERS
 
     parser = ArgumentParser(prog=PROG, description="Write a fitted map's height, residual and "
-                            "slope as GeoTIFF on the source DEM's grid.")
+                            "slope as GeoTIFF on the source DEM's grid.",
+                            exit_on_error=False)  # parse errors: one line (main)
     parser.add_argument("map", type=str, help="The exported map (neural_map.pt).")
     parser.add_argument("--dem", type=str | None, default=None,
                         help="The DEM the map was fitted to; default: the source the map records.")
@@ -51,6 +55,14 @@ def _parser() -> ArgumentParser:
     return parser
 
 
+#: What each option accepts, for the one-line refusal of a value the parser rejects.
+EXPECTED = {
+    "spacing": "a grid spacing > 0 in metres, e.g. --spacing 30",
+    "nodata": "a number, e.g. --nodata -32768",
+    "layers": "a list of height, residual, slope, e.g. --layers [height,slope]",
+    "cog": "true or false",
+}
+
 #: Units a DEM without a CRS can be read in (``--units``).
 UNITS = ("metres", "degrees")
 
@@ -68,10 +80,10 @@ def _cli_option_names(text: str) -> str:
 def export(args: object) -> dict[str, Path]:
     """Loads the map and its DEM and writes the layers; returns layer -> path."""
     from neuralmap.dem import load_tile
-    from neuralmap.io import check_writable_dir
     from neuralmap.terrain.export import load_map
     from neuralmap.terrain.geotiff import LAYERS, write_map_geotiffs
 
+    out = _output_folder(args)  # before any work: a folder that cannot be made is refused
     if args.spacing is not None and not (math.isfinite(args.spacing) and args.spacing > 0):
         raise NeuralMapError(f"--spacing must be a grid spacing > 0 in metres, got "
                              f"{args.spacing}; leave it out for a DEM that carries its own.")
@@ -85,15 +97,13 @@ def export(args: object) -> dict[str, Path]:
     from neuralmap.terrain.latent.tileset import LatentTileset
 
     if isinstance(terrain, LatentTileset):
-        return _export_tileset(terrain, args)
+        return _export_tileset(terrain, args, out)
     info = getattr(terrain, "tile_info", {}) or {}
     dem = args.dem or info.get("source") or info.get("name")
     if isinstance(dem, str) and dem.startswith("sample:"):  # "sample:jacksboro (...)"
         dem = dem.split(":", 1)[1].split()[0]
     if not dem:
         raise NeuralMapError(f"map '{args.map}' records no source DEM; give it with --dem.")
-    out = Path(args.out) if args.out else Path(args.map).parent / "geotiff"
-    check_writable_dir(out, option="--out")
     spacing = args.spacing
     if spacing is None and str(dem).lower().endswith(".npy") and info.get("spacing"):
         spacing = tuple(info["spacing"])
@@ -109,17 +119,31 @@ def export(args: object) -> dict[str, Path]:
     return paths
 
 
-def _export_tileset(tileset: object, args: object) -> dict[str, Path]:
+def _output_folder(args: object) -> Path:
+    """``--out`` (default: ``geotiff`` beside the map, or inside a tileset's folder), checked
+    before any work: it must be, or be able to become, a writable folder.
+
+    Raises:
+        NeuralMapError: A file in the way (``--out`` or one of its parents), a parent that
+            is not writable.
+    """
+    from neuralmap.io import check_writable_dir
+
+    if args.out:
+        out = Path(args.out)
+    else:
+        folder = Path(args.map) if Path(args.map).is_dir() else Path(args.map).parent
+        out = folder / "geotiff"
+    return check_writable_dir(out, option="--out")
+
+
+def _export_tileset(tileset: object, args: object, out: Path) -> dict[str, Path]:
     """A latent tileset: every tile's core grid, ``<out>/latent_tileset_r000_c000_<layer>.tif``
     (`neuralmap.terrain.latent.tileset_geotiff`); the region's DEM (``--dem``, default the
     files the index records) only for the residual layer."""
     from neuralmap.dem import load_mosaic, load_tile
-    from neuralmap.io import check_writable_dir
     from neuralmap.terrain.latent.tileset_geotiff import export_tileset_geotiffs
 
-    folder = Path(args.map) if Path(args.map).is_dir() else Path(args.map).parent
-    out = Path(args.out) if args.out else folder / "geotiff"
-    check_writable_dir(out, option="--out")
     region = None
     if "residual" in args.layers or args.dem:
         info = tileset.tile_info  # type: ignore[attr-defined]
@@ -148,14 +172,26 @@ def _export_tileset(tileset: object, args: object) -> dict[str, Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console entry point; exit code 2 with one ``error:`` line on bad input."""
-    args = _parser().parse_args(argv)
+    """Console entry point: exit code 2 with one ``error:`` line on bad input (an option
+    value the parser rejects included) or a full disk, 130 with one line on Ctrl-C."""
+    from jsonargparse import ArgumentError
+
+    from neuralmap.entry import EXIT_INTERRUPTED, interrupted_line, parse_error_message
+
     try:
+        try:
+            args = _parser().parse_args(argv)
+        except ArgumentError as exc:
+            raise NeuralMapError(parse_error_message(exc, PROG, EXPECTED)) from None
         export(args)
     except NeuralMapError as exc:
         sys.stdout.flush()
-        print(f"{PROG}: error: {exc}", file=sys.stderr, flush=True)
+        print(f"{PROG}: error: {' '.join(str(exc).split())}", file=sys.stderr, flush=True)
         raise SystemExit(EXIT_BAD_INPUT) from None
+    except KeyboardInterrupt:
+        sys.stdout.flush()
+        print(interrupted_line(PROG), file=sys.stderr, flush=True)
+        raise SystemExit(EXIT_INTERRUPTED) from None
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -10,29 +10,35 @@ no-data cells, so it opens in QGIS (or rasterio, GDAL) on top of the DEM it was 
 The grid is rebuilt from the tile's georeference: a projected tile
 (`ProjectedReference`) gets its absolute coordinates back
 (``easting = x + x_offset``); a geographic tile (`GeoReference`)
-its lon/lat grid (the inverse of the reader's equirectangular map, ``EPSG:4326`` unless
-the source GeoTIFF named another geographic CRS); a tile without a georeference (a plain
-``.npy``) is written in its tile-local metres without a CRS. Pixels are areas (GDAL
-convention): node centres lie half a pixel inside the bounds, as the readers assume. DEM
-voids are written as the no-data value. Needs rasterio (``geotiff`` extra).
+its lon/lat grid (the inverse of the reader's equirectangular map); a tile without a
+georeference (a plain ``.npy``) is written in its tile-local metres without a CRS. The CRS
+is the one the reader kept: a GeoTIFF's own, a ``.prj`` sidecar's WKT, ``EPSG:4326`` for
+SRTM ``.hgt`` (and any lon/lat grid that names no other); a CRS recorded only by name (maps
+written before the readers kept the WKT) is looked up by pyproj (`rasterio_crs`). Pixels are
+areas (GDAL convention): node centres lie half a pixel inside the bounds, as the readers
+assume. DEM voids are written as the no-data value. Every layer is built in memory and
+written all or nothing (`neuralmap.io.atomic_files`). Needs rasterio (``geotiff`` extra;
+pyproj for CRS names: ``nav`` extra).
 """
 
 from __future__ import annotations
 
 import math
 import os
-import tempfile
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+from neuralmap.dem.geo import SRTM_CRS, pyproj_crs
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.io import default_mode
+from neuralmap.io import AtomicFiles, atomic_files
 
-__all__ = ["LAYERS", "NODATA", "map_layers", "source_grid", "write_geotiff", "write_map_geotiffs"]
+__all__ = ["LAYERS", "NODATA", "geotiff_bytes", "map_layers", "rasterio_crs", "source_grid",
+           "write_geotiff", "write_map_geotiffs"]
 
 #: Layers `write_map_geotiffs` can write.
 LAYERS = ("height", "residual", "slope")
@@ -51,11 +57,35 @@ def _rasterio() -> Any:
     return rasterio
 
 
-def source_grid(tile: DemTile) -> tuple[Any, str | None]:
-    """The tile's grid in its source coordinates: ``(affine transform, CRS text or None)``.
+def rasterio_crs(crs: str | None) -> Any:
+    """The CRS text a tile records as a rasterio CRS (None stays None).
+
+    WKT and ``EPSG:<code>`` are read directly; a CRS recorded only by name (maps and
+    tilesets written before the readers kept the ``.prj`` WKT, a ``.prj`` with incomplete
+    WKT) goes through pyproj (`neuralmap.dem.geo.pyproj_crs`).
+
+    Raises:
+        NeuralMapError: rasterio missing (``geotiff`` extra), pyproj needed but missing
+            (``nav`` extra), or a name pyproj does not know, with the fix.
+    """
+    if crs is None:
+        return None
+    _rasterio()
+    from rasterio.crs import CRS
+    from rasterio.errors import CRSError
+
+    try:
+        return CRS.from_user_input(crs)
+    except CRSError:
+        return CRS.from_wkt(pyproj_crs(crs, "GeoTIFF export").to_wkt())
+
+
+def source_grid(tile: DemTile) -> tuple[Any, Any]:
+    """The tile's grid in its source coordinates: ``(affine transform, rasterio CRS or None)``.
 
     The transform maps (column, row) of a north-up raster (row 0 north) to the source
-    coordinates of the pixel corner, as GDAL does.
+    coordinates of the pixel corner, as GDAL does; the CRS is the one the tile records
+    (`rasterio_crs`).
     """
     _rasterio()
     from rasterio.transform import from_origin
@@ -68,14 +98,14 @@ def source_grid(tile: DemTile) -> tuple[Any, str | None]:
         lon0, lat0 = tile.geo.to_geographic(tile.origin[0], tile.origin[1])
         lon1, lat1 = tile.geo.to_geographic(x_last, y_last)
         dlon, dlat = (lon1 - lon0) / (nx - 1), (lat1 - lat0) / (ny - 1)
-        crs = tile.meta.get("crs") or "EPSG:4326"
+        crs = rasterio_crs(tile.meta.get("crs") or SRTM_CRS)
         return from_origin(float(lon0) - 0.5 * dlon, float(lat1) + 0.5 * dlat, float(dlon),
                            float(dlat)), crs
     if tile.projected is not None:
         e0, _ = tile.projected.to_projected(tile.origin[0], tile.origin[1])
         _, n1 = tile.projected.to_projected(x_last, y_last)
         return from_origin(float(e0) - 0.5 * dx, float(n1) + 0.5 * dy, dx, dy), \
-            tile.projected.crs
+            rasterio_crs(tile.projected.crs)
     return from_origin(tile.origin[0] - 0.5 * dx, y_last + 0.5 * dy, dx, dy), None
 
 
@@ -126,32 +156,30 @@ def map_layers(terrain: torch.nn.Module, tile: DemTile, *,
     return out
 
 
-def write_geotiff(path: str | os.PathLike[str], values: np.ndarray, tile: DemTile, *,
-                  nodata: float | None = None, description: str = "",
-                  cog: bool = False) -> Path:
-    """Writes one ``(ny, nx)`` layer (DemTile order, NaN = void) on the tile's source grid.
+def geotiff_bytes(values: np.ndarray, tile: DemTile, *, nodata: float | None = None,
+                  description: str = "", cog: bool = False) -> bytes:
+    """One ``(ny, nx)`` layer (DemTile order, NaN = void) as the bytes of a GeoTIFF on the
+    tile's source grid, built in memory (GDAL's ``/vsimem/``).
 
-    The file is built under a hidden name in the destination folder and renamed when
-    complete. With ``cog`` it is a Cloud Optimized GeoTIFF (GDAL's COG driver: 512-pixel
-    tiles, deflate, internal overviews, the header first), which web map servers and
-    ``/vsicurl/`` readers fetch by range.
+    Building in memory lets the file reach the disk through Python's own writes
+    (`neuralmap.io.atomic_files`), which report a full disk; GDAL writing to disk itself
+    can report success and leave a truncated file. With ``cog`` it is a Cloud Optimized
+    GeoTIFF (GDAL's COG driver: 512-pixel tiles, deflate, internal overviews, the header
+    first), which web map servers and ``/vsicurl/`` readers fetch by range.
 
     Args:
-        path: Destination ``.tif``.
         values: The layer, row 0 south.
         tile: The tile whose grid and CRS the file takes.
         nodata: No-data value; None = the source's (when finite) else `NODATA`.
         description: Band description (shown by GIS tools).
-        cog: Write a Cloud Optimized GeoTIFF.
-
-    Returns:
-        The path written.
+        cog: A Cloud Optimized GeoTIFF.
 
     Raises:
-        NeuralMapError: rasterio missing, wrong shape, or a destination that cannot be
-            written (read-only folder, a file in the way), with the path.
+        NeuralMapError: rasterio missing, wrong shape, a CRS that cannot be written.
     """
-    rasterio = _rasterio()
+    _rasterio()
+    from rasterio.io import MemoryFile
+
     values = np.asarray(values, dtype=np.float64)
     if values.shape != tile.shape:
         raise NeuralMapError(f"write_geotiff: layer shape {values.shape} is not the tile's "
@@ -162,44 +190,55 @@ def write_geotiff(path: str | os.PathLike[str], values: np.ndarray, tile: DemTil
             float(source)) else NODATA
     transform, crs = source_grid(tile)
     raster = np.flipud(np.where(np.isfinite(values), values, nodata)).astype(np.float32)
-    path = Path(path)
-    folder = path.parent
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.tif", dir=folder)
-        os.close(fd)
-    except OSError as exc:
-        raise NeuralMapError(
-            f"GeoTIFF export: cannot write into '{folder}' ({exc.strerror or exc}); pick a "
-            "writable output folder."
-        ) from None
-    try:
-        with rasterio.open(
-            tmp, "w", driver="GTiff", height=raster.shape[0], width=raster.shape[1],
-            count=1, dtype="float32", crs=crs, transform=transform, nodata=nodata,
-            compress="deflate", tiled=raster.shape[0] >= 256 and raster.shape[1] >= 256,
+    with MemoryFile() as plain:
+        with plain.open(
+            driver="GTiff", height=raster.shape[0], width=raster.shape[1], count=1,
+            dtype="float32", crs=crs, transform=transform, nodata=nodata, compress="deflate",
+            tiled=raster.shape[0] >= 256 and raster.shape[1] >= 256,
         ) as dst:
             dst.write(raster, 1)
             if description:
                 dst.set_band_description(1, description)
-        if cog:  # the COG driver only copies: the plain GeoTIFF above is its source
-            from rasterio.shutil import copy as raster_copy
+        if not cog:
+            return plain.read()
+        from rasterio.shutil import copy as raster_copy
 
-            plain, tmp = tmp, tmp.removesuffix(".tmp.tif") + ".cog.tmp.tif"
-            try:
-                raster_copy(plain, tmp, driver="COG", compress="DEFLATE", blocksize=512,
-                            overviews="AUTO")
-            finally:
-                os.unlink(plain)
-        os.chmod(tmp, default_mode())
-        os.replace(tmp, path)
-    except BaseException as exc:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        if isinstance(exc, OSError):
-            raise NeuralMapError(f"GeoTIFF export: cannot write '{path}' ({exc}).") from None
-        raise
-    return path
+        with MemoryFile() as out:  # the COG driver only copies: the plain file is its source
+            raster_copy(plain.name, out.name, driver="COG", compress="DEFLATE", blocksize=512,
+                        overviews="AUTO")
+            return out.read()
+
+
+def write_geotiff(path: str | os.PathLike[str], values: np.ndarray, tile: DemTile, *,
+                  nodata: float | None = None, description: str = "",
+                  cog: bool = False, files: AtomicFiles | None = None) -> Path:
+    """Writes one ``(ny, nx)`` layer (DemTile order, NaN = void) on the tile's source grid.
+
+    The file (`geotiff_bytes`) is written under a hidden name in the destination folder
+    and renamed when complete; with ``files`` it joins that all-or-nothing batch and is
+    renamed with the others when the batch commits.
+
+    Args:
+        path: Destination ``.tif``.
+        values: The layer, row 0 south.
+        tile: The tile whose grid and CRS the file takes.
+        nodata: No-data value; None = the source's (when finite) else `NODATA`.
+        description: Band description (shown by GIS tools).
+        cog: Write a Cloud Optimized GeoTIFF.
+        files: The batch to join (`neuralmap.io.atomic_files`); None = a batch of its own.
+
+    Returns:
+        The path written.
+
+    Raises:
+        NeuralMapError: rasterio missing, wrong shape, or a destination that cannot be
+            written (read-only folder, a file in the way, a full disk), with the path.
+    """
+    data = geotiff_bytes(values, tile, nodata=nodata, description=description, cog=cog)
+    if files is not None:
+        return files.write_bytes(path, data)
+    with atomic_files(option="GeoTIFF export") as own:
+        return own.write_bytes(path, data)
 
 
 _DESCRIPTIONS = {
@@ -211,8 +250,13 @@ _DESCRIPTIONS = {
 
 def write_map_geotiffs(terrain: torch.nn.Module, tile: DemTile, out_dir: str | os.PathLike[str],
                        *, layers: tuple[str, ...] = LAYERS, stem: str = "neural_map",
-                       nodata: float | None = None, cog: bool = False) -> dict[str, Path]:
+                       nodata: float | None = None, cog: bool = False,
+                       files: AtomicFiles | None = None) -> dict[str, Path]:
     """Writes the map's layers as ``<out_dir>/<stem>_<layer>.tif`` on the DEM's grid.
+
+    All layers or none: each goes to a hidden temporary file as it is built, and all are
+    renamed into place at the end (`neuralmap.io.atomic_files`); a failure part-way (a
+    full disk) leaves the earlier files of the folder as they were and no new one.
 
     Args:
         terrain: The fitted map.
@@ -222,12 +266,14 @@ def write_map_geotiffs(terrain: torch.nn.Module, tile: DemTile, out_dir: str | o
         stem: File name prefix.
         nodata: No-data value (see `write_geotiff`).
         cog: Cloud Optimized GeoTIFFs (see `write_geotiff`).
+        files: A batch to join (the files are renamed when it commits); None = its own.
 
     Returns:
         Layer name -> path.
 
     Raises:
-        NeuralMapError: Unknown layer, a map of another tile, an unwritable folder.
+        NeuralMapError: Unknown layer, a map of another tile, an unwritable folder, a full
+            disk.
     """
     unknown = [name for name in layers if name not in LAYERS]
     if unknown or not layers:
@@ -236,9 +282,13 @@ def write_map_geotiffs(terrain: torch.nn.Module, tile: DemTile, out_dir: str | o
     out_dir = Path(out_dir)
     _check_folder(out_dir)
     values = map_layers(terrain, tile)
-    return {name: write_geotiff(out_dir / f"{stem}_{name}.tif", values[name], tile,
-                                nodata=nodata, description=_DESCRIPTIONS[name], cog=cog)
-            for name in layers}
+    with ExitStack() as stack:
+        if files is None:
+            files = stack.enter_context(atomic_files(option="GeoTIFF export"))
+        return {name: write_geotiff(out_dir / f"{stem}_{name}.tif", values[name], tile,
+                                    nodata=nodata, description=_DESCRIPTIONS[name], cog=cog,
+                                    files=files)
+                for name in layers}
 
 
 def _check_folder(out_dir: Path) -> None:

@@ -18,7 +18,8 @@ from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.base import TerrainModel
 
-GRID_METHODS = ("bilinear", "bicubic")
+#: The interpolations of a grid map (`GridTerrain` ``method``).
+INTERPOLATIONS = ("bilinear", "bicubic")
 
 
 class BilinearParts(NamedTuple):
@@ -180,10 +181,10 @@ class GridTerrain(TerrainModel):
                 f"GridTerrain: 'tile' must be a neuralmap.dem.tile.DemTile, got "
                 f"{type(tile).__name__}. Load one with neuralmap.dem.load_tile(name_or_path)."
             )
-        if method not in GRID_METHODS:
+        if method not in INTERPOLATIONS:
             raise NeuralMapError(
                 f"GridTerrain: unknown interpolation method {method!r}; choose one of "
-                f"{', '.join(GRID_METHODS)}."
+                f"{', '.join(INTERPOLATIONS)}."
             )
         if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
             raise NeuralMapError(
@@ -198,6 +199,8 @@ class GridTerrain(TerrainModel):
         self.tile_name = tile.name
         self.tile_fingerprint = tile.fingerprint()
         self.n_filled = tile.n_void
+        self.register_buffer("void", torch.as_tensor(~np.isfinite(tile.heights)),
+                             persistent=False)
         filled = fill_voids_nearest(tile.heights, tile.spacing)
         self.register_buffer("heights", torch.as_tensor(filled, dtype=dtype))
         heights = torch.as_tensor(filled, dtype=torch.float64)
@@ -419,6 +422,25 @@ class GridTerrain(TerrainModel):
             return self._bilinear_height(xy)
         height, _ = self._cubic(xy.reshape(-1, 2), with_slope=False)
         return height.view(xy.shape[:-1])
+
+    def void_at(self, xy: torch.Tensor) -> torch.Tensor:
+        """``(...)`` bool: the height at ``xy`` reads a void node of the DEM (one of the
+        four nodes around it was a no-data cell, filled from its nearest neighbour: not a
+        measured height). All False for a DEM without voids (no work).
+
+        Args:
+            xy: ``(..., 2)`` east/north metres (clamped to the map like `forward`).
+        """
+        xy = self._check_xy(xy)
+        if self.n_filled == 0:
+            return torch.zeros(xy.shape[:-1], dtype=torch.bool, device=xy.device)
+        ny, nx = self.shape
+        u = ((xy[..., 0] - self.origin[0]) / self.spacing[0]).clamp(0.0, nx - 1.0)
+        v = ((xy[..., 1] - self.origin[1]) / self.spacing[1]).clamp(0.0, ny - 1.0)
+        j = u.floor().clamp(max=nx - 2.0).long()
+        i = v.floor().clamp(max=ny - 2.0).long()
+        void = self.void.to(xy.device)
+        return void[i, j] | void[i, j + 1] | void[i + 1, j] | void[i + 1, j + 1]
 
     def height_and_slope(self, xy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Heights and analytic slopes ``(dh/dx, dh/dy)`` without autograd.

@@ -418,6 +418,9 @@ class LatentMode(TrainMode):
         from neuralmap.training.latent_datamodule import LatentDataModule
         from neuralmap.training.latent_module import LatentFitModule
 
+        renamed = _renamed_option(args or [], LATENT_RENAMED)
+        if renamed is not None:
+            raise _refuse(renamed)
         start = time.perf_counter()
         report = LatentMapReport()
         checkpoint = ModelCheckpoint(save_last=True, save_top_k=0)
@@ -575,6 +578,36 @@ def _config_files(argv: list[str]) -> list[str]:
     files = [value for flag, value in zip(argv, argv[1:], strict=False)
              if flag in ("--config", "-c")]
     return files + [a.split("=", 1)[1] for a in argv if a.startswith("--config=")]
+
+
+#: ``train.py latent`` options that were renamed: old dotted key -> new one.
+LATENT_RENAMED = {"model.regions": "model.zones"}
+
+
+def _renamed_option(argv: list[str], renamed: dict[str, str]) -> str | None:
+    """The error message for the first renamed option (``renamed``: old -> new dotted key)
+    that ``argv`` or its ``--config`` files still use; None when none does.
+
+    Files that are missing or not YAML are left to the mode's parser, which reports them.
+    """
+    import yaml
+
+    for old, new in renamed.items():
+        flag = f"--{old}"
+        if any(word == flag or word.startswith(flag + "=") for word in argv):
+            return f"{flag} is renamed --{new}; run it again with --{new}."
+        for path in _config_files(argv):
+            try:
+                data: Any = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, yaml.YAMLError):
+                continue
+            *parents, key = old.split(".")
+            for part in parents:
+                data = data.get(part) if isinstance(data, dict) else None
+            if isinstance(data, dict) and key in data:
+                return (f"{path}: the key {old} is renamed {new}; rename it in the file "
+                        f"(or give --{new}).")
+    return None
 
 
 def mode_parser() -> ArgumentParser:

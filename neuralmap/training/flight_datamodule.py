@@ -1,6 +1,6 @@
 """FlightDataModule: flights for noise learning, simulated from a scenario or read from a log.
 
-Simulated flights (default) come from `neuralmap.nav.simulator.simulate` over the
+Simulated flights (default) come from `neuralmap.lab.simulator.simulate` over the
 scenario's truth terrain with a seed; the validation flights use another seed (other
 trajectories and noise, same world). A flight log (`neuralmap.learning.flight_log`)
 replaces the simulation: a seeded fraction of its flights is held out for validation.
@@ -17,9 +17,9 @@ import torch
 from torch.utils.data import DataLoader, TensorDataset
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.lab.scenario import Scenario, load_scenario, scenario_tile
 from neuralmap.learning.flight_log import read_flight_log
 from neuralmap.learning.flights import FlightBatch
-from neuralmap.nav.scenario import Scenario, load_scenario, scenario_tile
 
 __all__ = ["FlightDataModule", "check_flights_fit_scenario", "check_same_world"]
 
@@ -151,8 +151,8 @@ class FlightDataModule(pl.LightningDataModule):
             self.val_flights = flights.subset(order[:n_val])
             self.train_flights = flights.subset(order[n_val:])
             return
-        from neuralmap.nav.simulator import simulate
-        from neuralmap.nav.truth_terrain import true_terrain
+        from neuralmap.lab.simulator import simulate
+        from neuralmap.lab.truth_terrain import true_terrain
 
         scenario = self.scenario
         tile = scenario_tile(scenario)

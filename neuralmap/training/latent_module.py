@@ -16,18 +16,20 @@ from neuralmap.terrain.latent.encode import (
     make_optimizer,
     quantizer_at,
     rdoq_rate_weight,
-    regions_due,
     soft_alpha,
+    zones_due,
 )
 from neuralmap.terrain.latent.latent_grid import LatentGrid, check_entropy, export_map
 from neuralmap.terrain.latent.map import LatentTerrainMap
 from neuralmap.terrain.latent.objective import RateDistortion, check_rate_weight
 from neuralmap.terrain.latent.quality import map_quality
-from neuralmap.terrain.latent.regions import check_regions
+from neuralmap.terrain.latent.zones import check_zones
 
 #: Hyperparameters that fix the latent grid's shape (must match on resume).
 ARCHITECTURE_KEYS = ("levels", "hidden", "seed", "basis", "wavelet", "entropy",
-                     "context_hidden", "regions")
+                     "context_hidden", "zones")
+#: Hyperparameters of checkpoints written before the zones got their name -> the names now.
+OLD_HPARAMS = {"regions": "zones"}
 
 
 class LatentFitModule(pl.LightningModule):
@@ -69,10 +71,10 @@ class LatentFitModule(pl.LightningModule):
             (soft rounding annealed, `soft_alpha`).
         rdoq: Choose the stored symbols by rate-distortion-optimised quantisation
             (`neuralmap.terrain.latent.rdoq`) instead of rounding.
-        regions: Side ``R`` of the grid of regions with their own quantisation steps and
-            entropy scales (`neuralmap.terrain.latent.regions`; 0 = one step per subband,
+        zones: Side ``R`` of the grid of zones with their own quantisation steps and
+            entropy scales (`neuralmap.terrain.latent.zones`; 0 = one step per subband,
             the default). The codes are chosen by RDO when straight-through rounding starts;
-            files with regions are format 4.
+            files with zones are format 4.
 
     Raises:
         NeuralMapError: ``rate_weight`` <= 0, or other out-of-range settings.
@@ -84,10 +86,10 @@ class LatentFitModule(pl.LightningModule):
                  exact_start: bool = True, basis: str = "wavelet",
                  wavelet: str = "cdf97", entropy: str = "factorized",
                  context_hidden: int = 12, relaxation: str = "noise",
-                 rdoq: bool = False, regions: int = 0) -> None:
+                 rdoq: bool = False, zones: int = 0) -> None:
         super().__init__()
         check_rate_weight(rate_weight)
-        check_regions(regions)
+        check_zones(zones)
         if not (math.isfinite(lr) and lr > 0):
             raise NeuralMapError(f"--model.lr must be finite and > 0, got {lr}.")
         if not 0.0 <= ste_fraction <= 1.0:
@@ -116,7 +118,7 @@ class LatentFitModule(pl.LightningModule):
                                    wavelet=str(hp.get("wavelet", "cdf97")),
                                    entropy=str(hp.get("entropy", "factorized")),
                                    context_hidden=int(hp.get("context_hidden", 12)),
-                                   regions=int(hp.get("regions", 0)))
+                                   zones=int(hp.get("zones", 0)))
             self.objective = RateDistortion(tile, rate_weight=hp.rate_weight,
                                             between_weight=hp.between_weight,
                                             between_points=hp.between_points)
@@ -141,8 +143,8 @@ class LatentFitModule(pl.LightningModule):
         assert self.grid is not None and self.objective is not None
         step, total = int(self.global_step), self.total_steps()
         fraction = float(self.hparams.ste_fraction)
-        if self.grid.regions and regions_due(step, total, fraction):
-            self.grid.choose_regions(self._node_lambda())
+        if self.grid.zones and zones_due(step, total, fraction):
+            self.grid.choose_zones(self._node_lambda())
         quantizer = quantizer_at(step, total, fraction,
                                  str(self.hparams.get("relaxation", "noise")))
         terms = self.objective(self.grid, quantizer, self._generator,
@@ -161,19 +163,19 @@ class LatentFitModule(pl.LightningModule):
         return terms.loss
 
     def _node_lambda(self) -> float:
-        """``lambda'`` of RDOQ and of the region codes (m² per bit, node error only)."""
+        """``lambda'`` of RDOQ and of the zone codes (m² per bit, node error only)."""
         return rdoq_rate_weight(float(self.hparams.rate_weight),
                                 float(self.hparams.between_weight))
 
     def stored_map(self, metrics: dict[str, Any] | None = None) -> LatentTerrainMap:
-        """The map exactly as its file stores it (before the fit chooses the region codes,
+        """The map exactly as its file stores it (before the fit chooses the zone codes,
         with codes chosen for this export only)."""
         assert self.grid is not None
         lam = self._node_lambda() if self.hparams.get("rdoq", False) else None
         assert self.objective is not None
         return export_map(self.grid, metrics=metrics, rdoq_rate_weight=lam,
                           rdoq_target=(self.objective.heights, self.objective.valid),
-                          region_rate_weight=self._node_lambda())
+                          zone_rate_weight=self._node_lambda())
 
     def validation_step(self, batch: torch.Tensor, batch_idx: int) -> None:
         assert self.tile is not None
@@ -208,7 +210,8 @@ class LatentFitModule(pl.LightningModule):
         Raises:
             NeuralMapError: When the checkpoint's levels / hidden / seed or tile differ.
         """
-        saved = checkpoint.get("hyper_parameters", {})
+        saved = {OLD_HPARAMS.get(key, key): value
+                 for key, value in checkpoint.get("hyper_parameters", {}).items()}
         differ = [f"{key}: checkpoint {saved[key]!r} vs config {self.hparams[key]!r}"
                   for key in ARCHITECTURE_KEYS if key in saved and saved[key] != self.hparams[key]]
         if differ:

@@ -123,7 +123,7 @@ def plan_tileset(path: str | Path | Sequence[str | Path], *,
             single DEM without ``tile_nodes``.
     """
     from neuralmap.dem.load import load_tile
-    from neuralmap.dem.mosaic import _mosaic_tile, _stitch_into, plan_mosaic
+    from neuralmap.dem.mosaic import mosaic_tile, plan_mosaic, stitch_into
 
     if isinstance(overlap_nodes, bool) or not isinstance(overlap_nodes, (int, np.integer)) \
             or overlap_nodes < 1:
@@ -136,11 +136,11 @@ def plan_tileset(path: str | Path | Sequence[str | Path], *,
         try:
             plan = plan_mosaic(path, **load_options)  # type: ignore[arg-type]
             heights = np.full(plan.shape, np.nan)
-            shared = _stitch_into(plan, heights, 1.0)
+            shared = stitch_into(plan, heights, 1.0)
         except NeuralMapError as exc:
             raise NeuralMapError(f"--data.path {path!r}: {exc}") from None
         name = f"tileset_{plan.paths[0].stem}_{len(plan.paths)}"
-        region = _mosaic_tile(plan, heights, name, shared)
+        region = mosaic_tile(plan, heights, name, shared)
         cols, rows, sources = _file_grid(plan)
     else:
         if tile_nodes is None:

@@ -85,8 +85,8 @@ class NoiseLearningModule(pl.LightningModule):
             raise NeuralMapError(f"--model.tbptt_steps must be >= 1 (or null), got {tbptt_steps}.")
         self.save_hyperparameters()
         self.automatic_optimization = False
-        from neuralmap.nav.model import TanModel
-        from neuralmap.nav.scenario import load_scenario
+        from neuralmap.lab.scenario import load_scenario
+        from neuralmap.tan.model import TanModel
 
         self.scenario = load_scenario(scenario)
         self.tan = TanModel.from_scenario(self.scenario)
@@ -117,8 +117,8 @@ class NoiseLearningModule(pl.LightningModule):
             check_same_world(self.scenario, data_scenario)
         if self.linearizer is not None:
             return
+        from neuralmap.lab.scenario import scenario_tile
         from neuralmap.linearize.factory import TERRAIN_MODEL_METHODS, make_linearizer
-        from neuralmap.nav.scenario import scenario_tile
 
         tile = scenario_tile(self.scenario)
         method = self.hparams.method
@@ -195,7 +195,7 @@ class NoiseLearningModule(pl.LightningModule):
 
     def on_fit_end(self) -> None:
         """Writes ``learned_scenario.yaml`` into the run folder."""
-        from neuralmap.nav.scenario import save_scenario
+        from neuralmap.lab.scenario import save_scenario
 
         if not self.trainer.is_global_zero:
             return

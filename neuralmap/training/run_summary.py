@@ -1,7 +1,7 @@
 """A training run's stamped fragment: ``summary.md`` in its run folder (the fit metrics).
 
 ``python train.py`` (map and latent modes) writes it beside ``metrics.json``; its first line
-is `neuralmap.studies.outputs.SUMMARY_MARK` with the provenance (``kind: train``, the mode,
+is `neuralmap.outputs.SUMMARY_MARK` with the provenance (``kind: train``, the mode,
 the command-line words, the config files with their SHA-256, seed, commit, date, machine,
 wall time), then a table of every scalar of ``metrics.json``. ``python -m neuralmap.docs
 update RUN_DIR`` copies it into ``docs/results/train_<config>.md``, stamped with the config.
@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from neuralmap.io import atomic_write_text
-from neuralmap.studies.outputs import SUMMARY_MARK, markdown_table, run_provenance
+from neuralmap.outputs import SUMMARY_MARK, markdown_table, run_provenance
 
 __all__ = ["TRAIN_KIND", "train_summary", "write_train_summary"]
 

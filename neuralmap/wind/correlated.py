@@ -34,6 +34,7 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters import BatchedEKF, FilterPolicy, UpdateDiagnostics
+from neuralmap.filters.stats import symmetrize
 
 __all__ = ["CorrelatedNoiseEKF", "DecorrelatedTransition", "decorrelate"]
 
@@ -55,8 +56,6 @@ class DecorrelatedTransition:
     gain: torch.Tensor
 
 
-def _symmetrize(mat: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (mat + mat.transpose(-1, -2))
 
 
 def decorrelate(
@@ -102,7 +101,7 @@ def decorrelate(
             f"A {tuple(A.shape)} for n = {n} states and m = {m} measurements; expected "
             f"(…, {n}, {m}), (…, {m}, {m}), (…, {m}, {n})."
         )
-    chol, info = torch.linalg.cholesky_ex(_symmetrize(R))
+    chol, info = torch.linalg.cholesky_ex(symmetrize(R))
     if bool((info != 0).any()):
         raise NeuralMapError(f"{where}: 'R' is not positive definite; measurement-noise "
                              "variances must be > 0.")
@@ -111,7 +110,7 @@ def decorrelate(
         J = torch.where(keep.reshape(-1, 1, 1), J.expand(batch, n, m), 0.0)
     x_prior = fx + (J @ residual.unsqueeze(-1)).squeeze(-1)
     F_star = (F - J @ A).expand(batch, n, n)
-    Q_star = _symmetrize(Q - J @ C.transpose(-1, -2))
+    Q_star = symmetrize(Q - J @ C.transpose(-1, -2))
     return DecorrelatedTransition(x_prior=x_prior, F=F_star, Q=Q_star, gain=J)
 
 

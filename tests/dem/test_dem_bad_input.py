@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from neuralmap.dem import DemTile, load_tile
-from neuralmap.dem.geo import metres_per_degree
+from neuralmap.dem.geo import crs_name, metres_per_degree
 from neuralmap.exceptions import NeuralMapError
 
 
@@ -152,7 +152,7 @@ def test_utm_asc_gets_a_tile_local_frame(tmp_path: Path) -> None:
     # float32 keeps the 1 m steps exactly (at 4e6 m they would round to 0.25-0.5 m)
     np.testing.assert_array_equal(xy.astype(np.float32), xy)
     ref = tile.georeference
-    assert ref is tile.projected and ref.crs == "WGS 84 / UTM zone 16N"
+    assert ref is tile.projected and crs_name(ref.crs) == "WGS 84 / UTM zone 16N"
     assert ref.to_projected(0.0, 0.0) == (500000.5, 4000000.5)  # SW cell centre
     assert ref.to_tile(500002.5, 4000001.5) == (2.0, 1.0)
     # same heights elsewhere on Earth are another tile
@@ -224,3 +224,65 @@ def test_void_under_matches_a_plain_loop(halo: int) -> None:
         j, i = min(int(u), nx - 2), min(int(v), ny - 2)
         block = heights[max(i - halo, 0): i + 2 + halo, max(j - halo, 0): j + 2 + halo]
         assert got[k] == bool(np.isnan(block).any()), (k, x, y)
+
+
+# --------------------------------------------------------------------------- CRS and formats
+
+#: A .prj as GDAL and ESRI tools write it: UTM zone 16N on WGS 84 (no AUTHORITY node).
+ESRI_UTM16N = (
+    'PROJCS["WGS_1984_UTM_Zone_16N",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID['
+    '"WGS_1984",6378137.0,298.257223563]],PRIMEM["Greenwich",0.0],UNIT["Degree",'
+    '0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["False_Easting",'
+    '500000.0],PARAMETER["False_Northing",0.0],PARAMETER["Central_Meridian",-87.0],'
+    'PARAMETER["Scale_Factor",0.9996],PARAMETER["Latitude_Of_Origin",0.0],UNIT["Meter",1.0]]'
+)
+
+
+def test_readers_keep_a_crs_that_reads_back(tmp_path: Path) -> None:
+    """The .prj's WKT (not just its name) and SRTM's EPSG:4326 are kept, so the CRS can be
+    turned back into a real one (rasterio, pyproj)."""
+    rasterio_crs = pytest.importorskip("rasterio.crs")
+    path = _asc(tmp_path / "utm.asc", (500000.0, 4000000.0), 30.0, [[1, 2, 3], [4, 5, 6]])
+    path.with_suffix(".prj").write_text(ESRI_UTM16N + "\n")
+    tile = load_tile(path)
+    assert tile.projected.crs == ESRI_UTM16N and tile.meta["crs"] == ESRI_UTM16N
+    assert crs_name(tile.projected.crs) == "WGS_1984_UTM_Zone_16N"
+    assert "WGS_1984_UTM_Zone_16N" in tile.meta["units_reason"]  # messages use the name
+    assert rasterio_crs.CRS.from_user_input(tile.projected.crs).to_epsg() == 32616
+    assert tile.describe()["projected"]["crs"] == ESRI_UTM16N
+    # a geographic .asc keeps its GEOGCS too; units forced against the .prj drop it
+    geo = _asc(tmp_path / "geo.asc", (-85.0, 36.0), 0.001, [[1, 2, 3], [4, 5, 6]])
+    geo.with_suffix(".prj").write_text('GEOGCS["GCS_North_American_1983",DATUM['
+                                       '"D_North_American_1983",SPHEROID["GRS_1980",6378137.0,'
+                                       '298.257222101]],PRIMEM["Greenwich",0.0],UNIT["Degree",'
+                                       '0.0174532925199433]]')
+    tile = load_tile(geo)
+    assert rasterio_crs.CRS.from_user_input(tile.meta["crs"]).to_epsg() == 4269
+    assert load_tile(geo, units="metres").projected.crs is None
+    hgt = tmp_path / "N36W085.hgt"
+    np.full((1201, 1201), 100, dtype=">i2").tofile(hgt)
+    assert load_tile(hgt).meta["crs"] == "EPSG:4326"
+
+
+@pytest.mark.filterwarnings("ignore:Dataset has no geotransform")
+def test_a_png_renamed_tif_is_named_as_such(tmp_path: Path) -> None:
+    """A PNG renamed .tif was read as a 4-band raster with a gdal_translate -b 1 hint."""
+    rasterio = pytest.importorskip("rasterio")
+    png = tmp_path / "dem.png"
+    with rasterio.open(png, "w", driver="PNG", height=8, width=8, count=4,
+                       dtype="uint8") as dst:
+        dst.write(np.zeros((4, 8, 8), dtype=np.uint8))
+    renamed = tmp_path / "dem.tif"
+    renamed.write_bytes(png.read_bytes())
+    with pytest.raises(NeuralMapError) as info:
+        load_tile(renamed)
+    message = str(info.value)
+    assert "'" + str(renamed) + "' is not a GeoTIFF" in message and "a PNG image" in message
+    assert "bands" not in message and "-b 1" not in message
+    assert "gdal_translate -of GTiff" in message
+    for name, data, what in (("text.tif", b"ncols 3\nnrows 2\n", "a text file"),
+                             ("empty.tif", b"", "an empty file"),
+                             ("jpeg.tiff", b"\xff\xd8\xff\xe0" + bytes(12), "a JPEG image")):
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(NeuralMapError, match=f"is not a GeoTIFF: .*{what}"):
+            load_tile(tmp_path / name)

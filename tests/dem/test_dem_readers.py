@@ -10,7 +10,7 @@ import rasterio
 from rasterio.transform import from_origin
 
 from neuralmap.dem import load_tile
-from neuralmap.dem.geo import metres_per_degree
+from neuralmap.dem.geo import crs_name, metres_per_degree
 from neuralmap.dem.readers import parse_hgt_name
 
 
@@ -122,7 +122,7 @@ def test_asc_geographic_rule_and_override(tmp_path: Path) -> None:
     # A .prj sidecar naming a projected CRS also makes it metric.
     path.with_suffix(".prj").write_text('PROJCS["WGS 84 / UTM zone 16N",GEOGCS["WGS 84"]]')
     assert ".prj sidecar" in load_tile(path).meta["units_reason"]
-    assert load_tile(path).projected.crs == "WGS 84 / UTM zone 16N"
+    assert crs_name(load_tile(path).projected.crs) == "WGS 84 / UTM zone 16N"
     assert load_tile(path).geo is None
 
 

@@ -15,7 +15,7 @@ from neuralmap.dem.region import (
     corner_wavenumber,
     synthetic_region,
 )
-from neuralmap.nav.truth_terrain import spectral_slope
+from neuralmap.lab.truth_terrain import spectral_slope
 
 
 def test_jacksboro_constants_match_the_sample() -> None:

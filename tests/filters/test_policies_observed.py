@@ -93,8 +93,8 @@ def test_float32_follows_float64_along_whole_trajectories(tiny_scenario, tiny_ti
     P reaches condition numbers float32 cannot hold; in the observed scope P stays
     conditioned and float32 tracks float64 to a millimetre in nine runs of ten."""
     from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.nav.monte_carlo import run_filter
-    from neuralmap.nav.simulator import simulate
+    from neuralmap.lab.monte_carlo import run_filter
+    from neuralmap.lab.simulator import simulate
 
     lin = make_linearizer("bilinear", tile=tiny_tile)
     truths = {dt: simulate(tiny_scenario, tiny_tile, n_runs=48, seed=0, dtype=dt)

@@ -63,7 +63,7 @@ def test_patterns_cover_the_error_model() -> None:
     P, healthy, states, accel, intervals = _inputs(6, 3, seed=2)
     grade = imu_grade("tactical_mems")
     qc = process_noise_density(grade).numpy()
-    model = getattr(kernels._error_model_nb, "py_func", kernels._error_model_nb)
+    model = getattr(kernels.error_model_nb, "py_func", kernels.error_model_nb)
     F, G, C, fn = np.empty((15, 15)), np.empty((15, 15)), np.empty((3, 3)), np.empty(3)
     for r in range(6):
         model(states[r, 0], accel[r, 0], qc, grade.gyro_corr_time, grade.accel_corr_time, F,

@@ -273,3 +273,110 @@ def test_compiled_and_torch_block_paths_agree(drive, monkeypatch: pytest.MonkeyP
     torch.testing.assert_close(fast.states, slow.states, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(fast.std, slow.std, rtol=1e-10, atol=1e-15)
     torch.testing.assert_close(fast.gyro_bias, slow.gyro_bias, rtol=1e-8, atol=1e-14)
+
+
+# --------------------------------------------------------------------------- bad input, CLI
+
+INTERRUPTED = "neuralmap-gins: interrupted; nothing was written (earlier outputs are unchanged)."
+
+
+def _outputs(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+@pytest.mark.parametrize("value", ["nan", "abc", "inf", "1e400", "-1", "0"])
+def test_bad_max_gap_is_one_line(tmp_path: Path, capsys, value: str) -> None:  # noqa: ANN001
+    """A value the parser rejects (abc, nan, inf) or one out of range: one error line naming
+    the option and its range, no parser dump, nothing written."""
+    with pytest.raises(SystemExit) as info:
+        main([str(tmp_path / "kf-gins.yaml"), "--max_gap", value, "--outputpath",
+              str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err.count("\n") == 1, err
+    assert err.startswith("neuralmap-gins: error: --max_gap: ") and "usage:" not in err
+    assert "is not valid; expected a finite number of seconds > 0" in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_full_disk_keeps_the_previous_results(tmp_path: Path, drive, capsys,  # noqa: ANN001
+                                              fail_write) -> None:  # noqa: ANN001
+    """A rerun that fills the disk while writing its third file: one error line, exit 2,
+    the previous run's four files byte for byte, no temporary file."""
+    config = _write_case(tmp_path, drive)
+    main([str(config)])
+    out = tmp_path / "out"
+    before = _outputs(out)
+    assert sorted(before) == sorted([NAV_FILE, IMU_ERROR_FILE, STD_FILE, "comparison.json"])
+    capsys.readouterr()
+    fail_write(3)
+    with pytest.raises(SystemExit) as info:
+        main([str(config), "--r_scale", "2.0"])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err.count("\n") == 1, err
+    assert "error: outputpath: cannot write" in err and "No space left on device" in err
+    assert _outputs(out) == before  # byte for byte, and no hidden temporary file
+
+
+def test_interrupt_keeps_the_previous_results(tmp_path: Path, drive, capsys,  # noqa: ANN001
+                                              fail_write, monkeypatch) -> None:  # noqa: ANN001
+    config = _write_case(tmp_path, drive)
+    main([str(config)])
+    out = tmp_path / "out"
+    before = _outputs(out)
+    capsys.readouterr()
+    fail_write(2, KeyboardInterrupt())  # Ctrl-C while writing
+    with pytest.raises(SystemExit) as info:
+        main([str(config)])
+    assert info.value.code == 130
+    assert capsys.readouterr().err.strip().splitlines() == [INTERRUPTED]
+    assert _outputs(out) == before
+
+    def interrupted(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise KeyboardInterrupt
+
+    # Ctrl-C at start-up: while reading the logs, and while the package still imports
+    monkeypatch.setattr("neuralmap.ins.kfgins.read_imu", interrupted)
+    with pytest.raises(SystemExit) as info:
+        main([str(config), "--outputpath", str(tmp_path / "new")])
+    assert info.value.code == 130
+    assert capsys.readouterr().err.strip().splitlines() == [INTERRUPTED]
+    assert not (tmp_path / "new").exists()
+    from neuralmap import entry
+
+    monkeypatch.setattr(entry.importlib, "import_module", interrupted)
+    assert entry.gins([str(config)]) == 130
+    assert capsys.readouterr().err.strip().splitlines() == [INTERRUPTED]
+
+
+def test_outputpath_that_cannot_be_made_is_refused_first(
+        tmp_path: Path, drive, capsys: pytest.CaptureFixture[str],  # noqa: ANN001
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    config = _write_case(tmp_path, drive)
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+
+    def no_work(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        raise AssertionError("the IMU log was read before outputpath was checked")
+
+    monkeypatch.setattr("neuralmap.ins.kfgins.read_imu", no_work)
+    with pytest.raises(SystemExit) as info:
+        main([str(config), "--outputpath", str(blocker / "out")])
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and err.count("\n") == 1, err
+    assert "error: outputpath" in err and "is a file, not a folder" in err
+
+
+def test_a_run_without_reference_removes_an_older_comparison(tmp_path: Path, drive,  # noqa: ANN001
+                                                             capsys) -> None:  # noqa: ANN001
+    """The outputs of one run belong together: a comparison.json of an earlier run with a
+    reference would sit beside results it is not about."""
+    config = _write_case(tmp_path, drive)
+    main([str(config)])
+    assert (tmp_path / "out" / "comparison.json").is_file()
+    (tmp_path / "truth.nav").unlink()
+    cfg = yaml.safe_load(config.read_text())
+    del cfg["truthpath"]
+    config.write_text(yaml.safe_dump(cfg))
+    main([str(config)])
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == sorted(
+        [NAV_FILE, IMU_ERROR_FILE, STD_FILE])

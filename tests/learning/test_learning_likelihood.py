@@ -19,9 +19,9 @@ from neuralmap.learning.flights import FlightBatch
 from neuralmap.learning.likelihood import linear_log_likelihood, tan_log_likelihood
 from neuralmap.learning.noise_model import NoiseModel
 from neuralmap.linearize.factory import make_linearizer
-from neuralmap.nav.model import TanModel
-from neuralmap.nav.scenario import Scenario
-from neuralmap.nav.simulator import simulate
+from neuralmap.tan.model import TanModel
+from neuralmap.lab.scenario import Scenario
+from neuralmap.lab.simulator import simulate
 
 F64 = torch.float64
 SPACING = 100.0

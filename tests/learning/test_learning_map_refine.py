@@ -17,10 +17,10 @@ from neuralmap.learning.map_correction import (
 )
 from neuralmap.learning.map_refine import refine_map
 from neuralmap.linearize.factory import make_linearizer
-from neuralmap.nav.model import TanModel
-from neuralmap.nav.scenario import load_scenario, scenario_tile
-from neuralmap.nav.simulator import simulate
-from neuralmap.nav.truth_terrain import true_terrain
+from neuralmap.tan.model import TanModel
+from neuralmap.lab.scenario import load_scenario, scenario_tile
+from neuralmap.lab.simulator import simulate
+from neuralmap.lab.truth_terrain import true_terrain
 from neuralmap.terrain.grid import GridTerrain
 
 F64 = torch.float64

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from neuralmap.nav.scenario import load_scenario
+from neuralmap.lab.scenario import load_scenario
 from neuralmap.training.cli import main
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -54,8 +54,8 @@ def tiny_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Four simulated flights of the tiny scenario (dt = 1 s) as a CSV flight log."""
     from neuralmap.learning.flight_log import write_flight_log
     from neuralmap.learning.flights import FlightBatch
-    from neuralmap.nav.scenario import scenario_tile
-    from neuralmap.nav.simulator import simulate
+    from neuralmap.lab.scenario import scenario_tile
+    from neuralmap.lab.simulator import simulate
 
     tiny = load_scenario("tiny")
     flights = FlightBatch.from_truth(simulate(tiny, scenario_tile(tiny), n_runs=4, seed=0))
@@ -82,7 +82,7 @@ def test_flight_logs_that_cannot_teach_anything_exit_2_and_leave_no_run_folder(
 ) -> None:
     import dataclasses
 
-    from neuralmap.nav.scenario import save_scenario
+    from neuralmap.lab.scenario import save_scenario
 
     tiny = load_scenario("tiny")
     log, extra, expect = tiny_log, [], ""

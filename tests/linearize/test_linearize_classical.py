@@ -14,7 +14,7 @@ from neuralmap.linearize import (
     PlaneFitLinearizer,
     TaylorLinearizer,
 )
-from neuralmap.linearize.region import sample_pattern
+from neuralmap.linearize.window import sample_pattern
 
 SPACING = (100.0, 80.0)  # dx, dy
 ORIGIN = (-1000.0, 500.0)
@@ -48,7 +48,7 @@ def quadratic_grad(x, y) -> torch.Tensor:
 
 
 def estimates(n: int = 40, spread: float = 1500.0, seed: int = 0) -> torch.Tensor:
-    """Points within ``spread`` m of the tile centre (regions stay inside the tile)."""
+    """Points within ``spread`` m of the tile centre (windows stay inside the tile)."""
     g = torch.Generator().manual_seed(seed)
     off = (torch.rand(n, 2, generator=g, dtype=torch.float64) * 2 - 1) * spread
     return torch.tensor(CENTRE, dtype=torch.float64) + off
@@ -136,7 +136,7 @@ def test_nine_point_on_quadratic_gives_gradient_at_nearest_node() -> None:
 
 
 @pytest.mark.parametrize("cls", [PlaneFitLinearizer, MeanPointLinearizer])
-def test_region_fit_recovers_centre_gradient_of_quadratic(cls) -> None:
+def test_window_fit_recovers_centre_gradient_of_quadratic(cls) -> None:
     """Symmetric sampling: the plane of a quadratic has the gradient at the centre."""
     tile = node_tile(quadratic)
     xy = estimates(seed=3)
@@ -169,18 +169,18 @@ def test_least_squares_matches_numpy_lstsq() -> None:
         assert float(out.variance[k]) > 1.0
 
 
-def test_adaptive_region_follows_position_covariance() -> None:
+def test_adaptive_window_follows_position_covariance() -> None:
     tile = node_tile(quadratic)
     lin = PlaneFitLinearizer(tile, sigma="adaptive", interpolation="bicubic", max_sigma=600.0)
     xy = estimates(n=4, seed=5)
     cov = torch.cat([pos_cov(1, 150.0, 90.0), pos_cov(1, 20.0, 30.0), pos_cov(1, 5e3, 200.0),
                      torch.full((1, 2, 2), float("nan"), dtype=torch.float64)])
-    sigma = lin.region_sigma(xy, cov)
+    sigma = lin.window_sigma(xy, cov)
     expected = torch.tensor(
         [[150.0, 90.0], [100.0, 80.0], [600.0, 200.0], [600.0, 600.0]], dtype=torch.float64
     )  # clamped below at the grid spacing (100, 80) and above at max_sigma
     torch.testing.assert_close(sigma, expected, rtol=0, atol=1e-9)
-    # same fit as the fixed region of those sigmas
+    # same fit as the fixed window of those sigmas
     out = lin(xy, cov)
     for k in range(4):
         fixed = PlaneFitLinearizer(
@@ -203,7 +203,7 @@ def test_adaptive_without_pos_cov_is_a_clear_error() -> None:
             lin(estimates(n=3), torch.eye(2, dtype=torch.float64).expand(4, 2, 2))
 
 
-def test_fixed_region_sizes_and_auto_sample_count() -> None:
+def test_fixed_window_sizes_and_auto_sample_count() -> None:
     tile = node_tile(plane)
     # sample spacing no coarser than the grid: ceil(6 sigma / min(dx, dy)) + 1
     assert PlaneFitLinearizer(tile, sigma=80.0).n_samples == 7

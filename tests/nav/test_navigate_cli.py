@@ -13,8 +13,8 @@ import pytest
 import torch
 import yaml
 
+from neuralmap.nav.cli import main
 from neuralmap.nav.fix import STATUS
-from neuralmap.nav.navigate_cli import main
 
 pytest.importorskip("pyproj")
 rasterio = pytest.importorskip("rasterio")
@@ -24,7 +24,7 @@ NAV_CONFIG = {"sensor": {"altimeter_sigma_m": 3.0},
                           "velocity_sigma_mps": 0.2},
               "process_noise": {"position_sigma_m": 1.0, "altitude_sigma_m": 1.0,
                                 "velocity_sigma_mps": 0.05},
-              "tracker": {"cells": 16}}
+              "point_mass_tracker": {"cells": 16}}
 
 
 def _write_geotiff(path: Path, tile, *, crs: str, west: float, north: float,  # noqa: ANN001
@@ -43,8 +43,8 @@ def _write_geotiff(path: Path, tile, *, crs: str, west: float, north: float,  # 
 def study_flight(tmp_path_factory):  # noqa: ANN201
     """The tiny scenario's flight (2 runs) over its tile written as a UTM GeoTIFF, the
     flight written as a map-frame log with the truth as reference, and a navigator YAML."""
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
-    from neuralmap.nav.simulator import simulate
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.simulator import simulate
 
     folder = tmp_path_factory.mktemp("flight")
     scenario = load_scenario("tiny")
@@ -130,7 +130,7 @@ def test_study_flight_through_the_cli_equals_the_navigator(study_flight, tmp_pat
     dh = track.altitude - truth.pos[..., 2]
     assert results["errors"]["rmse_vertical_m"] == pytest.approx(
         float(dh.pow(2).mean().sqrt()), rel=1e-12)
-    assert results["study"] == "flight" and results["log"]["kind"] == "map_frame"
+    assert results["log"]["kind"] == "map_frame"
     for name in ("report.md", "track.png", "error_vs_time.png", "status_timeline.png",
                  "navigation.geojson", "config.yaml"):
         assert (folder / name).is_file(), name
@@ -141,6 +141,17 @@ def test_study_flight_through_the_cli_equals_the_navigator(study_flight, tmp_pat
     assert lines[0]["geometry"]["coordinates"][3] == [float(track.lon[0, 3]),
                                                       float(track.lat[0, 3])]
     assert {p["properties"]["status"] for p in points} <= set(STATUS)
+
+
+def test_cli_results_name_the_flight_study(study_flight, tmp_path: Path) -> None:  # noqa: ANN001
+    """results.json of ``neuralmap-navigate`` says which implementation wrote it: the
+    ``flight`` study's (as before the restructuring)."""
+    s = study_flight
+    out = tmp_path / "out"
+    assert main([str(s["log"]), "--map", str(s["tif"]), "--config", str(s["nav"]), "--out",
+                 str(out), "--tensorboard", "false", "--progress", "false"]) == 0
+    results = json.loads((_only_version(out) / "results.json").read_text())
+    assert results["study"] == "flight"
 
 
 def _edit_log(src: Path, dst: Path, edit) -> Path:  # noqa: ANN001
@@ -178,7 +189,8 @@ def _altitude_offset(rows: list[list[str]]) -> None:
     ("nomap", None, ["--map", "no_such_map.tif"], "no such file and not an embedded tile"),
 ])
 def test_refused_log_one_error_line_exit_2_nothing_written(
-        study_flight, tmp_path: Path, capsys, case: str, edit, extra: list, match: str  # noqa: ANN001
+        study_flight, tmp_path: Path, capsys, case: str, edit, extra: list,  # noqa: ANN001
+        match: str
 ) -> None:
     s = study_flight
     log = s["log"] if edit is None else _edit_log(s["log"], tmp_path / f"{case}.csv", edit)
@@ -193,7 +205,8 @@ def test_refused_log_one_error_line_exit_2_nothing_written(
     assert not out.exists()
 
 
-def test_counted_cases_reach_the_report(study_flight, tmp_path: Path, capsys) -> None:  # noqa: ANN001
+def test_counted_cases_reach_the_report(study_flight, tmp_path: Path,  # noqa: ANN001
+                                        capsys) -> None:  # noqa: ANN001
     """Missing radar, a clearance outside the sensor's range and a time gap are counted (by
     the reader and by the navigator), not refused."""
     def edit(rows: list[list[str]]) -> None:

@@ -12,10 +12,10 @@ import pytest
 import torch
 
 from neuralmap.dem.tile import DemTile
+from neuralmap.lab.scenario import load_scenario, scenario_tile
+from neuralmap.lab.simulator import simulate
 from neuralmap.nav.fix import STATUS_CODE
 from neuralmap.nav.navigator import Navigator
-from neuralmap.nav.scenario import load_scenario, scenario_tile
-from neuralmap.nav.simulator import simulate
 from neuralmap.terrain.grid import GridTerrain
 
 ACQ, TRK, LOST, OFF, NOMEAS = (STATUS_CODE[k] for k in (
@@ -146,22 +146,35 @@ def test_missing_and_out_of_range_clearances_are_counted_and_not_used(method) ->
 
 
 def test_time_gaps_are_predicted_across_with_their_true_interval() -> None:
-    # epochs 11-13 dropped (a 4 s interval: predicted across, counted) and a 9 s interval
-    # beyond max_gap_s (predicted across, not updated, counted)
+    # epochs 11-13 dropped (a 4 s interval: predicted across with Φ(4), Q·4, counted) and a
+    # 9 s interval beyond max_gap_s (not predicted across: every vehicle restarts from the
+    # INS prior N(0, P0) as at the first epoch, counted)
     truth, grid = _flight(duration=40.0, n_runs=2)
     keep = [k for k in range(truth.n_steps + 1) if not 11 <= k <= 13 and not 22 <= k <= 29]
     sub = dataclasses.replace(truth, t=truth.t[keep], ins_pos=truth.ins_pos[:, keep],
-                              radar=truth.radar[:, keep], pos=truth.pos[:, keep])
+                              radar=truth.radar[:, keep].clone(), pos=truth.pos[:, keep])
+    g = keep.index(14)  # the epoch after the 4 s interval: its clearance missing, so the
+    sub.radar[:, g] = math.nan  # fix is the prediction alone
     nav = Navigator(grid, _config(method="bilinear"), n_vehicles=2)
     track = _replay(nav, sub)
     assert track.counts["gaps"] == 2 and track.counts["long_gaps"] == 2
-    j = keep.index(30)  # the epoch after the long gap: no update, status no_measurement
-    assert track.status[:, j].tolist() == [NOMEAS, NOMEAS]
-    dt = 9.0
+    assert track.counts["missing_radar"] == 2
     phi = torch.eye(5, dtype=torch.float64)
-    phi[0, 3] = phi[1, 4] = dt
-    Q = torch.diag(torch.tensor([1.0, 1.0, 1.0, 0.0025, 0.0025], dtype=torch.float64)) * dt
-    torch.testing.assert_close(track.cov[:, j], phi @ track.cov[:, j - 1] @ phi.T + Q)
+    phi[0, 3] = phi[1, 4] = 4.0
+    Q = torch.diag(torch.tensor([1.0, 1.0, 1.0, 0.0025, 0.0025], dtype=torch.float64))
+    torch.testing.assert_close(track.cov[:, g], phi @ track.cov[:, g - 1] @ phi.T + 4.0 * Q,
+                               rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(track.correction[:, g], track.correction[:, g - 1] @ phi.T,
+                               rtol=1e-12, atol=1e-9)
+    assert track.status[:, g].tolist() == [NOMEAS, NOMEAS]
+    j = keep.index(30)  # the epoch after the long gap: the prior again, no update
+    P0 = torch.diag(torch.tensor([400.0, 400.0, 100.0, 0.04, 0.04], dtype=torch.float64))
+    torch.testing.assert_close(track.cov[:, j], P0.expand(2, 5, 5), rtol=1e-12, atol=0.0)
+    assert torch.equal(track.correction[:, j], torch.zeros(2, 5, dtype=torch.float64))
+    assert torch.equal(track.xy[:, j], sub.ins_pos[:, j, :2])
+    assert not bool(track.updated[:, j].any()) and bool(track.updated[:, j + 1].all())
+    assert bool(track.velocity[:, j].isnan().all())  # no INS velocity across the restart
+    assert float(track.cov[0, j - 1, 0, 0]) < 400.0  # (the restart is visible)
     err = (track.xy - sub.pos[..., :2]).norm(dim=-1)
     sigma = track.cov[..., :2, :2].diagonal(dim1=-2, dim2=-1).sum(-1).sqrt()
     assert bool((err[:, -1] < 3.0 * sigma[:, -1]).all())
@@ -175,7 +188,7 @@ def test_altimeter_spikes_are_taken_by_the_ekf_policy() -> None:
     radar[:, [12, 18, 25]] += 60.0
     errs = {}
     for policy in ("ekf", "raf"):
-        cfg = _config(method="bilinear", policy=policy, integrity={"lost_window": 0})
+        cfg = _config(method="bilinear", ekf={"policy": policy}, integrity={"lost_window": 0})
         track = _replay(Navigator(grid, cfg, n_vehicles=3), truth, radar=radar)
         errs[policy] = float((track.xy - truth.pos[..., :2]).norm(dim=-1)[:, 12:].mean())
     assert errs["raf"] < 0.6 * errs["ekf"], errs
@@ -199,8 +212,17 @@ def test_lost_lock_false_alarms_on_consistent_flights_at_the_production_setting(
     assert track.counts["updates"] + track.counts["spikes"] == 64 * 100
     assert track.counts["spikes"] <= 4
     assert track.counts["lost"] <= 1
-    # the windowed NIS the fixes report is the consistent χ²(1) mean: near 1
-    assert 0.8 < float(track.nis[:, 20:].mean()) < 1.2
+    # the windowed NIS the fixes report is the consistent χ²(1) mean: near 1; it is the mean
+    # of the last W = 20 per-epoch NIS values, each capped at twice χ²_p(W)/W (SciPy)
+    from scipy.stats import chi2
+
+    assert 0.8 < float(track.mean_nis[:, 20:].mean()) < 1.2
+    assert 0.8 < float(track.nis[:, 1:].nanmean()) < 1.2
+    cap = 2.0 * chi2.ppf(0.99999, 20) / 20
+    every = torch.isfinite(track.nis[:, 1:]).all(1).nonzero().reshape(-1)
+    assert every.numel() >= 60
+    ref = track.nis[every, 1:].clamp(max=cap).unfold(1, 20, 1).mean(-1)
+    torch.testing.assert_close(track.mean_nis[every, 20:], ref, rtol=1e-12, atol=1e-12)
 
 
 def test_tracker_spike_gate() -> None:

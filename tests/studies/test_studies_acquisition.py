@@ -1,5 +1,6 @@
-"""Acquisition study: runs that leave the map are counted and excluded, never fatal; the rows
-on a Dask cluster equal those of one process."""
+"""Acquisition study: a tiny run end to end (results, report, claims), bad options refused,
+runs that leave the map are counted and excluded, never fatal; the rows on a Dask cluster
+equal those of one process."""
 
 from __future__ import annotations
 
@@ -35,18 +36,20 @@ def test_wide_start_spread_counts_off_map_runs_and_finishes(tmp_path: Path) -> N
     assert "off-map" in (folder / "report.md").read_text()
 
 
-def test_tracker_rows_fly_the_first_n_runs_tracker_runs(tmp_path: Path) -> None:
+def test_tracker_rows_fly_the_first_n_runs_per_method_runs(tmp_path: Path) -> None:
     from neuralmap.studies.cli import main
 
     code = main(["--config", str(REPO / "configs" / "acquisition_tiny.yaml"),
-                 "--runs_dir", str(tmp_path / "runs"), "--n_runs", "12", "--n_runs_tracker", "5",
+                 "--runs_dir", str(tmp_path / "runs"), "--n_runs", "12",
+                 "--n_runs_per_method", "{point_mass_tracker: 5}",
                  "--sigmas_m", "[60.0]", "--methods", "[ekf,point_mass_tracker]",
                  "--flat_leg", "false"])
     assert code == 0
     results = json.loads((tmp_path / "runs" / "acquisition_tiny" / "version_0" /
                           "results.json").read_text())
     rows = results["sigmas"]["60"]
-    assert rows["grid/ekf"]["n_included"] == 12 and rows["grid/point_mass_tracker"]["n_included"] == 5
+    assert rows["grid/ekf"]["n_included"] == 12
+    assert rows["grid/point_mass_tracker"]["n_included"] == 5
     # the map-aware PCRB beside the true-terrain one: the rows' RMS over the last half of
     # the curve, and the tracker's claim against it
     curve = results["curves"]["60/pcrb_map_aware"]
@@ -70,7 +73,8 @@ def test_rows_on_a_local_dask_cluster_equal_this_process(tmp_path: Path) -> None
 
     def study(name: str, cluster: str) -> dict:  # type: ignore[type-arg]
         code = main(["--config", str(REPO / "configs" / "acquisition_tiny.yaml"),
-                     "--runs_dir", str(tmp_path / name), "--n_runs_tracker", "4",
+                     "--runs_dir", str(tmp_path / name),
+                     "--n_runs_per_method", "{point_mass_tracker: 4}",
                      "--flat_leg", "false", "--tensorboard", "false", "--cluster", cluster])
         assert code == 0
         return json.loads((tmp_path / name / "acquisition_tiny" / "version_0" /
@@ -85,3 +89,41 @@ def test_rows_on_a_local_dask_cluster_equal_this_process(tmp_path: Path) -> None
         assert {k: v for k, v in a.items() if k not in timing} == {
             k: v for k, v in b.items() if k not in timing}, (sigma, key)
     assert here["curves"] == dask["curves"] and here["off_map"] == dask["off_map"]
+
+
+def test_acquisition_study_end_to_end(tmp_path: Path) -> None:
+    """``python evaluate.py --config configs/acquisition_tiny.yaml`` writes a complete run
+    (the methods flown by name through the Navigator with the config's navigator options)."""
+    from neuralmap.studies.cli import main
+
+    config = REPO / "configs" / "acquisition_tiny.yaml"
+    code = main(["--config", str(config), "--runs_dir", str(tmp_path), "--sigmas_m", "[80.0]",
+                 "--methods", "[ekf,point_mass_ekf]", "--n_runs", "4", "--n_runs_flat", "2",
+                 "--tensorboard", "false"])
+    assert code == 0
+    folder = tmp_path / "acquisition_tiny" / "version_0"
+    results = json.loads((folder / "results.json").read_text())
+    rows = results["sigmas"]["80"]
+    assert set(rows) == {"grid/ekf", "grid/point_mass_ekf"}
+    assert rows["grid/point_mass_ekf"]["n_included"] >= 1
+    assert results["flat_leg"]["final_posterior_sigma_median_m"] > 40.0  # stays wide
+    report = (folder / "report.md").read_text()
+    assert "Flat-terrain leg" in report and "Hand-off test" in report
+    # 4 runs: no divergence or PCRB verdict (the old study judged them)
+    assert results["claims"]
+    assert all(c["verdict"].startswith("not enough converged runs (") for c in results["claims"])
+    assert not list(folder.glob("events.out.tfevents*"))  # --tensorboard false
+
+
+def test_study_config_rejects_bad_values() -> None:
+    from neuralmap.exceptions import NeuralMapError
+    from neuralmap.studies.acquisition import AcquisitionStudyConfig
+
+    with pytest.raises(NeuralMapError, match="methods"):
+        AcquisitionStudyConfig(methods=["kalman"]).validate()
+    with pytest.raises(NeuralMapError, match="sigmas_m"):
+        AcquisitionStudyConfig(sigmas_m=[-1.0]).validate()
+    with pytest.raises(NeuralMapError, match="maps"):
+        AcquisitionStudyConfig(maps=["lidar"]).validate()
+    with pytest.raises(NeuralMapError, match="navigator"):
+        AcquisitionStudyConfig(navigator=["point_mass"]).validate()

@@ -23,7 +23,7 @@ TINY = REPO_ROOT / "configs" / "tan_tiny.yaml"
 @pytest.fixture(scope="module")
 def tiny_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """An (untrained) neural map of the tiny scenario's tile: enough for the plumbing."""
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
     from neuralmap.terrain.blockwise import BlockwiseTerrainNet
     from neuralmap.terrain.export import save_map
 
@@ -215,7 +215,7 @@ def test_newest_map_of_the_scenarios_tile_is_preferred(tmp_path: Path, tiny_map:
     import os
 
     from neuralmap.dem import synthetic_tile
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
     from neuralmap.studies.maps import find_latest_map
     from neuralmap.terrain.blockwise import BlockwiseTerrainNet
     from neuralmap.terrain.export import save_map
@@ -240,7 +240,7 @@ def test_newest_map_of_the_scenarios_tile_is_preferred(tmp_path: Path, tiny_map:
 
 def test_empty_scenario_file_is_refused(tmp_path: Path) -> None:
     from neuralmap.exceptions import NeuralMapError
-    from neuralmap.nav.scenario import load_scenario
+    from neuralmap.lab.scenario import load_scenario
 
     empty = tmp_path / "empty.yaml"
     empty.write_text("# nothing here\n")
@@ -262,7 +262,8 @@ def test_console_entry_imports_nothing_heavy_and_handles_early_ctrl_c(monkeypatc
 
     tree = ast.parse(Path(entry.__file__).read_text())
     top = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))]
-    standard = {"__future__", "sys", "os", "signal", "contextlib", "collections.abc", "typing"}
+    standard = {"__future__", "sys", "os", "re", "signal", "importlib", "contextlib",
+                "collections.abc", "typing"}
     assert all((getattr(n, "module", None) or n.names[0].name) in standard for n in top)
     real_import = builtins.__import__
 

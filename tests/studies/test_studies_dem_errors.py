@@ -18,10 +18,10 @@ from statsmodels.tsa.stattools import acovf
 from neuralmap.errors.repeat_survey import survey_recovery
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.linearize.factory import make_linearizer
-from neuralmap.nav.model import TanModel
-from neuralmap.nav.monte_carlo import run_filter
-from neuralmap.nav.scenario import load_scenario, scenario_tile
-from neuralmap.nav.simulator import simulate
+from neuralmap.tan.model import TanModel
+from neuralmap.lab.monte_carlo import run_filter
+from neuralmap.lab.scenario import load_scenario, scenario_tile
+from neuralmap.lab.simulator import simulate
 from neuralmap.studies import cli
 from neuralmap.studies.dem_errors import (
     PAPER_TABLE1,

@@ -12,7 +12,7 @@ import pytest
 import torch
 import yaml
 
-from neuralmap.nav.navigate_cli import main as navigate_main
+from neuralmap.nav.cli import main as navigate_main
 from neuralmap.resources import config_file
 from neuralmap.studies.cli import main as evaluate_main
 
@@ -46,7 +46,7 @@ def small_log(tmp_path_factory):  # noqa: ANN201
     nav = folder / "nav.yaml"
     nav.write_text(yaml.safe_dump({"sensor": {"altimeter_sigma_m": 3.0},
                                    "initial": {"position_sigma_m": 40.0},
-                                   "tracker": {"cells": 16}}))
+                                   "point_mass_tracker": {"cells": 16}}))
     return path, nav
 
 

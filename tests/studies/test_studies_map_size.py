@@ -54,7 +54,7 @@ def test_pareto_front_matches_brute_force() -> None:
 @pytest.fixture(scope="module")
 def tiny_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A roughly fitted small map of the tiny scenario's tile."""
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
     from neuralmap.terrain.blockwise import BlockwiseTerrainNet
     from neuralmap.terrain.export import save_map
 
@@ -73,7 +73,7 @@ def tiny_map(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_map_size_end_to_end(tiny_map: Path, tmp_path: Path) -> None:
-    from neuralmap.studies.outputs import MIN_CONVERGED
+    from neuralmap.outputs import MIN_CONVERGED
 
     evaluate = _evaluate()
     code = evaluate.main([
@@ -170,7 +170,7 @@ def _saved_map(tile: object, path: Path, *, fingerprint: str | None) -> Path:
 def test_map_without_or_with_another_fingerprint_is_refused(
     fingerprint: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
 
     tile = scenario_tile(load_scenario("tiny"))
     path = _saved_map(tile, tmp_path / "m" / "version_0" / "neural_map.pt",

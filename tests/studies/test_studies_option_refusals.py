@@ -17,13 +17,15 @@ ACQUISITION_TINY = REPO_ROOT / "configs" / "acquisition_tiny.yaml"
 def test_acquisition_bank_per_axis_below_one_is_refused(value: str, tmp_path: Path,
                                                         capsys: pytest.CaptureFixture[str]
                                                         ) -> None:
-    code = cli.main(["--config", str(ACQUISITION_TINY), "--bank_per_axis", value,
+    code = cli.main(["--config", str(ACQUISITION_TINY), "--navigator",
+                     f"{{ekf_bank: {{per_axis: {value}}}}}",
                      "--runs_dir", str(tmp_path / "runs")])
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
     assert code == 2 and len(lines) == 1, err
-    assert "error: --bank_per_axis must be an integer >= 1" in lines[0]
-    assert f"got {value}" in lines[0] and "--bank_per_axis 7" in lines[0]
+    assert "error: --navigator:" in lines[0] and "ekf_bank.per_axis must be an integer >= 1" in (
+        lines[0])
+    assert f"got {value}" in lines[0]
     assert not (tmp_path / "runs").exists() or not any((tmp_path / "runs").rglob("*"))
 
 

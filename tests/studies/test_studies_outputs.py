@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from neuralmap.studies.outputs import (
+from neuralmap.outputs import (
     VERDICTS,
     RunCounts,
     StudyOutputs,

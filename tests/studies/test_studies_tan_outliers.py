@@ -36,7 +36,7 @@ def test_every_policy_builds_fresh_and_unknown_is_refused() -> None:
 
 
 def test_tan_outliers_tiny_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
-    from neuralmap.nav.scenario import load_scenario, scenario_tile
+    from neuralmap.lab.scenario import load_scenario, scenario_tile
     from neuralmap.terrain.blockwise import BlockwiseTerrainNet
     from neuralmap.terrain.export import save_map
 

@@ -61,7 +61,7 @@ def test_heartbeat_interval_is_read_when_the_bar_is_made(monkeypatch: pytest.Mon
 def test_every_long_tan_stage_prints_heartbeats_to_a_log(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:
-    import neuralmap.nav.pcrb as pcrb
+    import neuralmap.lab.pcrb as pcrb
     from neuralmap.studies import cli
 
     # the PCRB evaluates its slopes in chunks; the tiny run has one chunk of the default size

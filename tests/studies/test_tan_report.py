@@ -233,7 +233,7 @@ def test_tan_report_goes_through_the_one_outputs_writer(tmp_path: Path) -> None:
     the report; now sections, figures and claims go through StudyOutputs."""
     import matplotlib.figure
 
-    from neuralmap.studies.outputs import StudyOutputs
+    from neuralmap.outputs import StudyOutputs
 
     results = _results()
     with StudyOutputs(tmp_path, config={"study": "tan"}, title="TAN", echo=False,
@@ -365,14 +365,14 @@ def test_claims_name_their_method_once_and_their_source_apart() -> None:
 def test_tan_study_claims_use_the_one_verdict_rule() -> None:
     """The tracker's and the recommended EKF's targets on a handful of runs get "not enough
     converged runs", never holds/does not hold (the old rule judged NEES on 1 run)."""
-    from neuralmap.studies.tan import _consistency_claims, _tracker_claims
+    from neuralmap.studies.tan import _consistency_claims, _default_method_claims
 
     few = _metrics(20.0)
     few.update(n_runs=1, n_off_map=0, n_included=1, n_converged=1, n_diverged=0,
                pcrb_map_ratio_all=1.0)
     results = {"methods": {"point_mass_ekf": dict(few), "point_mass_tracker": dict(few)},
                "noise": {"mode": "measured"}}
-    claims = _consistency_claims(results) + _tracker_claims(results)
+    claims = _consistency_claims(results) + _default_method_claims(results)
     assert len(claims) == 5
     for claim in claims:
         assert claim.verdict.startswith("not enough converged runs (1 of 1"), claim
@@ -381,7 +381,7 @@ def test_tan_study_claims_use_the_one_verdict_rule() -> None:
     many = _metrics(20.0)
     many.update(pcrb_map_ratio_all=1.0, pcrb_ratio_all=1.2)
     results["methods"] = {"point_mass_ekf": dict(many), "point_mass_tracker": dict(many)}
-    verdicts = [c.verdict for c in _consistency_claims(results) + _tracker_claims(results)]
+    verdicts = [c.verdict for c in _consistency_claims(results) + _default_method_claims(results)]
     # NEES 0.9 >= 0.9; map ratio 1.0 <= 1.05; true ratio 1.2 > 1.10; 0 diverged
     assert verdicts == ["holds", "holds", "does not hold", "holds", "holds"]
 

@@ -244,19 +244,15 @@ def test_export_per_tile_geotiff(fitted: dict, tmp_path: Path) -> None:
     from neuralmap.terrain.latent.tileset_geotiff import export_tileset_geotiffs
 
     ts = LatentTileset(fitted["index"])
-    # The .asc reader keeps only the .prj's CRS name, which rasterio cannot parse; give the
-    # region (and the tileset's record of it) the EPSG code of that CRS.
-    region = fitted["plan"].region
-    region = dataclasses.replace(
-        region, projected=dataclasses.replace(region.projected, crs="EPSG:32616"))
-    ts.tile_info["projected"]["crs"] = "EPSG:32616"
+    region = fitted["plan"].region  # its CRS: the tiles' .prj WKT, as the reader kept it
+    assert region.projected.crs == UTM16N and ts.tile_info["projected"]["crs"] == UTM16N
     written = export_tileset_geotiffs(ts, tmp_path, region=region)
     assert sorted(written) == [(0, 0), (0, 1), (1, 0), (1, 1)]
     assert all(sorted(layers) == ["height", "residual", "slope"] for layers in written.values())
     with rasterio.open(written[(0, 0)]["height"]) as west, \
             rasterio.open(written[(0, 1)]["height"]) as east:
         a, b = west.read(1), east.read(1)
-        assert a.shape == (HALF + 1, HALF + 1) and "UTM zone 16N" in west.crs.to_wkt()
+        assert a.shape == (HALF + 1, HALF + 1) and west.crs.to_epsg() == 32616
         assert west.transform.c == pytest.approx(E0 - CELL / 2)
         assert east.transform.c == pytest.approx(E0 + HALF * CELL - CELL / 2)
         np.testing.assert_array_equal(a[:, -1], b[:, 0])  # the shared seam column
@@ -268,6 +264,12 @@ def test_export_per_tile_geotiff(fitted: dict, tmp_path: Path) -> None:
                                    expect - region.heights[:HALF + 1, :HALF + 1], atol=1e-3)
     without = export_tileset_geotiffs(ts, tmp_path / "nodem")  # height and slope only
     assert sorted(without[(1, 1)]) == ["height", "slope"]
+    # a tileset written when the index kept only the CRS name: pyproj looks it up
+    ts.tile_info["projected"]["crs"] = "WGS 84 / UTM zone 16N"
+    by_name = export_tileset_geotiffs(ts, tmp_path / "byname")
+    with rasterio.open(by_name[(0, 0)]["height"]) as src:
+        assert src.crs.to_epsg() == 32616
+        np.testing.assert_array_equal(src.read(1), a)
     with pytest.raises(NeuralMapError, match="residual layer needs the DEM"):
         export_tileset_geotiffs(ts, tmp_path / "x", layers=("residual",))
     # Cloud Optimized GeoTIFF: GDAL's COG layout, the same values as the plain file
@@ -411,8 +413,8 @@ def test_the_navigator_flies_across_the_seams_as_on_the_single_tile_fit(fitted: 
     # fraction of their σ (the two maps differ by their fit error, not by the seams)
     from neuralmap.nav.fix import STATUS_CODE
     from neuralmap.nav.navigator import Navigator
-    from neuralmap.nav.scenario import load_scenario
-    from neuralmap.nav.simulator import simulate
+    from neuralmap.lab.scenario import load_scenario
+    from neuralmap.lab.simulator import simulate
     from neuralmap.terrain.export import load_map
 
     scenario = dataclasses.replace(load_scenario("tiny"), start_xy=[400.0, 400.0],

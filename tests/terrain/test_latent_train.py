@@ -58,3 +58,20 @@ def test_config_learn_key_picks_the_latent_mode(tmp_path: Path) -> None:
     assert config_mode(["--config", str(CONFIGS / "latent_map.yaml")]) == "latent"
     assert config_mode(["--config", str(CONFIGS / "train.yaml")]) == "map"
     assert config_mode(["--config", str(tmp_path / "missing.yaml")]) == "map"
+
+
+@pytest.mark.parametrize("where", ["argv", "argv=", "config"])
+def test_the_old_regions_option_names_its_new_name(tmp_path: Path, capsys, where: str):
+    """``--model.regions`` (and ``model: regions:`` in a config) is now ``model.zones``: a
+    one-line error that names the new spelling, before anything is built."""
+    extra = {"argv": ["--model.regions", "4"], "argv=": ["--model.regions=4"]}.get(where)
+    if extra is None:
+        config = tmp_path / "old.yaml"
+        config.write_text("model:\n  regions: 4\n", encoding="utf-8")
+        extra = ["--config", str(config)]
+    with pytest.raises(SystemExit) as exc:
+        main([*BASE, "--runs_dir", str(tmp_path), *extra])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "model.zones" in err and "renamed" in err
+    assert not list(tmp_path.glob("*/version_*"))

@@ -1,8 +1,8 @@
 """The one point-mass lattice filter (`neuralmap.filters.lattice.filter.LatticeFilter`: the
-state, the measurement update and the moments) with its lattice policy as an object: the
-fixed / adaptive grid of acquisition (`neuralmap.filters.lattice.grid_policy.GridLattice`;
+state, the measurement update and the moments) with its lattice rule as an object: the
+fixed / adaptive grid of acquisition (`neuralmap.filters.lattice.grid_rule.GridLattice`;
 configuration `neuralmap.filters.point_mass.PointMassFilter`) or the lattice that follows
-the posterior (`neuralmap.filters.lattice.follow_policy.FollowLattice`; configuration
+the posterior (`neuralmap.filters.lattice.follow_rule.FollowLattice`; configuration
 `neuralmap.filters.point_mass_tracker.PointMassTracker`), all on one set of kernels
 (`neuralmap.filters.lattice.kernels`: prediction by separable convolution, the log-domain
 Rao-Blackwellised update, bilinear regrid and lattice moments)."""
@@ -25,9 +25,9 @@ from neuralmap.filters.lattice.kernels import (
     toeplitz_kernels,
     weight_update,
 )
-from neuralmap.filters.lattice.policy import LATTICE_POLICIES, make_lattice_filter
+from neuralmap.filters.lattice.rule import LATTICE_RULES, make_lattice_filter
 
-__all__ = ["LATTICE_POLICIES", "LatticeFilter", "LatticeMoments", "LatticeUpdate",
+__all__ = ["LATTICE_RULES", "LatticeFilter", "LatticeMoments", "LatticeUpdate",
            "WeightUpdate", "affine_field", "blur", "cell_log_likelihood", "conditional_mean",
            "convolve_axis", "gaussian_kernels", "gaussian_log_density", "kalman_cells",
            "make_lattice_filter", "mass_moments", "normalised", "resample_bilinear",

@@ -1,5 +1,5 @@
-"""The one batched point-mass lattice filter: state, measurement update and moments; the
-lattice rule (prediction and regrid) is a policy object.
+"""The one batched point-mass lattice filter: state, measurement update and moments; how the
+lattice moves (prediction and regrid) is a lattice-rule object.
 
 N independent runs in lock-step (no Python loop over runs or cells). The state splits into
 
@@ -17,7 +17,7 @@ Model::
 
     s_{k+1} = s_k + E z_k + u_k + w_s,   z_{k+1} = F z_k + w_z,   y_k = g(s_k) + c·z_k + e_k
 
-**Update** (`LatticeFilter.update`, the same for every policy; SEEDS point-mass filter of
+**Update** (`LatticeFilter.update`, the same for every lattice rule; SEEDS point-mass filter of
 Bergman, Ljung and Gustafsson): ``ν = y − g − c·μ``, ``S = cᵀPc + R`` (the same in every
 cell), ``log w += −½ ν²/S`` (optionally a Gaussian + uniform mixture and a per-cell
 likelihood flattening), ``μ += K ν``, ``P ← P − K S Kᵀ``, ``K = P c / S`` (the kernels of
@@ -25,20 +25,23 @@ likelihood flattening), ``μ += K ν``, ``P ← P − K S Kᵀ``, ``K = P c / S`
 its prior masses (counted in ``recoveries``; never NaN); a NaN measurement is no
 measurement.
 
-**Policy** (`neuralmap.filters.lattice.grid_policy.GridLattice`: fixed / adaptive grid with
-deferred diffusion; `neuralmap.filters.lattice.follow_policy.FollowLattice`: the lattice
+**Lattice rule** (`neuralmap.filters.lattice.grid_rule.GridLattice`: fixed / adaptive grid
+with deferred diffusion; `neuralmap.filters.lattice.follow_rule.FollowLattice`: the lattice
 that follows the posterior, moment-exact prediction and regrid, lost-track test): the
-policy object holds the lattice options and its own per-run bookkeeping (deferred process
-noise; NIS window, widenings, open-loop prior) and implements ``predict``, ``regrid``, the
-post-update step and the initial lattice of a Gaussian prior. The filter holds the state
+rule object (attribute ``rule``) holds the lattice options and its own per-run bookkeeping
+(deferred process noise; NIS window, widenings, open-loop prior) and implements
+``predict``, ``regrid``, the post-update step and the initial lattice of a Gaussian prior.
+The following lattice runs the update, its lost-track window and regrid as one pass of
+static-shape kernels (`neuralmap.filters.lattice.follow_step`). The filter holds the state
 once; `neuralmap.filters.point_mass.PointMassFilter` (acquisition, hand-off) and
 `neuralmap.filters.point_mass_tracker.PointMassTracker` (tracking) are configurations of
-it (a policy and a model).
+it (a rule and a model).
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -46,12 +49,8 @@ from typing import Any
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters.lattice.kernels import (
-    LatticeMoments,
-    cell_log_likelihood,
-    kalman_cells,
-    weight_update,
-)
+from neuralmap.filters.lattice import follow_step as fs
+from neuralmap.filters.lattice.kernels import LatticeMoments
 
 __all__ = ["STATE", "LatticeFilter", "LatticeUpdate", "to_state"]
 
@@ -79,9 +78,9 @@ class LatticeUpdate:
             kept its prior masses.
         applied: bool, the update changed the run (masked in, a measurement, not recovered).
         nis: NIS of the mixture's predictive measurement ``(y − ŷ)² / S_y`` (NaN where not
-            applied), or None when the policy does not report it.
+            applied), or None when the lattice rule does not report it.
         innovation: ``y − ŷ``, or None (as ``nis``).
-        widened: bool, the policy's lost-track test widened the run's lattice, or None.
+        widened: bool, the rule's lost-track test widened the run's lattice, or None.
     """
 
     log_likelihood: torch.Tensor
@@ -96,11 +95,11 @@ class LatticeFilter:
     """N point-mass filters on lattices in lock-step (model: module docstring).
 
     Built by a configuration (`PointMassFilter`, `PointMassTracker`, or
-    `neuralmap.filters.lattice.policy.make_lattice_filter`); the constructor allocates the
-    state, the policy then writes the prior into it.
+    `neuralmap.filters.lattice.rule.make_lattice_filter`); the constructor allocates the
+    state, the lattice rule then writes the prior into it.
 
     Args:
-        policy: The lattice policy object (``GridLattice`` or ``FollowLattice``).
+        rule: The lattice rule object (``GridLattice`` or ``FollowLattice``).
         n_runs: Runs N (≥ 1).
         E: ``(2, nz)`` effect of ``z`` on the next ``s``.
         F: ``(nz, nz)`` transition of ``z``.
@@ -114,16 +113,17 @@ class LatticeFilter:
         lin_cov: ``(N, nz, nz)`` conditional covariance of ``z`` (common to the cells).
         centre: ``(N, 2)`` lattice centres; ``axes``: ``(N, 2, 2)`` cell steps (columns).
         recoveries, regrids: ``(N,)`` int64 counters.
-        policy: The lattice policy.
+        rule: The lattice rule (``policy``: its deprecated old name).
+        E, F, c: The model (assigning ``E`` or ``F`` takes effect at the next prediction).
     """
 
-    def __init__(self, policy: Any, n_runs: int, *, E: torch.Tensor, F: torch.Tensor,
+    def __init__(self, rule: Any, n_runs: int, *, E: torch.Tensor, F: torch.Tensor,
                  c: torch.Tensor, dtype: torch.dtype, device: torch.device | None = None,
                  name: str = "LatticeFilter") -> None:
         if dtype not in (torch.float32, torch.float64):
             raise NeuralMapError(f"{name}: dtype must be float32 or float64, got {dtype}.")
         kw = {"dtype": dtype, "device": device}
-        self.name, self.policy = name, policy
+        self.name, self.rule = name, rule
         self.dtype, self.device = dtype, torch.device(device or "cpu")
         self.E = torch.as_tensor(E, **kw)
         self.F = torch.as_tensor(F, **kw)
@@ -134,11 +134,10 @@ class LatticeFilter:
             raise NeuralMapError(
                 f"{name}: E, F, c must have shapes (2, nz), (nz, nz), (nz,); got "
                 f"{tuple(self.E.shape)}, {tuple(self.F.shape)}, {tuple(self.c.shape)}.")
-        g = policy.config.cells
+        g = rule.config.cells
         self.n_runs, self.nz, self.cells = n_runs, nz, g
         self.half = 0.5 * (g - 1)
         self._off = torch.arange(g, **kw) - self.half
-        self._f_identity = bool(torch.equal(self.F, torch.eye(nz, **kw)))
         self.weights = torch.zeros(n_runs, g, g, **kw)
         self.lin_mean = torch.zeros(n_runs, nz, g, g, **kw)
         self.lin_cov = torch.zeros(n_runs, nz, nz, **kw)
@@ -148,6 +147,43 @@ class LatticeFilter:
         self.regrids = torch.zeros_like(self.recoveries)
         self._moments_cache: tuple[Any, ...] | None = None
         self._points_cache: tuple[Any, ...] | None = None
+        self._joint_cache: tuple[Any, ...] | None = None
+
+    # ------------------------------------------------------------------ model, rule
+    @property
+    def F(self) -> torch.Tensor:  # noqa: N802 - the model's name
+        """``(nz, nz)`` transition of ``z``."""
+        return self._F
+
+    @F.setter
+    def F(self, value: torch.Tensor) -> None:  # noqa: N802
+        self._F = torch.as_tensor(value, dtype=self.dtype, device=self.device)
+        nz = self._F.shape[-1]
+        self._f_identity = bool(torch.equal(self._F, torch.eye(nz, dtype=self.dtype,
+                                                               device=self.device)))
+
+    @property
+    def E(self) -> torch.Tensor:  # noqa: N802 - the model's name
+        """``(2, nz)`` effect of ``z`` on the next ``s``."""
+        return self._E
+
+    @E.setter
+    def E(self, value: torch.Tensor) -> None:  # noqa: N802
+        self._E = torch.as_tensor(value, dtype=self.dtype, device=self.device)
+
+    @property
+    def policy(self) -> Any:
+        """Deprecated name of `rule` (the lattice rule: "policy" names a filter's update
+        policy in this package)."""
+        warnings.warn("LatticeFilter.policy is deprecated: use LatticeFilter.rule (the "
+                      "lattice rule).", DeprecationWarning, stacklevel=2)
+        return self.rule
+
+    @policy.setter
+    def policy(self, value: Any) -> None:
+        warnings.warn("LatticeFilter.policy is deprecated: use LatticeFilter.rule (the "
+                      "lattice rule).", DeprecationWarning, stacklevel=2)
+        self.rule = value
 
     # ------------------------------------------------------------------ views
     @property
@@ -163,12 +199,20 @@ class LatticeFilter:
         if (cached is not None and cached[0] is centre and cached[1] is axes
                 and cached[2] == centre._version and cached[3] == axes._version):
             return cached[4]
-        o = self._off
-        col = axes[:, None, None, :, 0] * o[None, None, :, None]
-        row = axes[:, None, None, :, 1] * o[None, :, None, None]
-        pts = centre[:, None, None, :] + col + row
-        self._points_cache = (centre, axes, centre._version, axes._version, pts)
+        pts = fs.lattice_points(centre, axes, self._off)
+        self._cache_points(centre, axes, pts)
         return pts
+
+    def _cache_points(self, centre: torch.Tensor, axes: torch.Tensor, pts: torch.Tensor) -> None:
+        """Remembers ``pts`` as the cells of the lattice ``(centre, axes)``."""
+        self._points_cache = (centre, axes, centre._version, axes._version, pts)
+
+    def _cache_step(self, state: tuple[torch.Tensor, ...], mean: torch.Tensor,
+                    cov: torch.Tensor, pts: torch.Tensor) -> None:
+        """Remembers the moments and cells a step computed for the lattice state ``state``
+        (used while the filter holds exactly those tensors, unmodified)."""
+        self._joint_cache = (state, tuple(t._version for t in state), mean, cov)
+        self._cache_points(state[3], state[4], pts)
 
     def lattice_moments(self, w: torch.Tensor | None = None,
                         mu: torch.Tensor | None = None) -> LatticeMoments:
@@ -187,24 +231,51 @@ class LatticeFilter:
 
     def state_moments(self, lm: LatticeMoments | None = None) -> tuple[torch.Tensor, ...]:
         """``ms (N, 2), css (N, 2, 2), mz (N, nz), czz (N, nz, nz), czs (N, nz, 2)`` of the
-        masses and the linear part in state units (without the policy's deferred noise)."""
+        masses and the linear part in state units (without the rule's deferred noise)."""
         lm = self.lattice_moments() if lm is None else lm
-        ms, css = to_state(lm.u, lm.cu, self.centre, self.axes)
-        czs = lm.czu @ self.axes.transpose(1, 2)
-        czz = self.lin_cov + lm.czz_b
-        return ms, css, lm.mz, 0.5 * (czz + czz.transpose(1, 2)), czs
+        return tuple(fs.state_moments(lm.tensors(), self.lin_cov, self.centre, self.axes))
 
     def moments(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Mean ``(N, 2+nz)`` and covariance ``(N, 2+nz, 2+nz)`` of the whole state ``[s, z]``
-        (the policy's process noise not yet applied to the lattice included)."""
-        ms, css, mz, czz, czs = self.state_moments()
-        deferred = self.policy.deferred_cov(self)
+        (the rule's process noise not yet applied to the lattice included)."""
+        state = self.state()
+        cached = self._joint_cache
+        if (cached is not None and all(a is b for a, b in zip(cached[0], state, strict=True))
+                and cached[1] == tuple(t._version for t in state)):
+            return cached[2], cached[3]
+        t = fs.Targets(*self.state_moments())
+        deferred = self.rule.deferred_cov(self)
         if deferred is not None:
-            css = css + deferred
-        mean = torch.cat([ms, mz], 1)
-        cov = torch.cat([torch.cat([css, czs.transpose(1, 2)], 2),
-                         torch.cat([czs, czz], 2)], 1)
-        return mean, 0.5 * (cov + cov.transpose(1, 2))
+            t = t._replace(css=t.css + deferred)
+        return fs.joint_moments(t)
+
+    def predictive_nis(self, y: torch.Tensor | float, g: torch.Tensor,
+                       R: float | torch.Tensor) -> torch.Tensor:
+        """``(N,)`` NIS of the scalar measurement ``y`` against the predicted mixture, before
+        the update (a spike gate's test).
+
+        ``ŷ = Σ w (g + c·μ)``, ``S_y = Σ w (g + c·μ − ŷ)² + cᵀ P c + R``, NIS
+        ``= (y − ŷ)² / S_y``; cells where ``g`` is not finite get zero mass (the others
+        renormalised). The same moments as the NIS `update` reports.
+
+        Args:
+            y: ``(N,)`` measurements (NaN: no measurement).
+            g: ``(N, G, G)`` ``g`` at the cells (NaN off the map).
+            R: Measurement variance, float or ``(N,)``.
+
+        Returns:
+            ``(N,)`` NIS in the filter's dtype; NaN where ``y`` is NaN or no cell is valid.
+        """
+        n, kw = self.n_runs, {"dtype": self.dtype, "device": self.device}
+        y = _batch(y, (n,), "y", f"{self.name}.predictive_nis", kw)
+        r = _batch(R, (n,), "R", f"{self.name}.predictive_nis", kw)
+        g = torch.as_tensor(g).to(**kw)
+        if tuple(g.shape) != (n, self.cells, self.cells):
+            raise NeuralMapError(
+                f"{self.name}.predictive_nis: g must have shape (N, G, G) = ({n}, "
+                f"{self.cells}, {self.cells}), got {tuple(g.shape)}.")
+        return fs.predictive_nis_core(self.weights, self.lin_mean, self.lin_cov, self.c, y,
+                                      g, r)
 
     # ------------------------------------------------------------------ state rows
     def state(self) -> tuple[torch.Tensor, ...]:
@@ -235,14 +306,14 @@ class LatticeFilter:
 
     def take(self, index: torch.Tensor) -> LatticeFilter:
         """A new filter of the same configuration holding the runs ``index (M,)`` (copies;
-        counters and the policy's per-run bookkeeping carried over)."""
+        counters and the rule's per-run bookkeeping carried over)."""
         out = object.__new__(type(self))
         out.__dict__.update(self.__dict__)
         out.n_runs = int(index.numel())
         for name in STATE:
             setattr(out, name, getattr(self, name).index_select(0, index))
-        out.policy = self.policy.take(index)
-        out._moments_cache = out._points_cache = None
+        out.rule = self.rule.take(index)
+        out._moments_cache = out._points_cache = out._joint_cache = None
         return out
 
     def extend(self, other: LatticeFilter) -> LatticeFilter:
@@ -252,19 +323,19 @@ class LatticeFilter:
         for name in STATE:
             setattr(out, name, torch.cat([getattr(self, name), getattr(other, name)]))
         out.n_runs = self.n_runs + other.n_runs
-        out.policy = self.policy.cat(other.policy)
+        out.rule = self.rule.cat(other.rule)
         return out
 
     # ------------------------------------------------------------------ predict / regrid
     def predict(self, **kwargs: Any) -> Any:
-        """Time update by the lattice policy (``GridLattice.predict`` /
+        """Time update by the lattice rule (``GridLattice.predict`` /
         ``FollowLattice.predict``)."""
-        return self.policy.predict(self, **kwargs)
+        return self.rule.predict(self, **kwargs)
 
     def regrid(self, *args: Any, **kwargs: Any) -> torch.Tensor:
-        """Moves runs whose posterior no longer fits their lattice (the policy's rule);
-        returns ``(N,)`` bool, runs moved."""
-        return self.policy.regrid(self, *args, **kwargs)
+        """Moves runs whose posterior no longer fits their lattice (the rule's); returns
+        ``(N,)`` bool, runs moved."""
+        return self.rule.regrid(self, *args, **kwargs)
 
     # ------------------------------------------------------------------ update
     def update(self, measurement: torch.Tensor | float,
@@ -273,7 +344,7 @@ class LatticeFilter:
                cell_variance: torch.Tensor | None = None, regrid: bool = True,
                ) -> LatticeUpdate:
         """Measurement update ``y = g(s) + c·z + e`` in every cell (module docstring), then
-        the policy's post-update step (the following lattice's lost-track test and regrid).
+        the rule's post-update step (the following lattice's lost-track test and regrid).
 
         Args:
             measurement: ``(N,)`` ``y`` (NaN = no measurement for that run).
@@ -284,73 +355,52 @@ class LatticeFilter:
             mask: ``(N,)`` bool, runs to update (None = all).
             cell_variance: ``(N, G, G)`` spread of ``g`` over each cell, added to ``S`` in
                 the likelihood only (a coarse lattice cannot step over a narrow peak).
-            regrid: Let a policy that regrids after the update do so (``follow``; the grid
-                policies regrid in `predict`).
+            regrid: Let a rule that regrids after the update do so (``follow``; the grid
+                rules regrid in `predict`).
 
         Returns:
             `LatticeUpdate`.
         """
-        pol = self.policy
+        rule = self.rule
         n, g, kw = self.n_runs, self.cells, {"dtype": self.dtype, "device": self.device}
         y = _batch(measurement, (n,), "measurement", self.name, kw)
         gval = predicted(self.points()) if callable(predicted) else predicted
-        gval = torch.as_tensor(gval).to(**kw)
+        gval = _as(gval, **kw)
         if tuple(gval.shape) != (n, g, g):
             raise NeuralMapError(
                 f"{self.name}.update: predicted must have shape (N, G, G) = ({n}, {g}, {g}), "
                 f"got {tuple(gval.shape)}.")
         r = _batch(R, (n,), "R", self.name, kw)
-        if not bool((r > 0).all()) or not bool(torch.isfinite(r).all()):
+        if isinstance(R, (int, float)) and not (math.isfinite(R) and R > 0):
             raise NeuralMapError(f"{self.name}.update: R must be > 0 (and finite) for every run.")
-        w, mu, P, c = self.weights, self.lin_mean, self.lin_cov, self.c
-        s_run = ((P @ c) @ c) + r  # (N,) S = cᵀPc + R, the same in every cell
-        yhat_cell = gval + torch.einsum("z,nzij->nij", c, mu)
-        nu = y[:, None, None] - yhat_cell  # ν = y − g − c·μ
-        finite_cell = torch.isfinite(nu)
-        all_finite = bool(finite_cell.all())
-        nis = innov = None
-        if pol.reports_nis:  # the mixture's predictive moments of y
-            if all_finite:
-                yhat = (w * yhat_cell).sum((1, 2))
-                s_y = (w * (yhat_cell - yhat[:, None, None]) ** 2).sum((1, 2)) + s_run
-            else:
-                yhat_c = torch.where(finite_cell, yhat_cell, 0.0)
-                w_ok = torch.where(finite_cell, w, 0.0)
-                mass_ok = w_ok.sum((1, 2)).clamp_min(torch.finfo(self.dtype).tiny)
-                yhat = (w_ok * yhat_c).sum((1, 2)) / mass_ok
-                s_y = ((w_ok * (yhat_c - yhat[:, None, None]) ** 2).sum((1, 2)) / mass_ok
-                       + s_run)
-            innov = y - yhat
-            nis = innov * innov / s_y
-        if not all_finite:
-            nu = torch.where(finite_cell, nu, 0.0)
-        loglik, resp = cell_log_likelihood(nu, s_run, cell_variance,
-                                           outlier_prob=pol.outlier_prob,
-                                           outlier_width=pol.outlier_width)
-        if not all_finite:
-            loglik = torch.where(finite_cell, loglik, -math.inf)
-        upd = weight_update(w, torch.nan_to_num(loglik, nan=-math.inf, neginf=-math.inf), s_run)
-        has_y = torch.isfinite(y)
-        use = upd.use & has_y
-        recovered = ~upd.use & has_y
-        if mask is not None:
-            recovered = recovered & mask
-            use = use & mask
-        self.recoveries += recovered.long()
-        wn = pol.floor_weights(upd.weights)
-        mu_new, P_new = kalman_cells(mu, P, c, nu, s_run, resp, wn)
-        if bool(use.all()):
-            self.weights, self.lin_mean, self.lin_cov = wn, mu_new, P_new
-        else:
-            a3, a4 = use[:, None, None], use[:, None, None, None]
-            self.weights = torch.where(a3, wn, w)
-            self.lin_mean = torch.where(a4, mu_new, mu)
-            self.lin_cov = torch.where(a3, P_new, P)
-        widened = pol.after_update(self, nis, use, regrid)
+        if cell_variance is not None:
+            cell_variance = _as(cell_variance, **kw).clamp_min(0.0)
+        if hasattr(rule, "update"):  # the rule's one-pass update (None: run the one below)
+            done = rule.update(self, y, gval, r, mask, cell_variance, regrid)
+            if done is not None:
+                return done
+        out = fs.update_core(self.weights, self.lin_mean, self.lin_cov, self.c, y, gval, r,
+                             mask, cell_variance, reports_nis=rule.reports_nis,
+                             outlier_prob=rule.outlier_prob, outlier_width=rule.outlier_width,
+                             floor_weights=rule.floor_weights)
+        if bool(out["r_bad"].any()):
+            raise NeuralMapError(f"{self.name}.update: R must be > 0 (and finite) for every run.")
+        self.recoveries += out["recovered"].long()
+        self.weights, self.lin_mean, self.lin_cov = out["state"]
+        use, nis = out["applied"], out["nis"]
+        widened = rule.after_update(self, nis, use, regrid)
         if nis is not None:
             nis = torch.where(use, nis, math.nan)
-        return LatticeUpdate(log_likelihood=upd.log_likelihood, recovered=recovered,
-                             applied=use, nis=nis, innovation=innov, widened=widened)
+        return LatticeUpdate(log_likelihood=out["log_likelihood"], recovered=out["recovered"],
+                             applied=use, nis=nis, innovation=out["innovation"],
+                             widened=widened)
+
+
+def _as(x: object, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``x`` as a tensor of ``dtype`` on ``device`` (no copy when it already is)."""
+    if isinstance(x, torch.Tensor) and x.dtype == dtype and x.device == device:
+        return x
+    return torch.as_tensor(x).to(dtype=dtype, device=device)
 
 
 def _batch(value: object, shape: tuple[int, ...], what: str, name: str,

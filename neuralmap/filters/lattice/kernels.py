@@ -1,7 +1,7 @@
 """The one set of point-mass kernels: prediction by separable convolution, the measurement
 update, bilinear regrid and lattice moments.
 
-Both lattice policies of the point-mass filter (the fixed / adaptive acquisition grid,
+Both lattice rules of the point-mass filter (the fixed / adaptive acquisition grid,
 `neuralmap.filters.point_mass.PointMassFilter`, and the lattice that follows the
 posterior, `neuralmap.filters.point_mass_tracker.PointMassTracker`) run on these
 functions; nothing here knows which lattice it works on. Conventions (N runs, ``G × G``
@@ -30,13 +30,13 @@ import math
 import torch
 import torch.nn.functional as nnf
 
-from neuralmap.filters.lattice.algebra2 import eigh2
+from neuralmap.filters.lattice.algebra2 import eigh2, mm, mv
 from neuralmap.filters.underflow import exp_or_zero, log_or_neg_inf
 
 __all__ = ["BANDED_MIN_HALF_LEN", "LatticeMoments", "WeightUpdate", "affine_field", "blur",
            "cell_log_likelihood", "conditional_mean", "convolve_axis", "gaussian_kernels",
-           "gaussian_log_density", "kalman_cells", "mass_moments", "normalised",
-           "resample_bilinear", "toeplitz_kernels", "weight_update"]
+           "gaussian_log_density", "kalman_cells", "lattice_moment_tensors", "mass_moments",
+           "normalised", "resample_bilinear", "toeplitz_kernels", "weight_update"]
 
 _LOG_2PI = math.log(2.0 * math.pi)
 
@@ -243,7 +243,7 @@ def kalman_cells(mu: torch.Tensor, P: torch.Tensor, c: torch.Tensor, nu: torch.T
     Returns:
         ``μ + K ν`` ``(N, nz, G, G)`` and ``P − K S Kᵀ`` ``(N, nz, nz)``, ``K = P c / S``.
     """
-    gain = (P @ c) / s_run[:, None]  # (N, nz)
+    gain = mv(P, c) / s_run[:, None]  # (N, nz)
     kks = gain[:, :, None] * gain[:, None, :] * s_run[:, None, None]
     if resp is None:
         mu_new = mu + gain[:, :, None, None] * nu[:, None]
@@ -260,13 +260,38 @@ def mass_moments(w: torch.Tensor, off: torch.Tensor) -> tuple[torch.Tensor, torc
     """Mean ``(N, 2)`` and covariance ``(N, 2, 2)`` of masses ``w (N, G, G)`` in lattice
     coordinates (cells; separable sums, two passes over ``w``)."""
     wx, wy = w.sum(1), w.sum(2)  # along columns (x) and rows (y)
-    ux, uy = wx @ off, wy @ off
-    cxx = wx @ (off * off) - ux * ux
-    cyy = wy @ (off * off) - uy * uy
-    cxy = (w @ off) @ off - ux * uy
+    ux, uy = mv(wx, off), mv(wy, off)
+    cxx = mv(wx, off * off) - ux * ux
+    cyy = mv(wy, off * off) - uy * uy
+    cxy = mv(mv(w, off), off) - ux * uy
     u = torch.stack([ux, uy], 1)
     cu = torch.stack([torch.stack([cxx, cxy], 1), torch.stack([cxy, cyy], 1)], 1)
     return u, cu
+
+
+def lattice_moment_tensors(w: torch.Tensor, mu: torch.Tensor, off: torch.Tensor,
+                           ) -> tuple[torch.Tensor, ...]:
+    """Moments of a lattice state in lattice coordinates, as a tuple of tensors (the
+    functional form of `LatticeMoments`, for compiled steps).
+
+    Args:
+        w: ``(N, G, G)`` masses; ``mu``: ``(N, nz, G, G)`` per-cell means; ``off``: ``(G,)``.
+
+    Returns:
+        ``u (N, 2)``, ``cu (N, 2, 2)``, ``mz (N, nz)``, ``czu (N, nz, 2)``,
+        ``czz_b (N, nz, nz)`` (`LatticeMoments`).
+    """
+    n, nz = mu.shape[0], mu.shape[1]
+    u, cu = mass_moments(w, off)
+    ux, uy = u[:, 0], u[:, 1]
+    wmu = mu * w[:, None]
+    mz = wmu.sum((2, 3))  # z̄ = Σ w μ
+    czx = mv(wmu.sum(2), off) - mz * ux[:, None]  # Cov_w(μ, o_x)
+    czy = mv(wmu.sum(3), off) - mz * uy[:, None]
+    czu = torch.stack([czx, czy], 2)
+    second = mm(wmu.reshape(n, nz, -1), mu.reshape(n, nz, -1).transpose(1, 2))
+    czz = second - mz[:, :, None] * mz[:, None, :]  # Cov_w(μ) = Σ w μ μᵀ − z̄ z̄ᵀ
+    return u, cu, mz, czu, 0.5 * (czz + czz.transpose(1, 2))
 
 
 class LatticeMoments:
@@ -274,20 +299,24 @@ class LatticeMoments:
 
     Attributes: ``u (N, 2)`` mean cell coordinate, ``cu (N, 2, 2)`` its covariance (cells²),
     ``mz (N, nz)``, ``czu (N, nz, 2)`` ``Cov_w(μ, o)``, ``czz_b (N, nz, nz)`` ``Cov_w(μ)``.
+    ``LatticeMoments.of(tensors)`` wraps the tuple of `lattice_moment_tensors`.
     """
 
+    __slots__ = ("cu", "czu", "czz_b", "mz", "u")
+
     def __init__(self, w: torch.Tensor, mu: torch.Tensor, off: torch.Tensor) -> None:
-        n, nz = mu.shape[0], mu.shape[1]
-        self.u, self.cu = mass_moments(w, off)
-        ux, uy = self.u[:, 0], self.u[:, 1]
-        wmu = mu * w[:, None]
-        self.mz = wmu.sum((2, 3))
-        czx = wmu.sum(2) @ off - self.mz * ux[:, None]
-        czy = wmu.sum(3) @ off - self.mz * uy[:, None]
-        self.czu = torch.stack([czx, czy], 2)
-        second = torch.bmm(wmu.reshape(n, nz, -1), mu.reshape(n, nz, -1).transpose(1, 2))
-        czz = second - self.mz[:, :, None] * self.mz[:, None, :]
-        self.czz_b = 0.5 * (czz + czz.transpose(1, 2))
+        self.u, self.cu, self.mz, self.czu, self.czz_b = lattice_moment_tensors(w, mu, off)
+
+    @classmethod
+    def of(cls, tensors: tuple[torch.Tensor, ...]) -> LatticeMoments:
+        """Wraps ``(u, cu, mz, czu, czz_b)`` (`lattice_moment_tensors`)."""
+        out = object.__new__(cls)
+        out.u, out.cu, out.mz, out.czu, out.czz_b = tensors
+        return out
+
+    def tensors(self) -> tuple[torch.Tensor, ...]:
+        """``(u, cu, mz, czu, czz_b)``."""
+        return self.u, self.cu, self.mz, self.czu, self.czz_b
 
 
 def gaussian_log_density(off: torch.Tensor, u: torch.Tensor, cu: torch.Tensor) -> torch.Tensor:
@@ -300,7 +329,7 @@ def gaussian_log_density(off: torch.Tensor, u: torch.Tensor, cu: torch.Tensor) -
     """
     vals, vecs = eigh2(0.5 * (cu + cu.transpose(1, 2)))
     floored = vals.clamp_min(1.0 / 12.0)
-    inv = (vecs / floored[:, None, :]) @ vecs.transpose(1, 2)
+    inv = mm(vecs / floored[:, None, :], vecs.transpose(1, 2))
     dx = (off[None, :] - u[:, 0:1])[:, None, :]  # (N, 1, G) along columns
     dy = (off[None, :] - u[:, 1:2])[:, :, None]  # (N, G, 1) along rows
     a, b, c = (inv[:, i, j, None, None] for i, j in ((0, 0), (0, 1), (1, 1)))
@@ -325,6 +354,28 @@ def resample_bilinear(chans: torch.Tensor, coords: torch.Tensor, *,
                       padding: str = "zeros") -> torch.Tensor:
     """Bilinear samples of lattice channels ``(N, C, G, G)`` at ``coords (N, G', G', 2)``
     given in the old lattice's normalised coordinates (−1 … 1 from the first to the last
-    cell, x first); ``padding``: ``zeros`` (density outside is zero) or ``border``."""
-    return nnf.grid_sample(chans, coords.to(chans.dtype), mode="bilinear",
-                           padding_mode=padding, align_corners=True)
+    cell, x first); ``padding``: ``zeros`` (density outside is zero) or ``border``.
+
+    Under ``torch.compile`` the library's kernel is called as one opaque operation
+    (`grid_sample_op`): the code generator's own expansion of ``grid_sample`` into index
+    arithmetic and gathers is several times slower on the CPU.
+    """
+    coords = coords.to(chans.dtype)
+    if torch.compiler.is_compiling():
+        return grid_sample_op(chans, coords, padding)
+    return nnf.grid_sample(chans, coords, mode="bilinear", padding_mode=padding,
+                           align_corners=True)
+
+
+@torch.library.custom_op("neuralmap::lattice_grid_sample", mutates_args=())
+def grid_sample_op(chans: torch.Tensor, coords: torch.Tensor, padding: str) -> torch.Tensor:
+    """``grid_sample`` (bilinear, ``align_corners``) as an opaque operator for compiled
+    steps (`resample_bilinear`)."""
+    return nnf.grid_sample(chans, coords, mode="bilinear", padding_mode=padding,
+                           align_corners=True)
+
+
+@grid_sample_op.register_fake
+def _grid_sample_shape(chans: torch.Tensor, coords: torch.Tensor,
+                       padding: str) -> torch.Tensor:
+    return chans.new_empty(chans.shape[0], chans.shape[1], coords.shape[1], coords.shape[2])

@@ -25,12 +25,11 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies._common import and_keep
 from neuralmap.filters.policy import Adaptation, FilterPolicy, Posterior, UpdateContext
+from neuralmap.filters.stats import symmetrize
 
 __all__ = ["Compose", "quality_members"]
 
 
-def _sym(A: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (A + A.transpose(-1, -2))
 
 
 class Compose(FilterPolicy):
@@ -97,7 +96,7 @@ class Compose(FilterPolicy):
             P = a.P_prior
             if a.p_scale is not None:
                 P = P * a.p_scale.reshape(-1, 1, 1)
-            hpht = _sym(torch.matmul(torch.matmul(context.H, P), context.H.transpose(1, 2)))
+            hpht = symmetrize(torch.matmul(torch.matmul(context.H, P), context.H.transpose(1, 2)))
         elif a.p_scale is not None:
             s = a.p_scale.reshape(-1, 1, 1)
             P, hpht = P * s, hpht * s

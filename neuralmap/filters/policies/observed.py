@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 
 from neuralmap.filters.policy import UpdateContext
+from neuralmap.filters.stats import symmetrize
 
 __all__ = ["SCOPES", "check_scope", "observed_increase", "resolve_scope"]
 
@@ -75,7 +76,7 @@ def observed_increase(context: UpdateContext, delta: torch.Tensor) -> torch.Tens
                           torch.zeros_like(v))
         D = torch.matmul(W, W.transpose(1, 2)) * inv.reshape(-1, 1, 1)
     else:
-        M = 0.5 * (M + M.transpose(1, 2))
+        M = symmetrize(M)
         D = torch.matmul(torch.matmul(W, torch.linalg.pinv(M, hermitian=True)),
                          W.transpose(1, 2))
-    return context.P_prior + 0.5 * (D + D.transpose(1, 2))  # a + b == b + a: exact symmetry
+    return context.P_prior + symmetrize(D)  # a + b == b + a: exact symmetry

@@ -29,6 +29,7 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies._common import check_state_shape, diagonal
 from neuralmap.filters.policy import Adaptation, FilterPolicy, Posterior, UpdateContext
+from neuralmap.filters.stats import symmetrize
 
 __all__ = ["SageHusa", "sage_husa_weight"]
 
@@ -52,11 +53,11 @@ def sage_husa_weight(b: float, k: torch.Tensor) -> torch.Tensor:
 
 def _clamp_eigen(A: torch.Tensor, low: float, high: float | None) -> torch.Tensor:
     """Symmetric ``A`` with its eigenvalues clipped to ``[low, high]``."""
-    A = 0.5 * (A + A.transpose(-1, -2))
+    A = symmetrize(A)
     lam, V = torch.linalg.eigh(A)
     lam = lam.clamp(min=low, max=high)
     out = (V * lam.unsqueeze(-2)) @ V.transpose(-1, -2)
-    return 0.5 * (out + out.transpose(-1, -2))
+    return symmetrize(out)
 
 
 def _bounds(value: float | Sequence[float] | torch.Tensor, name: str) -> torch.Tensor:

@@ -44,12 +44,11 @@ import torch
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.policies._common import check_positive, check_state_shape
 from neuralmap.filters.policy import Adaptation, FilterPolicy, Posterior, UpdateContext
+from neuralmap.filters.stats import symmetrize
 
 __all__ = ["VariationalAdaptive"]
 
 
-def _sym(A: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (A + A.transpose(-1, -2))
 
 
 class VariationalAdaptive(FilterPolicy):
@@ -110,10 +109,10 @@ class VariationalAdaptive(FilterPolicy):
         dx = x - context.x_prior
         A = P + dx.unsqueeze(-1) * dx.unsqueeze(-2)
         T = A + self.tau * context.P_prior
-        P_tilde = _sym(T / (self.tau + 1.0))  # t⁽ⁱ⁺¹⁾ − n − 1 = τ + 1
+        P_tilde = symmetrize(T / (self.tau + 1.0))  # t⁽ⁱ⁺¹⁾ − n − 1 = τ + 1
         e = context.residual - torch.matmul(H, dx.unsqueeze(-1)).squeeze(-1)
         B = e.unsqueeze(-1) * e.unsqueeze(-2) + torch.matmul(torch.matmul(H, P), H.transpose(1, 2))
-        U = _sym(B + self._U_prior)
+        U = symmetrize(B + self._U_prior)
         u = self._u_prior + 1.0
         R_tilde = U / (u - m - 1.0).reshape(-1, 1, 1)
         mask3 = context.mask.reshape(-1, 1, 1)

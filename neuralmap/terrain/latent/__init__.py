@@ -8,7 +8,8 @@ plus a tiny tanh MLP (`.synthesis`), and stored as range-coded integer latents u
 factorized Laplace entropy model (`.entropy`, `.bitstream`) or under the context model
 (`.context_model`: a small stored MLP predicts each wavelet coefficient's Laplace location
 and scale from causal neighbours, parent and siblings; decoded wavefront by wavefront),
-the final symbols optionally chosen by RDOQ (`.rdoq`). Training state:
+the final symbols optionally chosen by RDOQ (`.rdoq`), with their own quantisation step
+and entropy scale per zone of an ``R x R`` grid of zones if asked (`.zones`). Training state:
 `LatentGrid` with the rate-distortion objective `RateDistortion`; the decoded
 map is `LatentTerrainMap`, a `TerrainModel`. A region of many tiles is a
 `LatentTileset` (`.tileset`: an index plus one bitstream per tile, decoded lazily into a

@@ -5,27 +5,28 @@ Layout (all integers little-endian; sizes in bytes)::
     offset  size   field
     0       8      magic b"NMLATENT"
     8       2      format version (uint16): 2, 3 with the context entropy model, 4 with
-                   per-region steps and scales (`.regions`)
+                   per-zone steps and scales (`.zones`)
     10      4      header length J (uint32)
     14      J      header, zlib-compressed UTF-8 JSON (format 1: uncompressed): {"tile_info": DemTile.describe(), "levels": L,
                    "hidden": H, "basis": "pyramid" | "wavelet", "wavelet": "cdf97",
                    "ranges": [[min, max] per latent array], "metrics": {...},
                    format 3: "entropy": "context", "context_hidden": H_c;
-                   format 4: "regions": R, "region_scales": [b_step, b_scale]}
+                   format 4: "regions": R (the zone grid side), "region_scales":
+                   [b_step, b_scale] (the zone codes' Laplace scales)}
     ..      8 S    float32 quantisation steps Delta_b, Laplace scales b_b (S latent arrays)
     ..      4 C    float32 feature scales (C synthesis channels)
     ..      4(C+1) float32 linear synthesis weights w and bias b_0
     ..      2 H(C+2) float16 MLP weights A (H x C, row-major), biases a, output weights v
     ..      2 P    format 3 only: float16 context-MLP weights (P = `parameter_count(H_c)`)
-    ..      4      format 4 only: number of region-code words V (uint32)
-    ..      4 V    format 4 only: range-coded region codes, the (G, R R) step codes then
-                   the scale codes, Laplace(0, b_step / b_scale) on [-32, 32] (`.regions`)
+    ..      4      format 4 only: number of zone-code words V (uint32)
+    ..      4 V    format 4 only: range-coded zone codes, the (G, R R) step codes then
+                   the scale codes, Laplace(0, b_step / b_scale) on [-32, 32] (`.zones`)
     ..      4      number of range-coder words W (uint32)
     ..      4 W    uint32 words of the range coder (constriction): format 2, latent arrays
                    in storage order, each in C order with its Laplace(0, b) on [min, max];
                    format 3, subbands in decoding order, each in wavefront order with the
                    context model's Laplace(mu, b) per symbol (`.context_model`); format 4
-                   as 2 or 3 with the region scales ``b_s 2^(c_r / 4)`` (factorized) or
+                   as 2 or 3 with the zone scales ``b_s 2^(c_r / 4)`` (factorized) or
                    ``log b`` offsets ``(c_r / 4) ln 2`` (context), and the decoded latents
                    ``q Delta_s 2^(k_r / 4)``
     end-4   4      CRC32 (zlib) of every byte before it
@@ -35,6 +36,10 @@ shapes from the tile shape and ``L``: the pyramid ``S = C = L`` levels (format 1
 had no ``basis`` key, reads as the pyramid), the wavelet ``S = 3 L + 1`` subbands, ``C = 1``. The file on disk is the map's
 stored size; `read_latent_map` checks the magic, version, length and CRC before
 decoding, so a truncated or corrupted file is refused with a clear error.
+
+The header keys of format 4 are ``"regions"`` and ``"region_scales"``, as the files written
+before the zones got their name have them: `ZONE_KEY` and `ZONE_SCALES_KEY` map them to and
+from the zones (`.zones.ZoneCodes`), so every file written before reads as it did.
 """
 
 from __future__ import annotations
@@ -65,8 +70,8 @@ from neuralmap.terrain.latent.entropy import (
     symbol_range,
 )
 from neuralmap.terrain.latent.map import LatentTerrainMap
-from neuralmap.terrain.latent.regions import (
-    RegionCodes,
+from neuralmap.terrain.latent.zones import (
+    ZoneCodes,
     band_groups,
     code_scales,
     decode_codes,
@@ -77,8 +82,12 @@ MAGIC = b"NMLATENT"
 FORMAT_VERSION = 4
 #: Version written for factorized maps (readers before the context model read them).
 FACTORIZED_VERSION = 2
-#: Version written for context maps without regions.
+#: Version written for context maps without zones.
 CONTEXT_VERSION = 3
+#: Format-4 header key of the zone grid side ``R`` (its name in every file written).
+ZONE_KEY = "regions"
+#: Format-4 header key of the zone codes' two Laplace scales (step codes, scale codes).
+ZONE_SCALES_KEY = "region_scales"
 _FIXED = len(MAGIC) + 2 + 4
 
 
@@ -92,29 +101,29 @@ def is_latent_file(path: str | os.PathLike[str]) -> bool:
 
 
 def coding_model(latent_map: LatentTerrainMap, symbols: list[np.ndarray] | None = None,
-                 regions: RegionCodes | None = None) -> CodingModel:
-    """The context model of a context map in its coding form (region offsets included)."""
+                 zones: ZoneCodes | None = None) -> CodingModel:
+    """The context model of a context map in its coding form (zone offsets included)."""
     assert latent_map.context is not None
     syms = latent_map.symbols if symbols is None else symbols
     shapes = [tuple(s.shape) for s in syms]
-    regions = latent_map.regions if regions is None else regions
+    zones = latent_map.zones if zones is None else zones
     stored = np.asarray(latent_map.context, "<f2").astype(np.float32)
-    offsets = None if regions is None else regions.log_scale_offsets(shapes)
+    offsets = None if zones is None else zones.log_scale_offsets(shapes)
     return CodingModel(stored, latent_map.context_hidden, shapes, latent_map.levels,
                        latent_map.steps, latent_map.scales, offsets)
 
 
 def symbol_models(latent_map: LatentTerrainMap, symbols: list[np.ndarray] | None = None,
-                  regions: RegionCodes | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+                  zones: ZoneCodes | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per latent array ``(mu, b)`` (flat, C order) of every symbol under the map's entropy
-    model as the coder uses it: factorized ``(0, b_s)`` (times the region scales), or the
+    model as the coder uses it: factorized ``(0, b_s)`` (times the zone scales), or the
     context model's (`.context_model.CodingModel.all_parameters`)."""
     syms = latent_map.symbols if symbols is None else symbols
-    regions = latent_map.regions if regions is None else regions
+    zones = latent_map.zones if zones is None else zones
     if latent_map.context is not None:
-        return coding_model(latent_map, syms, regions).all_parameters(syms)
+        return coding_model(latent_map, syms, zones).all_parameters(syms)
     shapes = [tuple(s.shape) for s in syms]
-    maps = (regions.scale_maps(shapes) if regions is not None
+    maps = (zones.scale_maps(shapes) if zones is not None
             else [np.ones(sh) for sh in shapes])
     return [(np.zeros(int(np.prod(sh))), float(b) * m.ravel())
             for sh, b, m in zip(shapes, latent_map.scales.astype(np.float64), maps, strict=True)]
@@ -133,17 +142,17 @@ def encode_latent_map(latent_map: LatentTerrainMap) -> bytes:
         "ranges": ranges,
         "metrics": latent_map.metrics,
     }
-    context, regions = latent_map.context, latent_map.regions
+    context, zones = latent_map.context, latent_map.zones
     if context is not None:
         header["entropy"] = "context"
         header["context_hidden"] = latent_map.context_hidden
-    region_bytes = b""
-    if regions is not None:
-        scales = code_scales(regions)
-        header["regions"] = regions.regions
-        header["region_scales"] = list(scales)
-        region_words = encode_codes(regions, scales)
-        region_bytes = struct.pack("<I", region_words.size) + region_words.astype("<u4").tobytes()
+    zone_bytes = b""
+    if zones is not None:
+        scales = code_scales(zones)
+        header[ZONE_KEY] = zones.zones
+        header[ZONE_SCALES_KEY] = list(scales)
+        zone_words = encode_codes(zones, scales)
+        zone_bytes = struct.pack("<I", zone_words.size) + zone_words.astype("<u4").tobytes()
     header_bytes = zlib.compress(
         json.dumps(header, separators=(",", ":"), allow_nan=False).encode(), 9)
     synth = latent_map.synthesis_vector
@@ -152,14 +161,14 @@ def encode_latent_map(latent_map: LatentTerrainMap) -> bytes:
     mlp = synth[channels + 1 :]
     context_bytes = b""
     tuples = [(int(lo), int(hi)) for lo, hi in ranges]
-    if context is None and regions is None:
+    if context is None and zones is None:
         words = encode_levels(latent_map.symbols, [float(b) for b in latent_map.scales])
     elif context is None:
         words = encode_located(latent_map.symbols, symbol_models(latent_map), tuples)
     else:
         context_bytes = np.asarray(context, "<f2").tobytes()
         words = encode_context(coding_model(latent_map), latent_map.symbols, tuples)
-    version = (FORMAT_VERSION if regions is not None
+    version = (FORMAT_VERSION if zones is not None
                else FACTORIZED_VERSION if context is None else CONTEXT_VERSION)
     parts = [
         MAGIC,
@@ -170,7 +179,7 @@ def encode_latent_map(latent_map: LatentTerrainMap) -> bytes:
         np.asarray(linear, "<f4").tobytes(),
         np.asarray(mlp, "<f2").tobytes(),
         context_bytes,
-        region_bytes,
+        zone_bytes,
         struct.pack("<I", words.size),
         words.astype("<u4").tobytes(),
     ]
@@ -242,14 +251,14 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
             n_ctx = parameter_count(context_hidden)
             context = np.frombuffer(body, "<f2", n_ctx, pos).astype(np.float32)
             pos += 2 * n_ctx
-        regions = None
-        if version >= 4 and header.get("regions"):
-            (n_region,) = struct.unpack("<I", body[pos : pos + 4])
+        zones = None
+        if version >= 4 and header.get(ZONE_KEY):
+            (n_zone,) = struct.unpack("<I", body[pos : pos + 4])
             pos += 4
-            region_words = np.frombuffer(body, "<u4", n_region, pos)
-            pos += 4 * n_region
-            code_sc = header["region_scales"]
-            regions = decode_codes(region_words, int(header["regions"]),
+            zone_words = np.frombuffer(body, "<u4", n_zone, pos)
+            pos += 4 * n_zone
+            code_sc = header[ZONE_SCALES_KEY]
+            zones = decode_codes(zone_words, int(header[ZONE_KEY]),
                                    band_groups(basis.name, count),
                                    (float(code_sc[0]), float(code_sc[1])), shapes)
         (n_words,) = struct.unpack("<I", body[pos : pos + 4])
@@ -260,15 +269,15 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
             raise ValueError(f"{len(body) - pos} trailing bytes")
         ranges = [(int(lo), int(hi)) for lo, hi in header["ranges"]]
         steps, scales, feature_scale = floats[:count], floats[count : 2 * count], floats[2 * count :]
-        if context is None and regions is None:
+        if context is None and zones is None:
             symbols = decode_levels(words, shapes, [float(b) for b in scales], ranges)
         elif context is None:
-            maps = regions.scale_maps(shapes)
+            maps = zones.scale_maps(shapes)
             params = [(np.zeros(int(np.prod(sh))), float(b) * m.ravel())
                       for sh, b, m in zip(shapes, scales.astype(np.float64), maps, strict=True)]
             symbols = decode_located(words, shapes, params, ranges)
         else:
-            offsets = None if regions is None else regions.log_scale_offsets(shapes)
+            offsets = None if zones is None else zones.log_scale_offsets(shapes)
             model = CodingModel(context, context_hidden, shapes, basis.levels, steps, scales,
                                 offsets)
             symbols = decode_context(model, words, ranges)
@@ -280,7 +289,7 @@ def decode_latent_map(data: bytes, *, where: str) -> LatentTerrainMap:
     return LatentTerrainMap(
         symbols, steps, scales, np.concatenate([linear, mlp]), feature_scale,
         hidden=hidden, tile_info=info, metrics=header.get("metrics") or {}, basis=basis,
-        context=context, context_hidden=context_hidden, regions=regions,
+        context=context, context_hidden=context_hidden, zones=zones,
     )
 
 

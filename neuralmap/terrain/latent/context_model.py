@@ -245,8 +245,8 @@ class ContextModel(nn.Module):
             symbols: Relaxed or integer symbols per subband (step units), ``(H_s, W_s)``.
             steps: ``(S,)`` quantisation steps.
             log_scales: ``(S,)`` scale offsets ``beta_s``.
-            offsets: Per subband ``(H_s W_s,)`` per-region offsets of ``log b``
-                (`.regions`), or None.
+            offsets: Per subband ``(H_s W_s,)`` per-zone offsets of ``log b``
+                (`.zones`), or None.
 
         Returns:
             Per subband ``(mu (H_s W_s,), b (H_s W_s,))``.
@@ -311,8 +311,8 @@ class CodingModel:
         levels: Wavelet levels ``J``.
         steps: ``(S,)`` stored quantisation steps (float32 values).
         scales: ``(S,)`` stored scale offsets ``exp(beta_s)`` (float32 values).
-        offsets: Per subband ``(H_s, W_s)`` per-region offsets of ``log b`` (float64,
-            `.regions.RegionCodes.log_scale_offsets`), or None.
+        offsets: Per subband ``(H_s, W_s)`` per-zone offsets of ``log b`` (float64,
+            `.zones.ZoneCodes.log_scale_offsets`), or None.
     """
 
     def __init__(self, vector: np.ndarray, hidden: int, shapes: list[tuple[int, int]],
@@ -338,7 +338,7 @@ class CodingModel:
     def mlp(self, ctx: list[np.ndarray], band: int, rows: np.ndarray | None = None,
             cols: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(mu, b)`` on the coding grids from the context columns (elementwise, fixed order;
-        ``rows, cols`` locate the symbols for the per-region offsets)."""
+        ``rows, cols`` locate the symbols for the per-zone offsets)."""
         x = ctx + [plog2(1.0 + np.abs(c)) for c in ctx]
         h = np.broadcast_to(self.b1, (x[0].size, self.b1.size)).copy()
         for k, col in enumerate(x):
@@ -411,9 +411,9 @@ def encode_context(model: CodingModel, symbols: list[np.ndarray],
     Returns:
         ``(W,)`` uint32 compressed words.
     """
-    from neuralmap.terrain.latent.entropy import _constriction
+    from neuralmap.terrain.latent.entropy import constriction_module
 
-    constriction = _constriction()
+    constriction = constriction_module()
     encoder = constriction.stream.queue.RangeEncoder()
     params = model.all_parameters(symbols)
     for band in model.gatherer.links.order:
@@ -436,9 +436,9 @@ def decode_context(model: CodingModel, words: np.ndarray,
     Raises:
         NeuralMapError: The words do not decode (damaged payload).
     """
-    from neuralmap.terrain.latent.entropy import _constriction
+    from neuralmap.terrain.latent.entropy import constriction_module
 
-    constriction = _constriction()
+    constriction = constriction_module()
     decoder = constriction.stream.queue.RangeDecoder(np.ascontiguousarray(words, np.uint32))
     shapes = model.gatherer.shapes
     padded = [np.zeros((h + 2 * _PAD, w + 2 * _PAD)) for h, w in shapes]

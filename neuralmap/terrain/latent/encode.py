@@ -6,9 +6,9 @@ rate; the rounding relaxed by additive noise for the first ``1 - ste_fraction`` 
 steps, then straight-through rounding (Cool-chic's annealing from noise to the true
 quantiser, so the last steps optimise what is stored). With ``relaxation="soft"`` the first
 phase is C3's soft rounding plus noise, its sharpness annealed from `SOFT_ALPHA` [0] to [1]
-(`soft_alpha`). With ``regions=R`` the per-region step and scale codes (`.regions`) are
-chosen by RDO when straight-through rounding starts (`regions_due`), so the last phase
-trains the latents under the regional steps. The final symbols are rounded, or chosen by
+(`soft_alpha`). With ``zones=R`` the per-zone step and scale codes (`.zones`) are chosen
+by RDO when straight-through rounding starts (`zones_due`), so the last phase trains the
+latents under the zones' steps. The final symbols are rounded, or chosen by
 rate-distortion-optimised quantisation (`.rdoq`, ``rdoq=True``).
 """
 
@@ -44,8 +44,8 @@ def soft_alpha(step: int, total: int, ste_fraction: float) -> float:
     return SOFT_ALPHA[0] * (SOFT_ALPHA[1] / SOFT_ALPHA[0]) ** frac
 
 
-def regions_due(step: int, total: int, ste_fraction: float) -> bool:
-    """Whether the region codes are chosen at ``step``: the first straight-through step."""
+def zones_due(step: int, total: int, ste_fraction: float) -> bool:
+    """Whether the zone codes are chosen at ``step``: the first straight-through step."""
     return step == math.ceil((1.0 - ste_fraction) * total)
 
 
@@ -89,8 +89,8 @@ def fit_latent_map(
     context_hidden: int = 12,
     relaxation: str = "noise",
     rdoq: bool = False,
-    regions: int = 0,
-    regions_always: bool = False,
+    zones: int = 0,
+    zones_always: bool = False,
 ) -> tuple[LatentTerrainMap, dict[str, Any]]:
     """Fits a latent-grid map to ``tile`` and returns it as its file stores it.
 
@@ -114,10 +114,10 @@ def fit_latent_map(
         context_hidden: Hidden units of the context MLP.
         relaxation: First-phase relaxation, ``"noise"`` or ``"soft"``.
         rdoq: Choose the final symbols by RDOQ (`.rdoq`) instead of rounding.
-        regions: Side ``R`` of the grid of regions with their own steps and entropy scales
-            (`.regions`; 0 = one step per subband).
-        regions_always: Store the regions even where they do not lower the exact
-            ``SSE + lambda' bits`` (default: dropped then, `.latent_grid.regions_pay`).
+        zones: Side ``R`` of the grid of zones with their own steps and entropy scales
+            (`.zones`; 0 = one step per subband).
+        zones_always: Store the zones even where they do not lower the exact
+            ``SSE + lambda' bits`` (default: dropped then, `.latent_grid.zones_pay`).
 
     Returns:
         ``(map, history)`` with the last step's loss terms in ``history``.
@@ -128,7 +128,7 @@ def fit_latent_map(
     grid = LatentGrid(tile, levels=levels, hidden=hidden, init_step=init_step,
                       init_sweeps=init_sweeps, seed=seed, exact_start=exact_start,
                       basis=basis, wavelet=wavelet, entropy=entropy,
-                      context_hidden=context_hidden, regions=regions)
+                      context_hidden=context_hidden, zones=zones)
     if relaxation not in RELAXATIONS:
         raise NeuralMapError(f"latent map: relaxation must be one of {list(RELAXATIONS)}, got "
                              f"{relaxation!r}.")
@@ -137,8 +137,8 @@ def fit_latent_map(
     terms = None
     node_lambda = rdoq_rate_weight(rate_weight, between_weight)
     for step in range(steps):
-        if grid.regions and regions_due(step, steps, ste_fraction):
-            grid.choose_regions(node_lambda)
+        if grid.zones and zones_due(step, steps, ste_fraction):
+            grid.choose_zones(node_lambda)
         terms = objective(grid, quantizer_at(step, steps, ste_fraction, relaxation), generator,
                           soft_alpha(step, steps, ste_fraction))
         optimizer.zero_grad(set_to_none=True)
@@ -151,5 +151,5 @@ def fit_latent_map(
                    for key in ("loss", "node_mse", "between_mse", "bits")}
     latent_map = export_map(grid, rdoq_rate_weight=node_lambda if rdoq else None,
                             rdoq_target=(objective.heights, objective.valid),
-                            region_rate_weight=node_lambda, regions_always=regions_always)
+                            zone_rate_weight=node_lambda, zones_always=zones_always)
     return latent_map, history

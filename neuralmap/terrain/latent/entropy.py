@@ -48,7 +48,7 @@ def laplace_bits(symbols: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
     return -torch.log2(p.clamp(min=MIN_PROBABILITY))
 
 
-def _constriction() -> Any:
+def constriction_module() -> Any:
     """The ``constriction`` package, or a clear error naming the extra to install."""
     try:
         import constriction
@@ -73,7 +73,7 @@ def encode_levels(symbols: list[np.ndarray], scales: list[float]) -> np.ndarray:
     Returns:
         ``(W,)`` uint32 compressed words.
     """
-    constriction = _constriction()
+    constriction = constriction_module()
     encoder = constriction.stream.queue.RangeEncoder()
     for sym, scale in zip(symbols, scales, strict=True):
         flat = np.ascontiguousarray(sym, dtype=np.int32).ravel()
@@ -107,7 +107,7 @@ def decode_levels(
     Raises:
         NeuralMapError: The words do not decode (damaged payload).
     """
-    constriction = _constriction()
+    constriction = constriction_module()
     decoder = constriction.stream.queue.RangeDecoder(np.ascontiguousarray(words, np.uint32))
     out = []
     for shape, scale, (lo, hi) in zip(shapes, scales, ranges, strict=True):
@@ -144,8 +144,8 @@ def ideal_bits(symbols: list[np.ndarray], scales: list[float]) -> float:
 def encode_located(symbols: list[np.ndarray], params: list[tuple[np.ndarray, np.ndarray]],
                    ranges: list[tuple[int, int]]) -> np.ndarray:
     """Range codes every array's symbols (C order) with a discretised Laplace of its own
-    location and scale per symbol (the factorized model with per-region scales,
-    `.regions`); an array with range ``[0, 0]`` takes no words.
+    location and scale per symbol (the factorized model with per-zone scales,
+    `.zones`); an array with range ``[0, 0]`` takes no words.
 
     Args:
         symbols: One int array per latent array.
@@ -155,7 +155,7 @@ def encode_located(symbols: list[np.ndarray], params: list[tuple[np.ndarray, np.
     Returns:
         ``(W,)`` uint32 compressed words.
     """
-    constriction = _constriction()
+    constriction = constriction_module()
     encoder = constriction.stream.queue.RangeEncoder()
     for sym, (mu, b), (lo, hi) in zip(symbols, params, ranges, strict=True):
         flat = np.ascontiguousarray(sym, dtype=np.int32).ravel()
@@ -175,7 +175,7 @@ def decode_located(words: np.ndarray, shapes: list[tuple[int, ...]],
     Raises:
         NeuralMapError: The words do not decode (damaged payload).
     """
-    constriction = _constriction()
+    constriction = constriction_module()
     decoder = constriction.stream.queue.RangeDecoder(np.ascontiguousarray(words, np.uint32))
     out = []
     for shape, (mu, b), (lo, hi) in zip(shapes, params, ranges, strict=True):

@@ -36,14 +36,14 @@ from neuralmap.terrain.latent.bspline import (
 from neuralmap.terrain.latent.context_model import ContextModel
 from neuralmap.terrain.latent.entropy import laplace_bits
 from neuralmap.terrain.latent.pyramid import laplacian_init, level_shapes, node_lattice
-from neuralmap.terrain.latent.regions import (
-    RegionCodes,
+from neuralmap.terrain.latent.synthesis import Synthesis
+from neuralmap.terrain.latent.zones import (
+    ZoneCodes,
     active_groups,
     band_groups,
-    check_regions,
+    check_zones,
     choose_step_codes,
 )
-from neuralmap.terrain.latent.synthesis import Synthesis
 
 #: Relaxations of the rounding during training.
 QUANTIZERS = ("noise", "ste", "round", "soft")
@@ -148,6 +148,10 @@ def node_gains(basis: LatentBasis, shape: tuple[int, int]) -> torch.Tensor:
     return torch.tensor(gains, dtype=torch.float64).clamp(min=1e-6)
 
 
+#: Buffer names in checkpoints written before the zones got their name -> the names now.
+OLD_BUFFERS = {"region_step_codes": "zone_step_codes", "region_scale_codes": "zone_scale_codes",
+               "regions_chosen": "zones_chosen"}
+
 class LatentGrid(nn.Module):
     """Trainable latents (wavelet subbands or pyramid levels) + entropy model + synthesis.
 
@@ -176,13 +180,13 @@ class LatentGrid(nn.Module):
         entropy: ``"factorized"`` (one Laplace per latent array) or ``"context"`` (the
             context MLP of `.context_model`; wavelet basis only).
         context_hidden: Hidden units of the context MLP.
-        regions: Side ``R`` of the grid of regions with their own step and entropy scale
-            (`.regions`; 0 = one step per latent array). The codes start at 0 and are
-            chosen by `choose_regions` (the fit does so when straight-through rounding
+        zones: Side ``R`` of the grid of zones with their own step and entropy scale
+            (`.zones`; 0 = one step per latent array). The codes start at 0 and are
+            chosen by `choose_zones` (the fit does so when straight-through rounding
             starts).
 
     Raises:
-        NeuralMapError: Unknown basis, wavelet or entropy model, ``regions`` out of range, ``levels`` < 1 or too many for the
+        NeuralMapError: Unknown basis, wavelet or entropy model, ``zones`` out of range, ``levels`` < 1 or too many for the
             tile, ``hidden`` < 0, ``init_step`` <= 0.
     """
 
@@ -190,9 +194,9 @@ class LatentGrid(nn.Module):
                  init_step: float = 1.0, init_sweeps: int = 12, seed: int = 0,
                  exact_start: bool = True, basis: str = "wavelet",
                  wavelet: str = "cdf97", entropy: str = "factorized",
-                 context_hidden: int = 12, regions: int = 0) -> None:
+                 context_hidden: int = 12, zones: int = 0) -> None:
         super().__init__()
-        self.regions = check_regions(regions)
+        self.zones = check_zones(zones)
         ny, nx = tile.shape
         self.basis = make_basis(basis, levels, (int(ny), int(nx)), wavelet=wavelet)
         if int(hidden) < 0:
@@ -233,44 +237,53 @@ class LatentGrid(nn.Module):
              node_operator(nx, 2**level, shapes[level][1]))
             for level in range(len(shapes))
         ]
-        # region codes (buffers, so a checkpoint keeps them): (G, R²) step and scale codes
+        # zone codes (buffers, so a checkpoint keeps them): (G, R²) step and scale codes
         self.groups = band_groups(self.basis.name, len(init))
-        n_groups, n_reg = max(self.groups) + 1, max(1, self.regions) ** 2
-        self.register_buffer("region_step_codes", torch.zeros(n_groups, n_reg, dtype=torch.int64))
-        self.register_buffer("region_scale_codes", torch.zeros(n_groups, n_reg,
-                                                               dtype=torch.int64))
-        self.register_buffer("regions_chosen", torch.zeros((), dtype=torch.bool))
-        self._region_cache: tuple | None = None
+        n_groups, n_zone = max(self.groups) + 1, max(1, self.zones) ** 2
+        self.register_buffer("zone_step_codes", torch.zeros(n_groups, n_zone, dtype=torch.int64))
+        self.register_buffer("zone_scale_codes", torch.zeros(n_groups, n_zone, dtype=torch.int64))
+        self.register_buffer("zones_chosen", torch.zeros((), dtype=torch.bool))
+        self._zone_cache: tuple | None = None
 
-    # ------------------------------------------------------------------ regions
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any,
+                              **kwargs: Any) -> None:
+        """Also reads checkpoints written before the zones got their name: their buffers
+        ``region_step_codes``, ``region_scale_codes``, ``regions_chosen`` (`OLD_BUFFERS`)
+        load into the zone buffers."""
+        for old, new in OLD_BUFFERS.items():
+            if prefix + old in state_dict and prefix + new not in state_dict:
+                state_dict[prefix + new] = state_dict.pop(prefix + old)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    # ------------------------------------------------------------------ zones
     @property
-    def region_codes(self) -> RegionCodes | None:
-        """The region codes (None without regions)."""
-        if not self.regions:
+    def zone_codes(self) -> ZoneCodes | None:
+        """The zone codes (None without zones)."""
+        if not self.zones:
             return None
         shapes = [tuple(z.shape) for z in self.latents]
-        return RegionCodes(self.regions, self.region_step_codes.numpy().copy(),
-                           self.region_scale_codes.numpy().copy(), tuple(self.groups),
-                           active_groups(shapes, self.groups, self.regions))
+        return ZoneCodes(self.zones, self.zone_step_codes.numpy().copy(),
+                         self.zone_scale_codes.numpy().copy(), tuple(self.groups),
+                         active_groups(shapes, self.groups, self.zones))
 
-    def set_regions(self, codes: RegionCodes) -> None:
-        """Stores chosen region codes."""
-        self.region_step_codes.copy_(torch.as_tensor(codes.step_codes))
-        self.region_scale_codes.copy_(torch.as_tensor(codes.scale_codes))
-        self.regions_chosen.fill_(True)
-        self._region_cache = None
+    def set_zones(self, codes: ZoneCodes) -> None:
+        """Stores chosen zone codes."""
+        self.zone_step_codes.copy_(torch.as_tensor(codes.step_codes))
+        self.zone_scale_codes.copy_(torch.as_tensor(codes.scale_codes))
+        self.zones_chosen.fill_(True)
+        self._zone_cache = None
 
-    def region_maps(self, codes: RegionCodes | None = None
+    def zone_maps(self, codes: ZoneCodes | None = None
                     ) -> tuple[list[torch.Tensor], list[torch.Tensor]] | None:
         """Per array ``(H, W)`` step multipliers and scale terms (factorized: scale
         multipliers; context: ``log b`` offsets, flat), float32, of ``codes`` (default: the
-        grid's once chosen); None without regions or before they are chosen."""
+        grid's once chosen); None without zones or before they are chosen."""
         if codes is None:
-            codes = self.region_codes if bool(self.regions_chosen) else None
+            codes = self.zone_codes if bool(self.zones_chosen) else None
         if codes is None:
             return None
         key = (codes.step_codes.tobytes(), codes.scale_codes.tobytes())
-        if self._region_cache is None or self._region_cache[0] != key:
+        if self._zone_cache is None or self._zone_cache[0] != key:
             shapes = [tuple(z.shape) for z in self.latents]
             steps = [torch.from_numpy(m).float() for m in codes.step_maps(shapes)]
             if self.context is None:
@@ -278,16 +291,16 @@ class LatentGrid(nn.Module):
             else:
                 scale = [torch.from_numpy(m).float().reshape(-1)
                          for m in codes.log_scale_offsets(shapes)]
-            self._region_cache = (key, (steps, scale))
-        return self._region_cache[1]
+            self._zone_cache = (key, (steps, scale))
+        return self._zone_cache[1]
 
-    def choose_regions(self, rate_weight: float, *, store: bool = True) -> RegionCodes | None:
-        """Chooses every region's step code (and a first scale code) by RDO from the
-        current latents (`.regions.choose_step_codes`) at ``lambda'`` = ``rate_weight`` (m²
+    def choose_zones(self, rate_weight: float, *, store: bool = True) -> ZoneCodes | None:
+        """Chooses every zone's step code (and a first scale code) by RDO from the
+        current latents (`.zones.choose_step_codes`) at ``lambda'`` = ``rate_weight`` (m²
         per bit, RDOQ's), stores and returns them. The context model keeps scale codes 0
         (its MLP predicts the local scale); they are chosen again on the final symbols.
         ``store=False`` returns them without storing."""
-        if not self.regions:
+        if not self.zones:
             return None
         with torch.no_grad():
             latents = [z.detach().double().numpy() for z in self.latents]
@@ -295,11 +308,11 @@ class LatentGrid(nn.Module):
             codes = choose_step_codes(latents, self.steps.double().numpy(),
                                       self.scales.double().numpy(),
                                       node_gains(self.basis, self.shape).numpy(), w2,
-                                      float(rate_weight), self.regions, self.groups)
+                                      float(rate_weight), self.zones, self.groups)
         if self.context is not None:
             codes = codes.with_scale_codes(np.zeros_like(codes.scale_codes))
         if store:
-            self.set_regions(codes)
+            self.set_zones(codes)
         return codes
 
     # ------------------------------------------------------------------ quantisation
@@ -331,7 +344,7 @@ class LatentGrid(nn.Module):
                                  f"{quantizer!r}.")
         decoded, relaxed, bits = [], [], []
         steps, scales = self.steps, self.scales
-        maps = self.region_maps()
+        maps = self.zone_maps()
         for level, z in enumerate(self.latents):
             step = steps[level] if maps is None else steps[level] * maps[0][level]
             y = z / step
@@ -355,10 +368,10 @@ class LatentGrid(nn.Module):
                                               None if maps is None else maps[1])
         return decoded, torch.stack(bits).sum()
 
-    def symbols(self, codes: RegionCodes | None = None) -> list[np.ndarray]:
+    def symbols(self, codes: ZoneCodes | None = None) -> list[np.ndarray]:
         """The integer symbols ``round(z_l / Delta_l)`` per latent array (int32; with
-        regions ``Delta_l`` times the region's step multiplier, of ``codes`` or the grid's)."""
-        maps = self.region_maps(codes)
+        zones ``Delta_l`` times the zone's step multiplier, of ``codes`` or the grid's)."""
+        maps = self.zone_maps(codes)
         with torch.no_grad():
             return [torch.round(z / (s if maps is None else s * maps[0][k])).to(torch.int32)
                     .numpy() for k, (z, s) in enumerate(zip(self.latents, self.steps,
@@ -406,13 +419,13 @@ def stored_context(grid: LatentGrid) -> np.ndarray | None:
 
 
 def coding_parameters(grid: LatentGrid, symbols: list[np.ndarray],
-                      codes: RegionCodes | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+                      codes: ZoneCodes | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Per latent array ``(mu, b)`` (flat) of ``symbols`` under the grid's entropy model as
-    the file codes it (factorized ``(0, b_s)`` times the region scales, or the context
-    model in its coding form), with region codes ``codes`` (default: the grid's)."""
+    the file codes it (factorized ``(0, b_s)`` times the zone scales, or the context
+    model in its coding form), with zone codes ``codes`` (default: the grid's)."""
     from neuralmap.terrain.latent.context_model import CodingModel
 
-    codes = grid.region_codes if codes is None else codes
+    codes = grid.zone_codes if codes is None else codes
     shapes = [tuple(s.shape) for s in symbols]
     with torch.no_grad():
         steps = grid.steps.numpy().astype(np.float32)
@@ -434,17 +447,17 @@ def _ranges(sym: list[np.ndarray]) -> list[tuple[int, int]]:
 
 
 def rdoq_symbols(grid: LatentGrid, rate_weight: float, heights: torch.Tensor,
-                 valid: torch.Tensor | None = None, codes: RegionCodes | None = None
+                 valid: torch.Tensor | None = None, codes: ZoneCodes | None = None
                  ) -> tuple[list[np.ndarray], dict]:
     """RDOQ symbols of a trained grid (`.rdoq`) under its entropy model as stored (and its
-    region steps and scales, `.regions`).
+    zone steps and scales, `.zones`).
 
     Args:
         grid: The trained grid.
         rate_weight: ``lambda`` of the node-only trade-off (m² per bit per node).
         heights: ``(ny, nx)`` target node heights (voids filled).
         valid: ``(ny, nx)`` bool mask of the nodes that count (default: all).
-        codes: Region codes (default: the grid's once chosen).
+        codes: Zone codes (default: the grid's once chosen).
 
     Returns:
         ``(symbols, info)`` as `rdoq` (``J`` in summed m²: ``n`` times the objective).
@@ -453,8 +466,8 @@ def rdoq_symbols(grid: LatentGrid, rate_weight: float, heights: torch.Tensor,
     from neuralmap.terrain.latent.rdoq import rdoq
 
     shapes = grid.basis.shapes(grid.shape)
-    if codes is None and bool(grid.regions_chosen):
-        codes = grid.region_codes
+    if codes is None and bool(grid.zones_chosen):
+        codes = grid.zone_codes
     step_maps = (codes.step_maps(shapes) if codes is not None
                  else [np.ones(sh) for sh in shapes])
     with torch.no_grad():
@@ -486,17 +499,17 @@ def rdoq_symbols(grid: LatentGrid, rate_weight: float, heights: torch.Tensor,
     return rdoq(grid.symbols(codes), curvature, rate_weight, bits_of, distortion_of)
 
 
-def refine_regions(grid: LatentGrid, symbols: list[np.ndarray], codes: RegionCodes
-                   ) -> RegionCodes:
+def refine_zones(grid: LatentGrid, symbols: list[np.ndarray], codes: ZoneCodes
+                 ) -> ZoneCodes:
     """``codes`` with the scale codes chosen again on the final ``symbols`` (exact code
-    length, `.regions.refine_scale_codes`)."""
-    from neuralmap.terrain.latent.regions import refine_scale_codes
+    length, `.zones.refine_scale_codes`)."""
+    from neuralmap.terrain.latent.zones import refine_scale_codes
 
     return refine_scale_codes(codes, symbols, coding_parameters(grid, symbols, codes),
                               _ranges(symbols))
 
 
-def exact_objective(grid: LatentGrid, symbols: list[np.ndarray], codes: RegionCodes,
+def exact_objective(grid: LatentGrid, symbols: list[np.ndarray], codes: ZoneCodes,
                     rate_weight: float, heights: torch.Tensor, valid: torch.Tensor) -> float:
     """``SSE_nodes + lambda' bits`` of ``symbols`` under ``codes`` (m²): the decoded nodes
     against ``heights`` at ``valid``, the ideal code length of the symbols (coder form)."""
@@ -515,27 +528,27 @@ def exact_objective(grid: LatentGrid, symbols: list[np.ndarray], codes: RegionCo
     return sse + float(rate_weight) * bits
 
 
-def regions_pay(grid: LatentGrid, symbols: list[np.ndarray], codes: RegionCodes,
-                plain: list[np.ndarray], rate_weight: float, heights: torch.Tensor,
-                valid: torch.Tensor) -> bool:
-    """Whether the regional symbols with their codes (range-coded words, the count and
-    about 32 header bytes) have a lower `exact_objective` than the uniform-step ``plain``
-    symbols."""
-    from neuralmap.terrain.latent.regions import code_scales, encode_codes
+def zones_pay(grid: LatentGrid, symbols: list[np.ndarray], codes: ZoneCodes,
+              plain: list[np.ndarray], rate_weight: float, heights: torch.Tensor,
+              valid: torch.Tensor) -> bool:
+    """Whether the symbols under the zones' steps with their codes (range-coded words, the
+    count and about 32 header bytes) have a lower `exact_objective` than the uniform-step
+    ``plain`` symbols."""
+    from neuralmap.terrain.latent.zones import code_scales, encode_codes
 
-    zero = RegionCodes(codes.regions, np.zeros_like(codes.step_codes),
-                       np.zeros_like(codes.scale_codes), codes.groups, codes.active)
+    zero = ZoneCodes(codes.zones, np.zeros_like(codes.step_codes),
+                     np.zeros_like(codes.scale_codes), codes.groups, codes.active)
     code_bits = 32.0 * encode_codes(codes, code_scales(codes)).size + 8.0 * (4 + 32)
-    j_regions = (exact_objective(grid, symbols, codes, rate_weight, heights, valid)
-                 + float(rate_weight) * code_bits)
-    return j_regions < exact_objective(grid, plain, zero, rate_weight, heights, valid)
+    j_zones = (exact_objective(grid, symbols, codes, rate_weight, heights, valid)
+               + float(rate_weight) * code_bits)
+    return j_zones < exact_objective(grid, plain, zero, rate_weight, heights, valid)
 
 
 def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
                rdoq_rate_weight: float | None = None,
                rdoq_target: tuple[torch.Tensor, torch.Tensor] | None = None,
-               region_rate_weight: float | None = None,
-               regions_always: bool = False) -> Any:
+               zone_rate_weight: float | None = None,
+               zones_always: bool = False) -> Any:
     """The `LatentTerrainMap` of a trained grid,
     exactly as its file stores it (symbols rounded, MLP weights in float16).
 
@@ -546,14 +559,14 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
             (`rdoq_symbols`) instead of rounded.
         rdoq_target: ``(heights (ny, nx), valid (ny, nx))`` node targets of RDOQ (needed
             with ``rdoq_rate_weight``; `RateDistortion.heights` / ``.valid``).
-        region_rate_weight: ``lambda'`` of the region-code choice when the fit did not
-            choose them (`LatentGrid.choose_regions`); default ``rdoq_rate_weight``.
-            With regions the scale codes are chosen again on the final symbols.
-        regions_always: Keep the regions even where they do not pay. By default, with
-            ``rdoq_target`` and a ``lambda'``, the map is stored without regions (format 2
+        zone_rate_weight: ``lambda'`` of the zone-code choice when the fit did not
+            choose them (`LatentGrid.choose_zones`); default ``rdoq_rate_weight``.
+            With zones the scale codes are chosen again on the final symbols.
+        zones_always: Keep the zones even where they do not pay. By default, with
+            ``rdoq_target`` and a ``lambda'``, the map is stored without zones (format 2
             / 3) when the exact ``SSE_nodes + lambda' bits`` of the uniform-step symbols,
-            region codes' bits excluded, is no larger than the regional one's with them
-            (`regions_pay`): small maps, where about a hundred codes are a tenth of the
+            zone codes' bits excluded, is no larger than the zoned one's with them
+            (`zones_pay`): small maps, where about a hundred codes are a tenth of the
             file.
 
     Raises:
@@ -565,28 +578,28 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
     from neuralmap.terrain.latent.map import LatentTerrainMap
 
     codes = None  # the grid is left as it is (a validation export does not change the fit)
-    if grid.regions and bool(grid.regions_chosen):
-        codes = grid.region_codes
-    elif grid.regions:
-        lam = region_rate_weight if region_rate_weight is not None else rdoq_rate_weight
+    if grid.zones and bool(grid.zones_chosen):
+        codes = grid.zone_codes
+    elif grid.zones:
+        lam = zone_rate_weight if zone_rate_weight is not None else rdoq_rate_weight
         if lam is None:
             raise NeuralMapError(
-                "export_map: the region codes were not chosen during the fit; pass "
-                "region_rate_weight (lambda', m² per bit) or rdoq_rate_weight.")
-        codes = grid.choose_regions(lam, store=False)
+                "export_map: the zone codes were not chosen during the fit; pass "
+                "zone_rate_weight (lambda', m² per bit) or rdoq_rate_weight.")
+        codes = grid.choose_zones(lam, store=False)
     if codes is not None:
-        codes = refine_regions(grid, grid.symbols(codes), codes)
+        codes = refine_zones(grid, grid.symbols(codes), codes)
     symbols = (grid.symbols(codes) if rdoq_rate_weight is None or rdoq_target is None
                else rdoq_symbols(grid, rdoq_rate_weight, *rdoq_target, codes=codes)[0])
     if codes is not None:
-        codes = refine_regions(grid, symbols, codes)
-        lam = region_rate_weight if region_rate_weight is not None else rdoq_rate_weight
-        if not regions_always and rdoq_target is not None and lam is not None:
-            zero = RegionCodes(codes.regions, np.zeros_like(codes.step_codes),
-                               np.zeros_like(codes.scale_codes), codes.groups, codes.active)
+        codes = refine_zones(grid, symbols, codes)
+        lam = zone_rate_weight if zone_rate_weight is not None else rdoq_rate_weight
+        if not zones_always and rdoq_target is not None and lam is not None:
+            zero = ZoneCodes(codes.zones, np.zeros_like(codes.step_codes),
+                             np.zeros_like(codes.scale_codes), codes.groups, codes.active)
             plain = (grid.symbols(zero) if rdoq_rate_weight is None
                      else rdoq_symbols(grid, rdoq_rate_weight, *rdoq_target, codes=zero)[0])
-            if not regions_pay(grid, symbols, codes, plain, lam, *rdoq_target):
+            if not zones_pay(grid, symbols, codes, plain, lam, *rdoq_target):
                 codes, symbols = None, plain
     with torch.no_grad():
         latent_map = LatentTerrainMap(
@@ -596,6 +609,6 @@ def export_map(grid: LatentGrid, metrics: dict[str, Any] | None = None, *,
             tile_info=grid.tile_info, metrics=metrics, basis=grid.basis,
             context=stored_context(grid),
             context_hidden=grid.context.hidden if grid.context is not None else 0,
-            regions=codes,
+            zones=codes,
         )
     return stored_latent_map(latent_map)

@@ -27,8 +27,8 @@ from neuralmap.exceptions import NeuralMapError
 from neuralmap.terrain.latent.basis import LatentBasis, make_basis
 from neuralmap.terrain.latent.bspline import bspline_matrix, cell_position
 from neuralmap.terrain.latent.evaluated import EvaluatedTerrain
-from neuralmap.terrain.latent.regions import RegionCodes
 from neuralmap.terrain.latent.synthesis import Synthesis
+from neuralmap.terrain.latent.zones import ZoneCodes
 
 
 def _horner(r: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -90,8 +90,8 @@ class LatentTerrainMap(EvaluatedTerrain):
         context: ``(parameter_count(context_hidden),)`` weights of the context entropy
             model (`.context_model`), or None for the factorized model.
         context_hidden: Hidden units of the context MLP (0 without it).
-        regions: Per-region step and scale codes (`.regions`), or None (one step per
-            latent array).
+        zones: Per-zone step and scale codes (`.zones`), or None (one step per latent
+            array).
 
     Raises:
         NeuralMapError: Inconsistent shapes.
@@ -116,7 +116,7 @@ class LatentTerrainMap(EvaluatedTerrain):
         basis: LatentBasis | None = None,
         context: np.ndarray | None = None,
         context_hidden: int = 0,
-        regions: RegionCodes | None = None,
+        zones: ZoneCodes | None = None,
     ) -> None:
         super().__init__()
         self.tile_info = dict(tile_info)
@@ -144,10 +144,10 @@ class LatentTerrainMap(EvaluatedTerrain):
         self.context_hidden = int(context_hidden) if context is not None else 0
         self.entropy = "factorized" if context is None else "context"
         self.symbols = [np.ascontiguousarray(s, dtype=np.int32) for s in symbols]
-        self.regions = regions
-        if regions is not None and len(regions.groups) != len(symbols):
+        self.zones = zones
+        if zones is not None and len(zones.groups) != len(symbols):
             raise NeuralMapError(
-                f"latent map: region codes for {len(regions.groups)} latent arrays, the map "
+                f"latent map: zone codes for {len(zones.groups)} latent arrays, the map "
                 f"has {len(symbols)}; the file is damaged.")
         self.steps = np.asarray(steps, np.float32).copy()
         self.scales = np.asarray(scales, np.float32).copy()
@@ -169,18 +169,18 @@ class LatentTerrainMap(EvaluatedTerrain):
         """Short description for ``print(model)``."""
         return (f"tile={self.tile_name!r}, shape={self.shape}, basis={self.basis.name}, "
                 f"levels={self.levels}, entropy={self.entropy}, "
-                f"regions={0 if self.regions is None else self.regions.regions}, "
+                f"zones={0 if self.zones is None else self.zones.zones}, "
                 f"hidden={self.hidden}")
 
     @property
     def decoded_latents(self) -> list[torch.Tensor]:
         """Decoded latents ``q_b Delta_b`` per latent array (float64, storage order), times
-        the region step multipliers ``2^(k_r / 4)`` with regions (`.regions`)."""
+        the zone step multipliers ``2^(k_r / 4)`` with zones (`.zones`)."""
         out = [torch.from_numpy(s).double() * float(d)
                for s, d in zip(self.symbols, self.steps, strict=True)]
-        if self.regions is None:
+        if self.zones is None:
             return out
-        maps = self.regions.step_maps([tuple(s.shape) for s in self.symbols])
+        maps = self.zones.step_maps([tuple(s.shape) for s in self.symbols])
         return [q * torch.from_numpy(m) for q, m in zip(out, maps, strict=True)]
 
     def _query_dtype(self) -> torch.dtype:

@@ -43,7 +43,7 @@ def rdoq(symbols: list[np.ndarray], curvature: list[np.ndarray] | np.ndarray,
     Args:
         symbols: Integer symbols per subband.
         curvature: Per subband ``G_s Delta_s^2``, the SSE of a one-step change (m²): a
-            float, or an array of the subband's shape (per-region steps, `.regions`).
+            float, or an array of the subband's shape (per-zone steps, `.zones`).
         rate_weight: ``lambda'`` (m² per bit).
         bits_of: See `BitsOf`.
         distortion_of: See `DistortionOf`.

@@ -5,7 +5,8 @@ source tiles do) is written with the blended tileset's height and slope, and, wh
 region's DEM is given, the residual against it: ``<out>/<stem>_r000_c000_<layer>.tif`` in
 the region's CRS (projected tiles) or lon/lat grid (geographic tiles). Because every layer
 comes from the one blended map, the files of two neighbours hold the same values on their
-shared nodes. Needs rasterio (``geotiff`` extra).
+shared nodes. The files of all tiles are written all or nothing (`neuralmap.io.atomic_files`).
+Needs rasterio (``geotiff`` extra).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import torch
 
 from neuralmap.dem.tile import DemTile, GeoReference, ProjectedReference
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.io import atomic_files
 from neuralmap.terrain.base import TerrainModel
 from neuralmap.terrain.geotiff import write_map_geotiffs
 from neuralmap.terrain.latent.tileset import LatentTileset
@@ -51,7 +53,8 @@ def _map_region(tileset: LatentTileset) -> DemTile:
     layout = tileset.layout
     return DemTile(heights=np.zeros(layout.shape), spacing=layout.spacing, origin=layout.origin,
                    name=tileset.tile_name or "tileset", geo=geo, projected=projected,
-                   meta={"units": tileset.tile_info.get("units")})
+                   meta={"units": tileset.tile_info.get("units"),
+                         "crs": tileset.tile_info.get("crs")})
 
 
 def export_tileset_geotiffs(tileset: LatentTileset, out_dir: str | os.PathLike[str], *,
@@ -74,7 +77,7 @@ def export_tileset_geotiffs(tileset: LatentTileset, out_dir: str | os.PathLike[s
 
     Raises:
         NeuralMapError: ``residual`` without the region, a region of another fingerprint,
-            rasterio missing, an unwritable folder.
+            rasterio missing, an unwritable folder, a full disk (nothing new is left).
     """
     if layers is None:
         layers = ("height", "residual", "slope") if region is not None else ("height", "slope")
@@ -90,13 +93,14 @@ def export_tileset_geotiffs(tileset: LatentTileset, out_dir: str | os.PathLike[s
     frame = region if region is not None else _map_region(tileset)
     view = _CoreView(tileset)
     written: dict[tuple[int, int], dict[str, Path]] = {}
-    for entry in tileset.tiles:
-        core = window_tile(frame, entry.core, f"{frame.name}_r{entry.row}c{entry.col}")
-        if region is None:  # heights only give the DemTile its grid: the map's own
-            with torch.no_grad():
-                xy = torch.as_tensor(core.node_xy().reshape(-1, 2))
-                core.heights = tileset(xy).numpy().reshape(core.shape)
-        written[(entry.row, entry.col)] = write_map_geotiffs(
-            view, core, out_dir, layers=tuple(layers),
-            stem=f"{stem}_r{entry.row:03d}_c{entry.col:03d}", cog=cog)
+    with atomic_files(option="tileset GeoTIFF export") as files:  # every tile or none
+        for entry in tileset.tiles:
+            core = window_tile(frame, entry.core, f"{frame.name}_r{entry.row}c{entry.col}")
+            if region is None:  # heights only give the DemTile its grid: the map's own
+                with torch.no_grad():
+                    xy = torch.as_tensor(core.node_xy().reshape(-1, 2))
+                    core.heights = tileset(xy).numpy().reshape(core.shape)
+            written[(entry.row, entry.col)] = write_map_geotiffs(
+                view, core, out_dir, layers=tuple(layers),
+                stem=f"{stem}_r{entry.row:03d}_c{entry.col:03d}", cog=cog, files=files)
     return written

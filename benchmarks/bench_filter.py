@@ -161,8 +161,8 @@ def bench_tan_step(
     """(median, best) trajectory-steps per second of the batched TAN filter over K steps
     (filter, inputs and ``linearizer`` on ``device``)."""
     from neuralmap.filters.ekf import BatchedEKF
-    from neuralmap.tan.model import N_STATES, TanModel
     from neuralmap.tan.ekf_step import tan_filter_step
+    from neuralmap.tan.model import N_STATES, TanModel
 
     n, k_steps = truth.n_runs, truth.n_steps
     ins_pos = truth.ins_pos.to(device, dtype)
@@ -235,8 +235,8 @@ def bench_policy_steps(
     """
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.filters.policies import quality_members
-    from neuralmap.tan.model import N_STATES, transition_matrix
     from neuralmap.tan.ekf_step import tan_filter_step
+    from neuralmap.tan.model import N_STATES, transition_matrix
 
     n, k_steps = truth.n_runs, truth.n_steps
     ins_pos = truth.ins_pos.to(device, dtype)
@@ -362,8 +362,8 @@ def torch_final_states(truth: Any, scenario: Any, tile: DemTile, *, n_runs: int)
     """
     from neuralmap.filters.ekf import BatchedEKF
     from neuralmap.linearize.factory import make_linearizer
-    from neuralmap.tan.model import N_STATES, TanModel
     from neuralmap.tan.ekf_step import tan_filter_step
+    from neuralmap.tan.model import N_STATES, TanModel
 
     lin = make_linearizer("bilinear", tile=tile, variance="zero")
     dtype = torch.float64
@@ -515,8 +515,8 @@ def bench_latent_queries(tile: DemTile, *, n_points: int, repeats: int,
 
 def run(args: argparse.Namespace) -> list[Row]:
     """Runs every benchmark and returns the rows (also printed)."""
-    from neuralmap.linearize.factory import make_linearizer
     from neuralmap.lab.simulator import simulate
+    from neuralmap.linearize.factory import make_linearizer
 
     torch.set_num_threads(args.threads)
     device = check_device(args.device)

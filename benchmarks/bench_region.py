@@ -91,10 +91,10 @@ def _child_train(job: dict) -> dict:
 def _child_mc(job: dict) -> dict:
     import torch
 
-    from neuralmap.linearize.factory import make_linearizer
     from neuralmap.lab.chunked import run_monte_carlo_chunked
     from neuralmap.lab.scenario import load_scenario, scenario_tile
     from neuralmap.lab.truth_terrain import true_terrain
+    from neuralmap.linearize.factory import make_linearizer
 
     torch.set_num_threads(1)
     scenario = load_scenario(job["scenario"])

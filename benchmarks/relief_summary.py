@@ -34,9 +34,9 @@ from typing import Any
 #: Tile -> experiment folders of its tan config, first the preferred one
 #: (``configs/tan_<tile>.yaml``'s ``experiment``), then the older names.
 TILES: dict[str, tuple[str, ...]] = {
-    "jacksboro": ("tan_jacksboro", "evaluate"),
+    "jacksboro": ("evaluate",),
     "synthetic": ("tan_synthetic",),
-    "gironde": ("tan_gironde", "tan_gentle"),
+    "gironde": ("tan_gentle",),
     "rmnp": ("tan_rmnp",),
     "volcano": ("tan_volcano",),
     "minnesota": ("tan_minnesota",),

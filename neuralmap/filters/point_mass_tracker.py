@@ -35,14 +35,9 @@ from neuralmap.filters.lattice.follow_rule import (
     FollowLattice,
     TrackerConfig,
 )
-from neuralmap.filters.stats import chi2_mean_threshold
 
 __all__ = ["BLUR_MIN_CELLS", "MIN_CELL_VARIANCE", "PointMassTracker", "TrackerConfig",
-           "TrackerUpdate", "chi2_mean_threshold"]
-
-#: Deprecated private name of `neuralmap.filters.stats.chi2_mean_threshold` (kept for the
-#: navigator's import until it uses the public one).
-_chi2_mean_threshold = chi2_mean_threshold
+           "TrackerUpdate"]
 
 #: Per-run results of `PointMassTracker.update` (the lattice filter's).
 TrackerUpdate = LatticeUpdate
@@ -79,7 +74,8 @@ class PointMassTracker(LatticeFilter):
                  dtype: torch.dtype = torch.float64) -> None:
         config = (config or TrackerConfig()).validate()
         if dtype not in (torch.float32, torch.float64):
-            raise NeuralMapError(f"PointMassTracker: dtype must be float32 or float64, got {dtype}.")
+            raise NeuralMapError(
+                f"PointMassTracker: dtype must be float32 or float64, got {dtype}.")
         mean = torch.as_tensor(mean)
         if mean.ndim != 2 or mean.shape[1] < 3 or mean.shape[0] < 1:
             raise NeuralMapError(

@@ -9,7 +9,9 @@ risk the flight's protection levels were computed at:
   (`scipy.stats.binomtest`); a consistent navigator has a rate at most the risk;
 * **hazardously misleading** (HMI): the error exceeds the alert limit while the HPL is
   within it — rate over all epochs;
-* **availability**: the share of epochs whose HPL is within the alert limit.
+* **availability**: the share of epochs whose HPL is within the alert limit;
+* **error beyond HPL** at any status: the rate over all epochs (a filter that never says
+  ``tracking`` — gentle relief keeps it ``acquiring`` — still has an HPL that must hold).
 
 The Stanford diagram (`neuralmap.viz.integrity.plot_stanford`) draws the same epochs as a
 2-D histogram of error against HPL.
@@ -55,10 +57,10 @@ def integrity_metrics(run: Any, *, alert_limit_m: float) -> dict[str, Any]:
         alert_limit_m: Horizontal alert limit, m.
 
     Returns:
-        ``{"alert_limit_m", "risks": {risk: {"misleading", "hazardous", "available",
-        "hpl_median_m", "within_risk"}}}`` where each of the three is ``{"count", "epochs",
-        "rate", "ci95"}`` and ``within_risk`` says whether the MI rate is at most the risk
-        (None without tracking epochs).
+        ``{"alert_limit_m", "risks": {risk: {"misleading", "exceeded", "hazardous",
+        "available", "hpl_median_m", "within_risk"}}}`` where each of the four is ``{"count",
+        "epochs", "rate", "ci95"}`` and ``within_risk`` says whether the MI rate is at most
+        the risk (None without tracking epochs).
 
     Raises:
         NeuralMapError: The run has no status or protection levels, or a bad alert limit.
@@ -81,6 +83,7 @@ def integrity_metrics(run: Any, *, alert_limit_m: float) -> dict[str, Any]:
         mi = _rate(int((tracking & (err > hpl)).sum()), int(tracking.sum()))
         entry = {
             "misleading": mi,
+            "exceeded": _rate(int((err > hpl).sum()), err.numel()),
             "hazardous": _rate(int(((err > alert_limit_m) & within).sum()), err.numel()),
             "available": _rate(int(within.sum()), err.numel()),
             "hpl_median_m": float(hpl.median()) if hpl.numel() else None,

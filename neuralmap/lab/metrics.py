@@ -52,9 +52,11 @@ from neuralmap.lab.monte_carlo import FilterRun
 #: Human-readable divergence rule (default factors), written into reports and results.json.
 DIVERGENCE_RULE = (
     "A run diverged when its final horizontal position error exceeds {pcrb}x the final PCRB "
-    "position bound sqrt(J^-1_xx + J^-1_yy), or exceeds {sigma}x the filter's own final 1-sigma "
+    "position bound sqrt(J^-1_xx + J^-1_yy) (the larger of the true-terrain and the "
+    "map-aware bound, when both are given: no filter on the DEM reaches below the map-aware "
+    "one), or exceeds {sigma}x the filter's own final 1-sigma "
     "horizontal bound sqrt(P_xx + P_yy), or when its estimate left the map, or when the "
-    "filter declared it lost (the point-mass tracker's lost flag). A run whose "
+    "navigator lost it (a lost lock not re-acquired by the last epoch). A run whose "
     "filter failed numerically (covariance non-finite or not positive definite) is counted "
     "apart as a numerical failure. Neither counts as converged. Runs whose truth left the "
     "map are excluded from every metric and counted as off-map."
@@ -224,6 +226,7 @@ def navigation_metrics(
     pcrb_factor: float = 5.0,
     divergence_sigma: float = 9.0,
     nees_confidence: float = 0.95,
+    map_aware_pos: torch.Tensor | None = None,
 ) -> dict[str, Any]:
     """Metrics of one method's Monte Carlo run (definitions in the module docstring).
 
@@ -231,6 +234,9 @@ def navigation_metrics(
         run: The method's `FilterRun`.
         pcrb_pos: ``(K+1,)`` PCRB position bound ``sqrt(J⁻¹_xx + J⁻¹_yy)``, m
             (`neuralmap.lab.pcrb.pcrb_position`).
+        map_aware_pos: ``(K+1,)`` the map-aware bound (`neuralmap.lab.pcrb.map_aware_pcrb`),
+            or None: the divergence test's bound is then the larger of the two at the last
+            sample (the ratios still use ``pcrb_pos``).
         pcrb_factor: Divergence threshold as a multiple of the final PCRB bound.
         divergence_sigma: Divergence threshold as a multiple of the filter's final 1σ
             horizontal bound ``sqrt(P_xx + P_yy)``.
@@ -276,6 +282,8 @@ def navigation_metrics(
     final_e = e_pos2[:, -1].sqrt()
     bound1 = (P[:, -1, 0, 0] + P[:, -1, 1, 1]).clamp(min=0.0).sqrt()
     pcrb_final = float(pcrb_pos[-1])
+    if map_aware_pos is not None:
+        pcrb_final = max(pcrb_final, float(torch.as_tensor(map_aware_pos).reshape(-1)[-1]))
     est_left = ~run.est_on_map.detach().cpu().bool().all(dim=1)
     lost = None if getattr(run, "lost", None) is None else run.lost.detach().cpu().bool()
     diverged = diverged_runs(final_e, bound1, included=included, healthy=healthy,

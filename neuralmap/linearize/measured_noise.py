@@ -42,12 +42,22 @@ __all__ = [
     "interpolate_table",
     "position_sigma",
     "measure_linearization_noise",
+    "noise_sigmas",
 ]
 
 #: Position σ (m, per axis) at which the noise is measured: map error (0) to acquisition.
 DEFAULT_NOISE_SIGMAS_M: tuple[float, ...] = (
     0.0, 2.5, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 60.0, 80.0, 100.0, 150.0, 200.0, 300.0,
 )
+
+
+def noise_sigmas(prior_sigma_m: float) -> tuple[float, ...]:
+    """The σ nodes of a noise table for a flight whose prior horizontal σ is
+    ``prior_sigma_m``: `DEFAULT_NOISE_SIGMAS_M` (made for a 100 m prior: up to 3× it) scaled
+    down with a smaller prior, so that a small tile (a UAV with a 10 m prior) keeps its
+    sampling margin inside the map; unchanged for priors of 100 m or more."""
+    scale = min(1.0, float(prior_sigma_m) / 100.0)
+    return tuple(s * scale for s in DEFAULT_NOISE_SIGMAS_M)
 
 
 @dataclass(frozen=True)

@@ -26,9 +26,12 @@ The pipeline, per vehicle and epoch (status codes of `STATUS`):
   when the prior's horizontal σ exceeds ``acquisition.above_sigma_m``) starts on the
   point-mass acquisition grid (`neuralmap.tan.methods.point_mass.PointMassGrid`, sized by
   the ``point_mass`` section) and is **handed off** to the method once the grid posterior is
-  small (largest σ ≤ ``handoff_sigma_m``) and unimodal (Bhattacharyya coefficient against
-  its Gaussian fit ≥ ``handoff_affinity``) for ``handoff_hold`` epochs after at least
-  ``min_acquire_steps`` grid updates; the method starts from the grid posterior's moments.
+  small (largest σ ≤ ``handoff_sigma_m`` for an EKF; ≤ ``above_sigma_m``, or
+  ``handoff_sigma_m`` if larger, for a method of the ``wide`` rule, which holds a wide
+  posterior itself) and unimodal (Bhattacharyya
+  coefficient against its Gaussian fit ≥ ``handoff_affinity``) for ``handoff_hold`` epochs
+  after at least ``min_acquire_steps`` grid updates; the method starts from the grid
+  posterior's moments.
 * **Lost lock**: the mean NIS over the last ``integrity.lost_window`` updates above
   ``χ²_p(W)/W`` (`neuralmap.filters.nis_window`) **re-acquires from the open-loop prior**
   ``N(m_ol, P_ol)``: the prior propagated through every prediction without a measurement
@@ -465,7 +468,12 @@ class Navigator:
         a, grid = self.config.acquisition, self._grid
         cand = self._on_grid & ~lost
         gmean, gcov = grid.estimate()
-        small = cand & (largest_sigma(gcov) <= a.handoff_sigma_m)
+        # a method that holds a wide posterior itself (rule "wide": the point-mass tracker)
+        # takes it back as soon as it would have started without the grid; an EKF only
+        # once the posterior is small enough to linearise
+        limit = (max(a.above_sigma_m, a.handoff_sigma_m) if self._method_cls.acquisition == "wide"
+                 else a.handoff_sigma_m)
+        small = cand & (largest_sigma(gcov) <= limit)
         ok = small & (grid.unimodality(small) >= a.handoff_affinity)
         self._hold = torch.where(ok, self._hold + 1, 0)
         go = ((self._hold >= max(a.handoff_hold, 1)) & (self._since >= a.min_acquire_steps)
@@ -574,9 +582,10 @@ class Navigator:
         (`neuralmap.nav.integrity`; ``sigma`` its largest horizontal σ), the horizontal one
         from the method's (or the grid's) own posterior where it is not Gaussian."""
         hpl, vpl = protection_levels(self._cov, risk, sigma=sigma)
-        out = self._track.protection_level(risk, hpl)
+        out = self._track.protection_level(risk, hpl, self._mean)
         if self._grid is not None and bool(self._on_grid.any()):
-            out = torch.where(self._on_grid, self._grid.protection_level(risk, hpl), out)
+            out = torch.where(self._on_grid, self._grid.protection_level(risk, hpl, self._mean),
+                              out)
         return out, vpl
 
     # ------------------------------------------------------------------ whole flights

@@ -227,9 +227,9 @@ def _flat_tile(tile: DemTile) -> DemTile:
 
 
 def _row_metrics(run: Any, bound: torch.Tensor, config: AcquisitionStudyConfig,
-                 dt: float) -> dict[str, Any]:
+                 dt: float, bound_map: torch.Tensor | None = None) -> dict[str, Any]:
     met = navigation_metrics(run, bound, pcrb_factor=config.pcrb_factor,
-                             divergence_sigma=config.divergence_sigma)
+                             divergence_sigma=config.divergence_sigma, map_aware_pos=bound_map)
     keep = ~run.off_map
     err = run.err[keep][..., :2].norm(dim=-1).double()
     t_acq = acquisition_time(err, bound.double(), factor=3.0, dt=dt)
@@ -451,7 +451,8 @@ def run(config: AcquisitionStudyConfig, outputs: StudyOutputs) -> None:
                 print(f"acquisition: sigma0 {sigma:g} m, {kind}, {method} failed: "
                       f"{out['error']}", flush=True)
                 continue
-            m = _row_metrics(out["result"], job["bound"], config, stage["scenario"].dt)
+            m = _row_metrics(out["result"], job["bound"], config, stage["scenario"].dt,
+                             job["bound_map"])
             entry = integrity_entry(out["result"], alert_limit_m=config.alert_limit_m)
             if entry is not None:
                 integrity.setdefault(f"sigma0 {sigma:g} m, ", {})[f"{kind}/{method}"] = entry

@@ -29,7 +29,11 @@ from neuralmap.lab.monte_carlo import fly, run_monte_carlo, study_navigator_conf
 from neuralmap.lab.noise_calibration import derive_method_noise
 from neuralmap.lab.pcrb import map_aware_pcrb, pcrb, pcrb_position
 from neuralmap.lab.simulator import simulate
-from neuralmap.linearize.measured_noise import MeasuredNoiseLinearizer, measure_linearization_noise
+from neuralmap.linearize.measured_noise import (
+    MeasuredNoiseLinearizer,
+    measure_linearization_noise,
+    noise_sigmas,
+)
 from neuralmap.outputs import RunCounts, StudyOutputs, verdict
 from neuralmap.progress import stage_progress
 from neuralmap.studies.cluster_options import ClusterOptions
@@ -240,6 +244,7 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
                             len(methods), "method", enabled=config.progress) as progress:
             methods, filter_scenario, noise_info = derive_method_noise(
                 methods, scenario=scenario, tile=tile, truth_terrain=truth_terrain, seed=seed,
+                sigmas=noise_sigmas(scenario.init_pos_sigma_m),
                 n_pilot=config.noise_pilot_runs, iterations=config.noise_iterations,
                 progress=progress)
         timing["noise"] = time.perf_counter() - tick
@@ -288,7 +293,8 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     method_metrics = {
         name: navigation_metrics(filter_run, torch.as_tensor(pcrb_pos),
                                  pcrb_factor=config.pcrb_factor,
-                                 divergence_sigma=config.divergence_sigma)
+                                 divergence_sigma=config.divergence_sigma,
+                                 map_aware_pos=torch.as_tensor(pcrb_map_pos))
         for name, filter_run in runs.items()
     }
     n_truth_off = int((~truth.on_map.all(dim=1)).sum())
@@ -430,7 +436,7 @@ def _fly_registered(config: Any, scenario: Any, truth: Any, tile: Any, truth_ter
                     table = measure_linearization_noise(
                         bilinear, truth_terrain.model,
                         extent=tuple(float(e) for e in tile.extent), seed=config.seed,
-                        progress=half)
+                        sigmas=noise_sigmas(scenario.init_pos_sigma_m), progress=half)
                     shared = float(table.variance_m2[0])
                     excess = dataclasses.replace(table, variance_m2=tuple(
                         max(v - shared, 0.0) for v in table.variance_m2))

@@ -167,11 +167,12 @@ class NavigationMethod(abc.ABC):
         """Vehicles ``mask (N,)`` leave the method (held elsewhere): it may stop spending on
         them. Their next `load` restarts them."""
 
-    def protection_level(self, risk: float, gaussian: torch.Tensor) -> torch.Tensor:
+    def protection_level(self, risk: float, gaussian: torch.Tensor,
+                         mean: torch.Tensor) -> torch.Tensor:
         """``(N,)`` horizontal protection level at ``risk``, m, given the Gaussian one of the
-        method's own covariance (`neuralmap.nav.integrity`): a method whose posterior is
-        not Gaussian (a point-mass lattice) answers from its own mass; the default is the
-        Gaussian level."""
+        method's own covariance (`neuralmap.nav.integrity`) and the estimate ``mean (N, 5)``
+        (`estimate`'s): a method whose posterior is not Gaussian (a point-mass lattice)
+        answers from its own mass; the default is the Gaussian level."""
         return gaussian
 
     def counters(self) -> dict[str, torch.Tensor]:

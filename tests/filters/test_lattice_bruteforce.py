@@ -24,7 +24,9 @@ Why the reference is exact to far below the tolerances:
 * the likelihood is evaluated at every lattice point; every posterior σ stays above 1.5
   reference cells (asserted), where moment sums of a smooth density are exact to ~1e-9;
 * the lattice re-centres by whole cells only (an index shift, exact), and every
-  operation asserts that the mass it drops at the border is below 1e-4 (mass beyond ~5σ: its effect on the moments is < 1e-3 σ in the mean and < 2e-3 in σ, a tenth of the tolerances).
+  operation asserts that the mass it drops at the border is below 1e-4 (mass beyond ~5σ:
+  its effect on the moments is < 1e-3 σ in the mean and < 2e-3 in σ, a tenth of the
+  tolerances).
 
 The reference itself is checked against the exact Kalman filter on a plane terrain
 (Gaussian posterior; same shear, noise and re-centring): ≤ 2e-3 σ per axis.

@@ -1,6 +1,6 @@
 """Lattice rules by registry name: each builds its filter, and on a linear-Gaussian
 measurement (a tilted plane) every rule gives the Kalman posterior (float64 reference,
-closed form); the deprecated ``policy`` attribute still names the rule."""
+closed form)."""
 
 from __future__ import annotations
 
@@ -66,11 +66,3 @@ def test_registry_refusals_name_the_problem() -> None:
         make_lattice_filter("follow", mean, torch.eye(2, dtype=D))
     assert set(LATTICE_RULES) == {"fixed", "adaptive", "follow"}
 
-
-def test_the_deprecated_policy_attribute_is_the_rule() -> None:
-    f = make_lattice_filter("fixed", torch.zeros(1, 3, dtype=D), torch.eye(3, dtype=D) * 100.0)
-    with pytest.warns(DeprecationWarning, match="LatticeFilter.rule"):
-        assert f.policy is f.rule
-    with pytest.warns(DeprecationWarning):
-        f.policy.pending = torch.ones(1, 2, dtype=D)  # an old call site's write
-    assert torch.equal(f.rule.pending, torch.ones(1, 2, dtype=D))

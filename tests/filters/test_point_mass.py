@@ -143,7 +143,8 @@ def test_float32_weights_stay_normalised_and_finite() -> None:
     for k in range(30):
         f.predict(Q=torch.tensor([4.0, 4.0]), scalar_q=1.0)
         y = torch.randn(n) * (1e4 if k % 7 == 3 else 30.0)
-        out = f.update(y, lambda p: 50.0 * torch.sin(p[..., 0] / 40.0) * torch.cos(p[..., 1] / 55.0),
+        out = f.update(y, lambda p: 50.0 * torch.sin(p[..., 0] / 40.0)
+                       * torch.cos(p[..., 1] / 55.0),
                        R=1.0)
         total = f.weights.sum((1, 2))
         assert torch.isfinite(f.weights).all()

@@ -74,7 +74,8 @@ def test_tracker_equals_kalman_filter_through_many_regrids(regrid_sigma: float |
         mean, cov = tracker.moments()
         sd = P.diagonal(dim1=1, dim2=2).sqrt()
         worst_mean = max(worst_mean, float(((mean - x) / sd).abs().max()))
-        worst_cov = max(worst_cov, float(((cov - P) / (sd[:, :, None] * sd[:, None, :])).abs().max()))
+        worst_cov = max(worst_cov,
+                        float(((cov - P) / (sd[:, :, None] * sd[:, None, :])).abs().max()))
     assert int(tracker.regrids.min()) >= min_regrids  # the grid followed the posterior
     assert worst_mean < 6e-3  # of σ, whole flight (measured 1.6e-3 / 1.8e-3)
     assert worst_cov < 6e-3  # of σ_i σ_j (measured 2.2e-3 / 2.5e-3)

@@ -92,9 +92,9 @@ def test_float32_follows_float64_along_whole_trajectories(tiny_scenario, tiny_ti
     """TAN on the tiny scenario, 48 runs of 40 steps: with the literal factors the float64
     P reaches condition numbers float32 cannot hold; in the observed scope P stays
     conditioned and float32 tracks float64 to a millimetre in nine runs of ten."""
-    from neuralmap.linearize.factory import make_linearizer
     from neuralmap.lab.monte_carlo import run_filter
     from neuralmap.lab.simulator import simulate
+    from neuralmap.linearize.factory import make_linearizer
 
     lin = make_linearizer("bilinear", tile=tiny_tile)
     truths = {dt: simulate(tiny_scenario, tiny_tile, n_runs=48, seed=0, dtype=dt)

@@ -45,7 +45,7 @@ def test_lost_run_with_a_small_error_counts_as_diverged() -> None:
     assert lost["diverged"] == [True, True, False, False]
     assert lost["n_diverged"] == 2 and lost["n_converged"] == 1 and lost["n_unhealthy"] == 0
     assert lost["divergence_rate"] == 2 / 3
-    assert "declared it lost" in lost["divergence_rule"]
+    assert "navigator lost it" in lost["divergence_rule"]
 
 
 def test_no_lost_flag_leaves_the_metrics_unchanged() -> None:
@@ -114,4 +114,4 @@ def test_a_lost_lock_not_reacquired_by_the_end_is_a_lost_run() -> None:
     # vehicle 1: diverged (not a numerical failure) whatever its final error
     assert m1["diverged"] == [False, True, False, False]
     assert m1["n_diverged"] == 1 and m1["n_unhealthy"] == 0
-    assert "declared it lost" in m1["divergence_rule"]
+    assert "navigator lost it" in m1["divergence_rule"]

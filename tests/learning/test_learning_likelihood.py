@@ -10,6 +10,8 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.lab.scenario import Scenario
+from neuralmap.lab.simulator import simulate
 from neuralmap.learning.covariance import (
     LogCholeskyCovariance,
     LogDiagonalCovariance,
@@ -20,8 +22,6 @@ from neuralmap.learning.likelihood import linear_log_likelihood, tan_log_likelih
 from neuralmap.learning.noise_model import NoiseModel
 from neuralmap.linearize.factory import make_linearizer
 from neuralmap.tan.model import TanModel
-from neuralmap.lab.scenario import Scenario
-from neuralmap.lab.simulator import simulate
 
 F64 = torch.float64
 SPACING = 100.0

@@ -8,6 +8,9 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.lab.scenario import load_scenario, scenario_tile
+from neuralmap.lab.simulator import simulate
+from neuralmap.lab.truth_terrain import true_terrain
 from neuralmap.learning.flights import FlightBatch
 from neuralmap.learning.map_correction import (
     BiasedTerrain,
@@ -18,9 +21,6 @@ from neuralmap.learning.map_correction import (
 from neuralmap.learning.map_refine import refine_map
 from neuralmap.linearize.factory import make_linearizer
 from neuralmap.tan.model import TanModel
-from neuralmap.lab.scenario import load_scenario, scenario_tile
-from neuralmap.lab.simulator import simulate
-from neuralmap.lab.truth_terrain import true_terrain
 from neuralmap.terrain.grid import GridTerrain
 
 F64 = torch.float64

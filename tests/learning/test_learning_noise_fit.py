@@ -8,14 +8,14 @@ import torch
 
 from neuralmap.dem.tile import DemTile
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.lab.scenario import Scenario
+from neuralmap.lab.simulator import simulate
 from neuralmap.learning.flights import FlightBatch
 from neuralmap.learning.likelihood import tan_log_likelihood
 from neuralmap.learning.noise_fit import fit_noise
 from neuralmap.learning.noise_model import NoiseModel
 from neuralmap.linearize.factory import make_linearizer
 from neuralmap.tan.model import TanModel
-from neuralmap.lab.scenario import Scenario
-from neuralmap.lab.simulator import simulate
 
 F64 = torch.float64
 SPACING = 100.0

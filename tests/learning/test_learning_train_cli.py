@@ -52,10 +52,10 @@ def test_noise_mode_bad_option_exits_2(tmp_path: Path, capsys) -> None:  # noqa:
 @pytest.fixture(scope="module")
 def tiny_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Four simulated flights of the tiny scenario (dt = 1 s) as a CSV flight log."""
-    from neuralmap.learning.flight_log import write_flight_log
-    from neuralmap.learning.flights import FlightBatch
     from neuralmap.lab.scenario import scenario_tile
     from neuralmap.lab.simulator import simulate
+    from neuralmap.learning.flight_log import write_flight_log
+    from neuralmap.learning.flights import FlightBatch
 
     tiny = load_scenario("tiny")
     flights = FlightBatch.from_truth(simulate(tiny, scenario_tile(tiny), n_runs=4, seed=0))

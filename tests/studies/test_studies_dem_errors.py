@@ -17,11 +17,10 @@ from statsmodels.tsa.stattools import acovf
 
 from neuralmap.errors.repeat_survey import survey_recovery
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.linearize.factory import make_linearizer
-from neuralmap.tan.model import TanModel
 from neuralmap.lab.monte_carlo import run_filter
 from neuralmap.lab.scenario import load_scenario, scenario_tile
 from neuralmap.lab.simulator import simulate
+from neuralmap.linearize.factory import make_linearizer
 from neuralmap.studies import cli
 from neuralmap.studies.dem_errors import (
     PAPER_TABLE1,
@@ -30,6 +29,7 @@ from neuralmap.studies.dem_errors import (
     _identify_along_path,
     prior_estimates,
 )
+from neuralmap.tan.model import TanModel
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 TINY = REPO_ROOT / "configs" / "dem_errors_tiny.yaml"

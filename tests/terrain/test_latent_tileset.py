@@ -411,10 +411,10 @@ def test_the_navigator_flies_across_the_seams_as_on_the_single_tile_fit(fitted: 
     # a flight over the four tiles' seams (960 m on both axes): the Navigator on the tileset
     # gives the fixes it gives on the single latent map of the whole region, within a
     # fraction of their σ (the two maps differ by their fit error, not by the seams)
-    from neuralmap.nav.fix import STATUS_CODE
-    from neuralmap.nav.navigator import Navigator
     from neuralmap.lab.scenario import load_scenario
     from neuralmap.lab.simulator import simulate
+    from neuralmap.nav.fix import STATUS_CODE
+    from neuralmap.nav.navigator import Navigator
     from neuralmap.terrain.export import load_map
 
     scenario = dataclasses.replace(load_scenario("tiny"), start_xy=[400.0, 400.0],

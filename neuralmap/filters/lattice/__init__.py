@@ -5,7 +5,10 @@ configuration `neuralmap.filters.point_mass.PointMassFilter`) or the lattice tha
 the posterior (`neuralmap.filters.lattice.follow_rule.FollowLattice`; configuration
 `neuralmap.filters.point_mass_tracker.PointMassTracker`), all on one set of kernels
 (`neuralmap.filters.lattice.kernels`: prediction by separable convolution, the log-domain
-Rao-Blackwellised update, bilinear regrid and lattice moments)."""
+Rao-Blackwellised update, bilinear regrid and lattice moments). The following lattice's
+step as static-shape functions (eager, or under ``torch.compile``) is
+`neuralmap.filters.lattice.follow_step`; the same algorithm in NumPy, one run at a time,
+is `neuralmap.filters.lattice.reference`; rules by name: `neuralmap.filters.lattice.rule`."""
 
 from neuralmap.filters.lattice.filter import LatticeFilter, LatticeUpdate
 from neuralmap.filters.lattice.kernels import (

@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["eigh2", "eigvalsh2", "eigvalsh3", "inv2", "mm", "mv", "solve2", "spd2_ok", "spd_ok",
-           "sqrtm2"]
+__all__ = ["eigh2", "eigvalsh2", "eigvalsh3", "few_for_lapack", "inv2", "mm", "mv", "solve2",
+           "spd2_ok", "spd_ok", "sqrtm2"]
 
 import math
 
@@ -123,7 +123,8 @@ def spd_ok(c: torch.Tensor) -> torch.Tensor:
     (the test of a Cholesky factorisation in float64).
 
     ``d = 2``: `spd2_ok`; ``d = 1`` and ``d = 3``: the pivots of ``c = L D Lᵀ`` in closed
-    form (``D > 0``: the pivots LAPACK's Cholesky checks); larger ``d``: LAPACK.
+    form (``D > 0``: the pivots LAPACK's Cholesky checks; one LAPACK call for a few matrices
+    outside ``torch.compile``, where it is the cheaper of the two); larger ``d``: LAPACK.
     """
     d = c.shape[-1]
     if d == 2:
@@ -135,7 +136,7 @@ def spd_ok(c: torch.Tensor) -> torch.Tensor:
     safe = torch.where(finite[:, None, None], c, eye)
     sym = (safe - safe.transpose(1, 2)).abs().flatten(1).amax(1) <= (
         1e-9 * safe.abs().flatten(1).amax(1) + 1e-300)
-    if d != 3:
+    if d != 3 or few_for_lapack(c):
         return finite & sym & (torch.linalg.cholesky_ex(safe.double()).info == 0)
     a = safe.double()
     d0 = a[:, 0, 0]
@@ -144,6 +145,14 @@ def spd_ok(c: torch.Tensor) -> torch.Tensor:
     e21 = a[:, 2, 1] - l20 * a[:, 1, 0]
     d2 = a[:, 2, 2] - l20 * a[:, 2, 0] - e21 * e21 / d1
     return finite & sym & (d0 > 0) & (d1 > 0) & (d2 > 0)
+
+
+def few_for_lapack(c: torch.Tensor) -> bool:
+    """A batch small enough (≤ 16 matrices, on the CPU) that one LAPACK call costs less than
+    a closed form's few dozen operations, outside ``torch.compile`` (where the closed form
+    fuses; on a GPU the library call would also wait for the device)."""
+    return (c.shape[0] <= 16 and c.device.type == "cpu"
+            and not torch.compiler.is_compiling())
 
 
 def eigvalsh3(c: torch.Tensor) -> torch.Tensor:

@@ -17,13 +17,15 @@ Model::
 
     s_{k+1} = s_k + E z_k + u_k + w_s,   z_{k+1} = F z_k + w_z,   y_k = g(s_k) + c·z_k + e_k
 
-**Update** (`LatticeFilter.update`, the same for every lattice rule; SEEDS point-mass filter of
-Bergman, Ljung and Gustafsson): ``ν = y − g − c·μ``, ``S = cᵀPc + R`` (the same in every
-cell), ``log w += −½ ν²/S`` (optionally a Gaussian + uniform mixture and a per-cell
-likelihood flattening), ``μ += K ν``, ``P ← P − K S Kᵀ``, ``K = P c / S`` (the kernels of
+**Update** (`LatticeFilter.update`, the same for every lattice rule; SEEDS point-mass
+filter of Bergman, Ljung and Gustafsson): ``ν = y − g − c·μ``, ``S = cᵀPc + R`` (the same
+in every cell), ``log w += −½ ν²/S`` (optionally a Gaussian + uniform mixture and a
+per-cell likelihood flattening), ``μ += K ν``, ``P ← P − K S Kᵀ``, ``K = P c / S``
+(`neuralmap.filters.lattice.follow_step.update_core` on the kernels of
 `neuralmap.filters.lattice.kernels`). A run whose likelihood vanishes in every cell keeps
 its prior masses (counted in ``recoveries``; never NaN); a NaN measurement is no
-measurement.
+measurement. `LatticeFilter.predictive_nis` gives the NIS of a measurement against the
+predicted mixture before the update (a spike gate's test).
 
 **Lattice rule** (`neuralmap.filters.lattice.grid_rule.GridLattice`: fixed / adaptive grid
 with deferred diffusion; `neuralmap.filters.lattice.follow_rule.FollowLattice`: the lattice
@@ -31,8 +33,9 @@ that follows the posterior, moment-exact prediction and regrid, lost-track test)
 rule object (attribute ``rule``) holds the lattice options and its own per-run bookkeeping
 (deferred process noise; NIS window, widenings, open-loop prior) and implements
 ``predict``, ``regrid``, the post-update step and the initial lattice of a Gaussian prior.
-The following lattice runs the update, its lost-track window and regrid as one pass of
-static-shape kernels (`neuralmap.filters.lattice.follow_step`). The filter holds the state
+The following lattice can run the update with its lost-track window, regrid and moments as
+one pass of static-shape kernels (`neuralmap.filters.lattice.follow_step`; compiled with
+``TrackerConfig.compile``). The filter holds the state
 once; `neuralmap.filters.point_mass.PointMassFilter` (acquisition, hand-off) and
 `neuralmap.filters.point_mass_tracker.PointMassTracker` (tracking) are configurations of
 it (a rule and a model).
@@ -41,7 +44,6 @@ it (a rule and a model).
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -49,7 +51,7 @@ from typing import Any
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters.lattice import follow_step as fs
+import neuralmap.filters.lattice.follow_step as fs
 from neuralmap.filters.lattice.kernels import LatticeMoments
 
 __all__ = ["STATE", "LatticeFilter", "LatticeUpdate", "to_state"]
@@ -113,7 +115,7 @@ class LatticeFilter:
         lin_cov: ``(N, nz, nz)`` conditional covariance of ``z`` (common to the cells).
         centre: ``(N, 2)`` lattice centres; ``axes``: ``(N, 2, 2)`` cell steps (columns).
         recoveries, regrids: ``(N,)`` int64 counters.
-        rule: The lattice rule (``policy``: its deprecated old name).
+        rule: The lattice rule.
         E, F, c: The model (assigning ``E`` or ``F`` takes effect at the next prediction).
     """
 
@@ -170,20 +172,6 @@ class LatticeFilter:
     @E.setter
     def E(self, value: torch.Tensor) -> None:  # noqa: N802
         self._E = torch.as_tensor(value, dtype=self.dtype, device=self.device)
-
-    @property
-    def policy(self) -> Any:
-        """Deprecated name of `rule` (the lattice rule: "policy" names a filter's update
-        policy in this package)."""
-        warnings.warn("LatticeFilter.policy is deprecated: use LatticeFilter.rule (the "
-                      "lattice rule).", DeprecationWarning, stacklevel=2)
-        return self.rule
-
-    @policy.setter
-    def policy(self, value: Any) -> None:
-        warnings.warn("LatticeFilter.policy is deprecated: use LatticeFilter.rule (the "
-                      "lattice rule).", DeprecationWarning, stacklevel=2)
-        self.rule = value
 
     # ------------------------------------------------------------------ views
     @property

@@ -78,14 +78,25 @@ and implements the prediction, the regrid and the Gaussian lattice of a prior. T
 moment-correction map is computed in float64 in both dtypes: from a float32 eigh an
 elongated posterior's map could collapse the lattice.
 
-**Implementation.** A prediction and an update (with its lost-track window, regrid and the
-moments of the result) are each one pass of static-shape kernels over every run
-(`neuralmap.filters.lattice.follow_step`: no host read inside, rare events as flags),
-followed by one host read of the step's flags; the few runs a rare event touches (a
-posterior narrower than the cells, a blur longer than the step's band, the eigenvalue
-floor of ``P``, a widening, a non-finite prediction) are then redone with the same kernels.
-``TrackerConfig.compile`` runs the two step functions under ``torch.compile`` (the eager
-kernels stay the fallback, tested equal).
+**Implementation.** The kernels are `neuralmap.filters.lattice.follow_step`'s, run by one
+of two drivers (`FollowLattice.static`):
+
+* the **static** driver (``TrackerConfig.compile``, and any CUDA device): a prediction is
+  one pass of static-shape kernels over every run (`follow_step.predict_step`), an update
+  another (`follow_step.update_step`: the measurement update, the lost-track window, the
+  regrid rule, the moved lattices — every run's, masked, or on a large CPU batch only the
+  moved runs', `follow_step.regrid_rows_step` — and the moments of the result); each ends
+  with one host read of its flags, and the rare runs (a posterior narrower than the cells,
+  a widening, two eigenvalues of ``P`` at its floor, a blur longer than the band) go
+  through the eager driver. Under ``torch.compile`` one vehicle's step is a few dozen
+  aten calls instead of a few thousand;
+* the **eager** driver (the CPU default without ``compile``): the same kernels with host
+  branches that skip what no run needs (the blur when no run's noise reaches
+  `BLUR_MIN_CELLS`, the resampling when no run moves, the rare corrections).
+
+Both give the same results to round-off (tests/filters/test_lattice_step.py), and equal
+the algorithm in NumPy, one run at a time (`neuralmap.filters.lattice.reference`;
+tests/filters/test_lattice_reference.py).
 """
 
 from __future__ import annotations
@@ -98,7 +109,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters.lattice import follow_step as fs
+import neuralmap.filters.lattice.follow_step as fs
 from neuralmap.filters.lattice.algebra2 import inv2, solve2, spd_ok
 from neuralmap.filters.lattice.follow_step import (
     BLUR_MIN_CELLS,
@@ -124,13 +135,12 @@ if TYPE_CHECKING:
 
 __all__ = ["BLUR_MIN_CELLS", "MIN_CELL_VARIANCE", "FollowLattice", "TrackerConfig"]
 
+#: Steps that need a narrower blur band before the static step narrows its band.
+BAND_HOLD = 20
+
 #: Runs from which a CPU batch resamples only its moved runs in a regrid (about a third of
 #: them per step) rather than every run, masked.
 COMPACT_MIN_RUNS = 64
-
-#: ``χ²_prob(W) / W`` (kept under its old private name for the navigator's import; the
-#: public function is `neuralmap.filters.stats.chi2_mean_threshold`).
-_chi2_mean_threshold = chi2_mean_threshold
 
 
 @dataclass
@@ -270,7 +280,7 @@ class FollowLattice:
         self._q_next = torch.zeros(n_runs, 2, **kw)
         self._open_mean = torch.zeros(n_runs, 2 + nz, **kw)
         self._open_cov = torch.zeros(n_runs, 2 + nz, 2 + nz, **kw)
-        self._band = 1
+        self._band, self._band_low = 1, 0
         self._compile = self.config.compile
         self.static = self.config.compile or torch.device(device).type == "cuda"
         self._consts: dict[Any, torch.Tensor] = {}
@@ -525,10 +535,14 @@ class FollowLattice:
             u = _as(shift, dt, dev).expand(n, 2)
         if self.static:
             lm = None if self._compile else f.lattice_moments().tensors()
-            state, pts, q_next, om, oc, healthy, read = self._run(
-                "predict", fs.predict_step, *f.state(), lm, f.E, f.F, qs, qz, u,
-                self._open_mean, self._open_cov, f._off, self.params(f))
-            read = read.tolist()  # the step's one host read
+            for _ in range(2):  # a kernel longer than the band: once more with its band
+                state, pts, q_next, om, oc, healthy, read = self._run(
+                    "predict", fs.predict_step, *f.state(), lm, f.E, f.F, qs, qz, u,
+                    self._open_mean, self._open_cov, f._off, self.params(f))
+                read = read.tolist()  # the step's one host read
+                if not read[1] or any(read[i] for i in (0, 2, 3)):
+                    break
+                self._set_band(f, read[-1], now=True)
             if not any(read[:4]):
                 f.set_state(*state)
                 f._cache_points(state[3], state[4], pts)
@@ -539,11 +553,19 @@ class FollowLattice:
                 return
         self._predict_eager(f, qs, qz, u)
 
-    def _set_band(self, f: LatticeFilter, need: float) -> None:
-        """The next static step's blur band (`follow_step.FAST_BAND`): the one this step's
-        kernel needed (a band change compiles one more variant; no redo per step)."""
-        self._band = 1 if need <= 1 else FAST_BAND if need <= FAST_BAND else f.cells - 1
-        self._band = min(self._band, f.cells - 1)
+    def _set_band(self, f: LatticeFilter, need: float, now: bool = False) -> None:
+        """The static step's blur band (`follow_step.FAST_BAND`) for the band this step's
+        kernel needed: wider at once (a band change compiles one more variant), narrower
+        only after `BAND_HOLD` steps that needed less (a kernel that outgrows its band
+        costs a second pass)."""
+        band = 1 if need <= 1 else FAST_BAND if need <= FAST_BAND else f.cells - 1
+        band = min(band, f.cells - 1)
+        if now or band >= self._band:
+            self._band, self._band_low = band, 0
+            return
+        self._band_low += 1
+        if self._band_low >= BAND_HOLD:
+            self._band, self._band_low = band, 0
 
     def _predict_eager(self, f: LatticeFilter, qs: torch.Tensor, qz: torch.Tensor,
                        u: torch.Tensor) -> None:
@@ -589,7 +611,7 @@ class FollowLattice:
             mask = self._const(("all", n), lambda: torch.ones(n, dtype=torch.bool,
                                                                device=f.device))
         mode = "none" if not regrid else "rule" if self._compact(f) else "all"
-        (state, post, pts, mean, cov, nis, innov, loglik, recovered, applied, recoveries,
+        (state, pts, mean, cov, nis, innov, loglik, recovered, applied, recoveries,
          regrids, nis_win, nis_count, widen, special, move, read) = self._run(
             "update", fs.update_step, *f.state(), f.c, y, g, r, mask, cell_variance,
             self._q_next, self._nis_win, self._nis_count, self.lost, slot, f.recoveries,
@@ -602,7 +624,7 @@ class FollowLattice:
             self._step += 1
             self._nis_win, self._nis_count = nis_win, nis_count
         if error:  # as the eager update: the measurement update stays, the regrid raises
-            f.set_state(*post, f.centre, f.axes)
+            f.set_state(*state[:3], f.centre, f.axes)
             self.regrid(f)
         f.regrids = regrids
         if n_move:  # "rule": resample the moved runs together
@@ -614,13 +636,13 @@ class FollowLattice:
             if bool(err.any()):
                 f.set_state(*state)
                 self.regrid(f)
-
-            def merge(x: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+            # the moved rows written in place into the step's own outputs (the lattice
+            # tensors the step returned unchanged are the filter's: copied first)
+            state = tuple(t.clone() if t is old else t
+                          for t, old in zip(state, f.state(), strict=True))
+            for x, a in zip((*state, mean, cov, pts), (*st, m_r, c_r, p_r), strict=True):
                 k = keep.reshape(-1, *([1] * (a.ndim - 1)))
-                return x.index_copy(0, idx, torch.where(k, a, x.index_select(0, idx)))
-
-            state = tuple(merge(x, a) for x, a in zip(state, st, strict=True))
-            mean, cov, pts = merge(mean, m_r), merge(cov, c_r), merge(pts, p_r)
+                x.index_copy_(0, idx, torch.where(k, a, x.index_select(0, idx)))
             special = special.index_copy(0, idx, sp | special.index_select(0, idx))
             any_special = any_special or bool(sp.any())
             f.regrids = f.regrids.index_add(0, idx, keep.long())

@@ -2,36 +2,43 @@
 
 The kernels of `neuralmap.filters.lattice.follow_rule.FollowLattice` (the ``follow`` lattice
 rule of `neuralmap.filters.lattice.filter.LatticeFilter`; model, equations and rules in
-that module's docstring): the prediction (`predict_core`), the measurement update with the
-lost-track window and the regrid after it (`update_step`, `regrid_rule`, `regrid_move`), the moment
-correction (`matched_core`) and the lattice for a Gaussian (`lattice_for_core`), for N
-runs at once in a fixed number of tensor operations:
+that module's docstring) — the prediction (`predict_prepare`, `predict_finish`), the
+measurement update (`update_core`), the lost-track window (`lost_window_core`), the regrid
+(`regrid_rule`, `regrid_move`), the moment correction (`matched_core`, `transport2`,
+`p_floor`) and the lattice for a Gaussian (`lattice_for_core`) — and the two **static
+steps** composed of them, `predict_step` and `update_step` (with `regrid_rows_step`), for
+N runs at once in a fixed sequence of tensor operations:
 
 * **no data-dependent Python branch.** Every run computes every path and keeps its own by
-  ``torch.where`` (a regrid for every run, kept where the rule moves it); nothing reads a
-  tensor on the host, so nothing synchronises a GPU inside a step;
-* **rare events are flags.** What is rare and costs a full lattice when computed for every
-  run — a posterior narrower than the cells (its Gaussian refit), a blur kernel longer than
-  the step's band, a conditional covariance of the linear part at its eigenvalue floor, a
-  non-finite prediction, a lost-track widening, a lattice error — is returned as an
-  ``(N,)`` flag; the driver (`FollowLattice`) reads all flags of a step in one host read
-  and redoes exactly the affected runs with the same kernels (results equal to running
-  every branch eagerly, tested);
-* **one source for eager, CPU code generation and CUDA.** `compiled` wraps the two step
-  functions in ``torch.compile`` (inductor: C++ on the CPU, Triton on CUDA); the eager
-  functions are the fallback and the reference the compiled ones are tested against.
+  ``torch.where`` (its moved lattice kept where the regrid rule moves it); a step returns
+  what fired as a few flags, which its driver reads in one host read per prediction and
+  per update (one more, the number of moved runs, where a large CPU batch resamples only
+  those: about a third per step);
+* **rare events are flags, not work for every run.** A posterior narrower than the cells
+  (its Gaussian refit), a blur kernel longer than the step's band, two eigenvalues of the
+  linear part's covariance at its floor, a lost-track widening, a lattice error: the
+  driver redoes the prediction, or the update of the runs concerned, with the eager
+  branches of the same kernels (results equal to the eager driver, tested);
+* **one source for eager, CPU code generation and CUDA.** `compiled` wraps the step
+  functions in ``torch.compile`` (inductor: C++ on the CPU, Triton on CUDA); run eagerly
+  they are the fallback and the reference the compiled ones are tested against
+  (tests/filters/test_lattice_step.py). Small matrix products go through
+  `neuralmap.filters.lattice.algebra2.mm` (fused by the code generator), the bilinear
+  resampling of many runs through one library call (`kernels.resample_bilinear`).
 
-Precision: the state, the update and the convolutions run in the filter's dtype. Two
-places are computed in float64 in both dtypes, where float32 is not accurate enough:
+Precision: the state, the update and the convolutions run in the filter's dtype; float64 in
+both dtypes only where float32 is not accurate enough:
 
-* the 2 × 2 moment-correction map ``T`` (`matched_core`): from a float32 eigh of an
-  elongated posterior (condition ~1e4 and above) the small eigenvalue is at round-off level
-  and ``T`` would collapse the lattice along it (a float32 tracker at 32 cells crashed;
-  tests/filters/test_point_mass_tracker.py::
+* the 2 × 2 moment-correction map ``T`` (`transport2`): its determinants of an elongated
+  posterior (condition ~1e4 and above) lose that many digits; in float32 the small
+  direction is at round-off and ``T`` collapsed the lattice (a float32 tracker at 32
+  cells crashed; tests/filters/test_point_mass_tracker.py::
   test_float32_moment_correction_of_an_elongated_posterior_keeps_its_covariance);
-* the positive-definiteness tests and the eigenvalue-floor check of the linear part's
-  covariance (`neuralmap.filters.lattice.algebra2.spd_ok`, ``eigvalsh3``): decisions
-  compared with ``1e-12`` of the largest eigenvalue.
+* the positive-definiteness tests (`neuralmap.filters.lattice.algebra2.spd_ok`,
+  ``spd2_ok``) and the eigenvalues of the eigenvalue floor (`p_floor`, ``eigvalsh3``):
+  decisions against ``1e-12`` of the largest eigenvalue
+  (tests/filters/test_lattice_step.py::
+  test_eigenvalue_floor_of_the_linear_part_is_the_lapack_floor).
 
 Lattice coordinates: ``o = (j − h, i − h)`` for cell ``(i, j)``; ``off (G,)`` holds
 ``j − h``.
@@ -44,18 +51,17 @@ from typing import Any, NamedTuple
 
 import torch
 
-from neuralmap.filters.lattice import kernels as _kernels
+import neuralmap.filters.lattice.kernels as _kernels
 from neuralmap.filters.lattice.algebra2 import (
     eigh2,
-    eigvalsh2,
     eigvalsh3,
+    few_for_lapack,
     inv2,
     mm,
     mv,
     solve2,
     spd2_ok,
     spd_ok,
-    sqrtm2,
 )
 from neuralmap.filters.lattice.kernels import (
     affine_field,
@@ -240,11 +246,13 @@ def p_floor(P: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The linear part's covariance with its eigenvalues floored at ``P_FLOOR`` of the
     largest (round-off: keeps the Kalman part positive definite), and a flag.
 
-    ``P = V diag(max(λ, f)) Vᵀ``. ``nz ≤ 2``: closed form. ``nz = 3``: the eigenvalues in
+    ``P = V diag(max(λ, f)) Vᵀ``. ``nz ≤ 2``: closed form. ``nz = 3``: for a few runs
+    outside ``torch.compile`` LAPACK (`floor_p_rows`); else the eigenvalues in
     closed form (`eigvalsh3`, float64) and, where the smallest is below the floor, the
     rank-one correction ``P + (f − λ_min) v vᵀ`` with ``v`` the cross product of two rows of
     ``P − λ_min I`` (the same matrix: only ``λ_min`` is floored); the flag is set where the
-    two smallest eigenvalues are not separated (``v`` undefined: the driver floors those
+    two smallest eigenvalues are within 1e-6 of the largest of each other (``v``
+    ill-defined, the closed form's eigenvalues less accurate there: the driver floors those
     runs with LAPACK, `floor_p_rows`). Larger ``nz``: LAPACK in the step.
 
     Returns:
@@ -252,13 +260,17 @@ def p_floor(P: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """
     nz = P.shape[-1]
     none = torch.zeros(P.shape[0], dtype=torch.bool, device=P.device)
+    if nz == 3 and few_for_lapack(P):
+        return floor_p_rows(P), none
     if nz == 3:
         a = P.double()
         lam = eigvalsh3(a)
         big = lam.abs().amax(-1).clamp_min(1e-300)
         floor = P_FLOOR * big
         low = lam[:, 0] < floor
-        hard = low & (lam[:, 1] - lam[:, 0] < 1e-8 * big)
+        # the trigonometric eigenvalues of a near-degenerate pair err by ~sqrt(eps)·|λ|:
+        # such a pair at the floor is LAPACK's (`floor_p_rows`)
+        hard = low & (lam[:, 1] - lam[:, 0] < 1e-6 * big)
         m = a - lam[:, 0, None, None] * torch.eye(3, dtype=a.dtype, device=a.device)
         r0, r1, r2 = m[:, 0], m[:, 1], m[:, 2]
         crosses = torch.stack([_cross(r0, r1), _cross(r0, r2), _cross(r1, r2)], 1)
@@ -290,10 +302,13 @@ def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def floor_p_rows(P: torch.Tensor) -> torch.Tensor:
     """``P (K, nz, nz)`` with eigenvalues below ``P_FLOOR`` of the largest raised to it
-    (LAPACK eigh: the runs `p_floor` flags)."""
-    lam, vec = torch.linalg.eigh(P)
+    (LAPACK eigh: the runs `p_floor` flags, or a few runs outside ``torch.compile``);
+    non-finite matrices are returned unchanged."""
+    ok = torch.isfinite(P).flatten(1).all(1)
+    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
+    lam, vec = torch.linalg.eigh(torch.where(ok[:, None, None], P, eye))
     floor = P_FLOOR * lam.abs().amax(-1, keepdim=True).clamp_min(1e-300)
-    low = (lam < floor).any(-1)
+    low = (lam < floor).any(-1) & ok
     fixed = _sym((vec * lam.clamp_min(floor)[:, None, :]) @ vec.transpose(1, 2))
     return torch.where(low[:, None, None], fixed, P)
 
@@ -531,7 +546,7 @@ def regrid_rule(lm: tuple[torch.Tensor, ...], axes: torch.Tensor, q_next: torch.
 
 def regrid_move(w: torch.Tensor, mu: torch.Tensor, P: torch.Tensor, centre: torch.Tensor,
                 axes: torch.Tensor, lm: tuple[torch.Tensor, ...], q_next: torch.Tensor,
-                off: torch.Tensor, p: FollowParams) -> dict[str, Any]:
+                off: torch.Tensor, p: FollowParams, opaque: bool = False) -> dict[str, Any]:
     """The runs moved to a lattice centred on their mean, sized for ``± span_sigma σ``
     (`lattice_for_core`), with their moments kept exactly.
 
@@ -559,7 +574,8 @@ def regrid_move(w: torch.Tensor, mu: torch.Tensor, P: torch.Tensor, centre: torc
     log_r = (log_r - log_r.amax((1, 2), keepdim=True)).clamp_min(LOG_R_FLOOR)
     gzu = solve2(cu, czu.transpose(1, 2)).transpose(1, 2)
     resid = mu - mz[:, :, None, None] - affine_field(off, gzu, u)
-    out = resample_bilinear(torch.cat([log_r[:, None], resid], 1), uv, padding="border")
+    out = resample_bilinear(torch.cat([log_r[:, None], resid], 1), uv, padding="border",
+                            opaque=opaque)
     ia_n = inv2(a_n)
     cu_n = _sym(mm(mm(ia_n, t.css), ia_n.transpose(1, 2)))
     zero = torch.zeros_like(u)
@@ -675,7 +691,7 @@ def _moved(new: dict[str, Any], move: torch.Tensor,
     inseparable eigenvalue floor), and its lattice errors."""
     special = (new["thin"] | new["floor"]) & move
     error = (new["too_coarse"] | new["bad"]) & move
-    return move & ~special, special, error
+    return move & ~special & ~error, special, error
 
 
 def regrid_rows_step(w: torch.Tensor, mu: torch.Tensor, P: torch.Tensor, centre: torch.Tensor,
@@ -689,7 +705,7 @@ def regrid_rows_step(w: torch.Tensor, mu: torch.Tensor, P: torch.Tensor, centre:
         flag), ``special`` ``(K,)`` (to the driver's eager path), ``error`` ``(K,)``.
     """
     new = regrid_move(w, mu, P, centre, axes, lattice_moment_tensors(w, mu, off), q_next,
-                      off, p)
+                      off, p, opaque=True)
     keep, special, error = _moved(new, torch.ones_like(q_next[:, 0], dtype=torch.bool))
     st = new["state"]
     mean, cov = joint_moments(state_moments(lattice_moment_tensors(st[0], st[1], off), st[2],
@@ -717,9 +733,8 @@ def update_step(w: torch.Tensor, mu: torch.Tensor, P: torch.Tensor, centre: torc
     updated state, unregridded.
 
     Returns:
-        ``state`` (the result), ``post`` (``(w, mu, P)`` after the measurement update, for
-        the special runs), ``points``, ``mean``, ``cov`` (of the result), ``nis`` (NaN where
-        not applied), ``innovation``, ``log_likelihood``, ``recovered``, ``applied``, the
+        ``state`` (the result; the special runs at their updated state), ``points``,
+        ``mean``, ``cov`` (of the result), ``nis`` (NaN where not applied), ``innovation``, ``log_likelihood``, ``recovered``, ``applied``, the
         counters ``recoveries``, ``regrids`` (the moves made here), the window ``nis_win``,
         ``nis_count``, ``widen``, ``special``, ``move`` (``"rule"``: the runs the driver is
         to move) and ``read`` ``(4,)`` float: whether any run raised each of
@@ -756,7 +771,7 @@ def update_step(w: torch.Tensor, mu: torch.Tensor, P: torch.Tensor, centre: torc
         move = torch.zeros_like(move)  # nothing left to the driver
     read = torch.stack([up["r_bad"].any(), special.any(), error.any()]).to(w.dtype)
     read = torch.cat([read, move.sum()[None].to(w.dtype)])
-    return (final, (w1, mu1, P1), lattice_points(final[3], final[4], off), mean, cov,
+    return (final, lattice_points(final[3], final[4], off), mean, cov,
             torch.where(applied, up["nis"], math.nan), up["innovation"],
             up["log_likelihood"], up["recovered"], applied,
             recoveries + up["recovered"].long(), regrids, nis_win, nis_count, widen, special,
@@ -785,6 +800,11 @@ def compiled(name: str, fn):
     """``torch.compile`` of one step function (cached per name; ``fullgraph``: a step has no
     host read). Raises what ``torch.compile`` raises when the backend is unavailable."""
     if name not in _COMPILED:
+        # a step compiles once per batch size (then for any), blur band, dtype and option
+        # set: more variants than dynamo's default of 8 per function in one process
+        limit = getattr(torch._dynamo.config, "recompile_limit", None)
+        if limit is not None and limit < 32:
+            torch._dynamo.config.recompile_limit = 32
         _COMPILED[name] = torch.compile(fn, fullgraph=True, dynamic=None,
                                         options=dict(COMPILE_OPTIONS))
     return _COMPILED[name]

@@ -68,6 +68,11 @@ class PointMassOptions(PointMassConfig):
             the predicted grid mixture is past the gate is not used). Off by default: with
             every mode on the grid a spike moves little mass, and the lost-lock test catches
             a wrong match after the hand-off.
+        growth_horizon_s: The grid is sized for the prior grown over this acquisition
+            horizon by its velocity error and process noise (``P_pp + H (P_pv + P_vp) + H²
+            P_vv + (H/T) Q_p``), not for the prior alone: a fixed grid must still hold the
+            truth when the velocity error has carried it away (a small UAV's 0.2 m/s over
+            150 s is 30 m against a 10 m prior). 0 = the prior's σ alone.
 
     The grid's own options (`PointMassConfig`) keep their meaning; defaults here:
     ``adaptive`` False (the prior's grid throughout: on jacksboro, σ0 = 1 km, 100 runs, the
@@ -86,6 +91,7 @@ class PointMassOptions(PointMassConfig):
     flatten_likelihood: bool = True
     velocity_from_grid: bool = True
     spike_gate: bool = False
+    growth_horizon_s: float = 60.0
 
     def grid_cells(self, sigma: float) -> int:
         """Cells per axis for a prior of largest standard deviation ``sigma`` (m)."""
@@ -220,13 +226,16 @@ class PointMassGrid(NavigationMethod):
             return
         mean, cov = mean.index_select(0, rows), symmetrize(cov.index_select(0, rows))
         dt = self.dtype
-        sigma = float(torch.linalg.eigvalsh(cov[:, :2, :2])[:, -1].max().clamp_min(0.0).sqrt())
+        sigma = float(torch.linalg.eigvalsh(self._grown(cov))[:, -1].max().clamp_min(0.0).sqrt())
         cells = self.pm.cells if self.pm is not None else self.options.grid_cells(sigma)
+        spacing = max(self.options.span_sigma * sigma / (0.5 * (cells - 1)),
+                      self.options.min_spacing)  # one spacing: the grown prior of every row
         fresh = PointMassFilter(mean[:, :2].to(dt), cov[:, :2, :2].to(dt),
                                 scalar_mean=mean[:, 2].to(dt),
                                 scalar_var=cov[:, 2, 2].clamp_min(1.0).to(dt),
                                 config=dataclasses.replace(self.options.grid_config(sigma),
-                                                           cells=cells), dtype=dt)
+                                                           cells=cells, spacing=spacing),
+                                dtype=dt)
         vel = _VelocityPrior.from_gaussian(mean, cov)
         if self.pm is None:
             self.pm, self.vel = fresh, vel
@@ -234,6 +243,17 @@ class PointMassGrid(NavigationMethod):
             self.pm, self.vel = self.pm.extend(fresh), self.vel.extend(vel)
         self.members = torch.cat([self.members, rows])
         self._dirty = True
+
+    def _grown(self, cov: torch.Tensor) -> torch.Tensor:
+        """``(M, 2, 2)`` the position covariance grown over `growth_horizon_s`
+        (``P_pp + H (P_pv + P_vp) + H² P_vv + (H/T) Q_p``)."""
+        h = float(self.options.growth_horizon_s)
+        if h <= 0:
+            return cov[:, :2, :2]
+        qp = torch.diag_embed(self._q_nominal[0].to(cov))
+        pv = cov[:, :2, 3:]
+        return symmetrize(cov[:, :2, :2] + h * (pv + pv.transpose(1, 2)) + h * h * cov[:, 3:, 3:]
+                          + (h / self.context.model.dt) * qp)
 
     def drop(self, mask: torch.Tensor) -> None:
         """Vehicles ``mask`` leave the grid (their rows are removed)."""
@@ -324,12 +344,12 @@ class PointMassGrid(NavigationMethod):
         self._dirty = False
         return self._mean, self._cov
 
-    def protection_level(self, risk: float, gaussian: torch.Tensor) -> torch.Tensor:
+    def protection_level(self, risk: float, gaussian: torch.Tensor,
+                         mean: torch.Tensor) -> torch.Tensor:
         """From the grid's mass for its members (`lattice_protection_radius`)."""
         out = gaussian.double().clone()
         if self.pm is not None:
             rows = self.members
-            mean, _ = self.estimate()
             out[rows] = lattice_protection_radius(
                 self.pm.points(), self.pm.weights, self.pm.axes, mean.index_select(0, rows)[:, :2],
                 risk, gaussian.index_select(0, rows))

@@ -174,10 +174,10 @@ class PointMassTrackerMethod(NavigationMethod):
         mean, cov = self.tracker.moments()
         return mean.double(), cov.double()
 
-    def protection_level(self, risk: float, gaussian: torch.Tensor) -> torch.Tensor:
+    def protection_level(self, risk: float, gaussian: torch.Tensor,
+                         mean: torch.Tensor) -> torch.Tensor:
         """From the lattice's mass (`neuralmap.tan.cells.lattice_protection_radius`)."""
         trk = self.tracker
-        mean, _ = self.estimate()
         return lattice_protection_radius(trk.points(), trk.weights, trk.axes, mean[:, :2],
                                          risk, gaussian)
 

@@ -50,8 +50,8 @@ from typing import Any
 
 import torch
 
-from neuralmap.exceptions import NeuralMapError
 import neuralmap.filters.lattice.follow_step as fs
+from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.lattice.kernels import LatticeMoments
 
 __all__ = ["STATE", "LatticeFilter", "LatticeUpdate", "to_state"]

@@ -108,8 +108,8 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from neuralmap.exceptions import NeuralMapError
 import neuralmap.filters.lattice.follow_step as fs
+from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.lattice.algebra2 import inv2, solve2, spd_ok
 from neuralmap.filters.lattice.follow_step import (
     BLUR_MIN_CELLS,

@@ -24,6 +24,26 @@ def tiny_scenario() -> Any:  # noqa: ANN401 - Scenario
 
 
 @pytest.fixture(scope="session")
+def tiny_wide_prior(tiny_scenario: Any) -> tuple[Any, ...]:
+    """The tiny scenario with a 120 m prior (wide enough for the acquisition grid), 8 runs
+    of 40 s: ``(scenario, tile, truth, bilinear GridTerrain)``."""
+    import dataclasses
+
+    from neuralmap.lab.scenario import scenario_tile
+    from neuralmap.lab.simulator import simulate
+    from neuralmap.terrain.grid import GridTerrain
+
+    sig = 120.0
+    scenario = dataclasses.replace(
+        tiny_scenario, init_pos_sigma_m=sig, start_xy=[900.0, 900.0], start_spread_m=50.0,
+        P0_diag=[sig**2, sig**2] + list(tiny_scenario.P0_diag[2:]), duration_s=40.0,
+    ).validate()
+    tile = scenario_tile(scenario)
+    truth = simulate(scenario, tile, n_runs=8, seed=3)
+    return scenario, tile, truth, GridTerrain(tile, method="bilinear")
+
+
+@pytest.fixture(scope="session")
 def tiny_tile(tiny_scenario: Any) -> Any:  # noqa: ANN401 - DemTile
     """The tiny scenario's synthetic DEM tile."""
     from neuralmap.lab.scenario import scenario_tile

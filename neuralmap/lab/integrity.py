@@ -11,7 +11,11 @@ risk the flight's protection levels were computed at:
   within it — rate over all epochs;
 * **availability**: the share of epochs whose HPL is within the alert limit;
 * **error beyond HPL** at any status: the rate over all epochs (a filter that never says
-  ``tracking`` — gentle relief keeps it ``acquiring`` — still has an HPL that must hold).
+  ``tracking`` — gentle relief keeps it ``acquiring`` — still has an HPL that must hold);
+* **diverged runs flagged first**: of the runs the study's divergence rule counts as
+  diverged, those that said so before their error left their HPL — at the first epoch whose
+  error exceeds the HPL the status is not ``tracking`` (``acquiring`` or ``lost``), or the
+  error never exceeds it. A silent divergence is a run still ``tracking`` at that epoch.
 
 The Stanford diagram (`neuralmap.viz.integrity.plot_stanford`) draws the same epochs as a
 2-D histogram of error against HPL.
@@ -48,19 +52,36 @@ def _rate(k: int, n: int) -> dict[str, Any]:
     return {"count": k, "epochs": n, "rate": k / n, "ci95": [float(ci.low), float(ci.high)]}
 
 
-def integrity_metrics(run: Any, *, alert_limit_m: float) -> dict[str, Any]:
+def _flagged_first(err: torch.Tensor, hpl: torch.Tensor, tracking: torch.Tensor
+                   ) -> torch.Tensor:
+    """``(N,)`` bool: at the first epoch whose error exceeds the HPL the status is not
+    tracking, or no epoch exceeds it (``err``, ``hpl``, ``tracking`` ``(N, K)``)."""
+    over = err > hpl
+    k = over.shape[1]
+    steps = torch.arange(k).expand_as(over)
+    first = torch.where(over, steps, k).amin(1)  # K: never exceeded
+    tracking_then = tracking.gather(1, first.clamp_max(k - 1)[:, None])[:, 0]
+    return (first == k) | ~tracking_then
+
+
+def integrity_metrics(run: Any, *, alert_limit_m: float,
+                      diverged: Any = None) -> dict[str, Any]:
     """Misleading, hazardous and available epochs of a flight, per integrity risk.
 
     Args:
         run: A `neuralmap.lab.monte_carlo.FilterRun` with ``status`` and ``protection``
             (risk → ``(N, K+1)`` HPL, m).
         alert_limit_m: Horizontal alert limit, m.
+        diverged: ``(N,)`` bool, the runs the study's divergence rule counts as diverged
+            (`neuralmap.lab.metrics.navigation_metrics`' ``diverged``), or None.
 
     Returns:
         ``{"alert_limit_m", "risks": {risk: {"misleading", "exceeded", "hazardous",
-        "available", "hpl_median_m", "within_risk"}}}`` where each of the four is ``{"count",
-        "epochs", "rate", "ci95"}`` and ``within_risk`` says whether the MI rate is at most
-        the risk (None without tracking epochs).
+        "available", "hpl_median_m", "within_risk", "diverged_flagged"}}}`` where each of
+        the four is ``{"count", "epochs", "rate", "ci95"}``, ``within_risk`` says whether the
+        MI rate is at most the risk (None without tracking epochs) and
+        ``diverged_flagged`` is ``{"runs", "flagged"}`` over the included diverged runs
+        (None without ``diverged``).
 
     Raises:
         NeuralMapError: The run has no status or protection levels, or a bad alert limit.
@@ -74,6 +95,13 @@ def integrity_metrics(run: Any, *, alert_limit_m: float) -> dict[str, Any]:
     from neuralmap.nav.fix import STATUS_CODE
 
     err, status, included = scored_epochs(run)
+    div = None
+    if diverged is not None:
+        div = torch.as_tensor(diverged, dtype=torch.bool).reshape(-1).cpu()
+        if div.numel() != included.numel():
+            raise NeuralMapError(f"integrity_metrics: diverged has {div.numel()} runs, the "
+                                 f"flight {included.numel()}.")
+        div = div[included]
     err, status = err[included], status[included]
     tracking = status == STATUS_CODE["tracking"]
     out: dict[str, Any] = {"alert_limit_m": float(alert_limit_m), "risks": {}}
@@ -88,6 +116,9 @@ def integrity_metrics(run: Any, *, alert_limit_m: float) -> dict[str, Any]:
             "available": _rate(int(within.sum()), err.numel()),
             "hpl_median_m": float(hpl.median()) if hpl.numel() else None,
             "within_risk": None if mi["rate"] is None else bool(mi["rate"] <= risk),
+            "diverged_flagged": None if div is None else {
+                "runs": int(div.sum()),
+                "flagged": int(_flagged_first(err[div], hpl[div], tracking[div]).sum())},
         }
         out["risks"][f"{risk:g}"] = entry
     return out

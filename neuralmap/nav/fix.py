@@ -196,18 +196,3 @@ class FixTrack:
     def status_names(self) -> list[list[str]]:
         """``N × K`` status names."""
         return status_names(self.status)
-
-    @staticmethod
-    def stack(fixes: list[Fix], counts: dict[str, int] | None = None) -> FixTrack:
-        """Stacks per-epoch fixes (all of the same N) along a new time axis."""
-        if not fixes:
-            raise ValueError("FixTrack.stack: no fixes.")
-        present = {name for name in FIX_FIELDS if getattr(fixes[0], name) is not None}
-
-        def along(name: str) -> torch.Tensor:
-            return torch.stack([getattr(f, name) for f in fixes], 1)
-
-        per_epoch = {name: along(name) for name in FIX_FIELDS
-                     if name != "t" and name in present}
-        return FixTrack(t=torch.stack([f.t[0] for f in fixes]), **per_epoch,
-                        counts=dict(counts or {}))

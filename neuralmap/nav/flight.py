@@ -225,21 +225,13 @@ def navigate_flight(config: FlightOptions) -> FlightNavigation:
 
 
 def _replay(navigator: Any, flight: Any, *, progress: bool) -> Any:
-    """`Navigator.replay` with a progress bar (heartbeat lines off a terminal): the
-    same reset and `Navigator.step` per epoch, so the same fixes bit for bit."""
-    from neuralmap.nav.fix import FixTrack
+    """`Navigator.replay` of the flight with a progress bar (heartbeat lines off a
+    terminal); the track is filled in place, epoch by epoch."""
     from neuralmap.progress import stage_progress
 
-    k = flight.n_epochs
-    navigator.reset()
-    fixes = []
-    with stage_progress("navigate", k, "epochs", enabled=progress) as advance:
-        for i in range(k):
-            fixes.append(navigator.step(flight.t[i], flight.ins_position[:, i],
-                                        flight.ins_altitude[:, i], flight.clearance[:, i]))
-            if advance is not None:
-                advance(1.0 / k)
-    return FixTrack.stack(fixes, counts=navigator.counts)
+    with stage_progress("navigate", flight.n_epochs, "epochs", enabled=progress) as advance:
+        return navigator.replay(flight.t, flight.ins_position, flight.ins_altitude,
+                                flight.clearance, progress=advance)
 
 
 def write_flight(nav: FlightNavigation, outputs: Any) -> None:

@@ -336,7 +336,9 @@ def run(config: TanStudyConfig, outputs: StudyOutputs) -> None:
     outputs.add_text(report_text(results))
     results["integrity"] = add_integrity(
         outputs, runs, alert_limit_m=config.alert_limit_m,
-        targets=tuple(m for m in (_default_method(), PointMassEkf.name) if m in runs))
+        targets=tuple(m for m in (_default_method(), PointMassEkf.name) if m in runs),
+        diverged={name: m["diverged"] for name, m in method_metrics.items()
+                  if m.get("diverged") is not None})
     results["timing_s"]["total"] = time.perf_counter() - started
     default = _default_method()
     info = (navigator_info or {}).get(default, {})

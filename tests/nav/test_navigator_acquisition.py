@@ -14,31 +14,21 @@ import torch
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.lab.monte_carlo import FilterRun, fly, study_navigator_config
-from neuralmap.lab.scenario import scenario_tile
-from neuralmap.lab.simulator import simulate
 from neuralmap.nav.fix import STATUS_CODE
 from neuralmap.nav.integrity import largest_sigma
 from neuralmap.nav.navigator import Navigator
 from neuralmap.tan.method import MethodContext
 from neuralmap.tan.methods.point_mass import PointMassGrid, PointMassOptions
 from neuralmap.tan.model import TanModel
-from neuralmap.terrain.grid import GridTerrain
 
 D = torch.float64
 ACQ, TRK, LOST, OFF = (STATUS_CODE[k] for k in ("acquiring", "tracking", "lost", "off_map"))
 
 
 @pytest.fixture(scope="module")
-def tiny(tiny_scenario: Any) -> tuple[Any, ...]:  # noqa: ANN401
-    """The tiny scenario with a 120 m prior, 8 runs of 40 s."""
-    sig = 120.0
-    scenario = dataclasses.replace(
-        tiny_scenario, init_pos_sigma_m=sig, start_xy=[900.0, 900.0], start_spread_m=50.0,
-        P0_diag=[sig**2, sig**2] + list(tiny_scenario.P0_diag[2:]), duration_s=40.0,
-    ).validate()
-    tile = scenario_tile(scenario)
-    truth = simulate(scenario, tile, n_runs=8, seed=3)
-    return scenario, tile, truth, GridTerrain(tile, method="bilinear")
+def tiny(tiny_wide_prior: tuple[Any, ...]) -> tuple[Any, ...]:
+    """The tiny scenario with a 120 m prior, 8 runs of 40 s (conftest)."""
+    return tiny_wide_prior
 
 
 def test_largest_sigma_equals_numpy_eigenvalues() -> None:

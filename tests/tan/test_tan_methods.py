@@ -13,28 +13,19 @@ import pytest
 import torch
 
 from neuralmap.lab.monte_carlo import fly, study_navigator_config
-from neuralmap.lab.scenario import scenario_tile
-from neuralmap.lab.simulator import simulate
 from neuralmap.linearize.factory import make_linearizer
 from neuralmap.nav.fix import STATUS_CODE
 from neuralmap.tan.method import MethodContext
 from neuralmap.tan.methods.ekf_bank import EkfBank, EkfBankOptions
 from neuralmap.tan.model import TanModel
 from neuralmap.terrain.base import inside_extent
-from neuralmap.terrain.grid import GridTerrain
 
 
 @pytest.fixture(scope="module")
-def tiny(tiny_scenario: Any) -> tuple[Any, ...]:  # noqa: ANN401
-    """The tiny scenario with a 120 m prior, 8 runs of 40 s."""
-    sig = 120.0
-    scenario = dataclasses.replace(
-        tiny_scenario, init_pos_sigma_m=sig, start_xy=[900.0, 900.0], start_spread_m=50.0,
-        P0_diag=[sig**2, sig**2] + list(tiny_scenario.P0_diag[2:]), duration_s=40.0,
-    ).validate()
-    tile = scenario_tile(scenario)
-    truth = simulate(scenario, tile, n_runs=8, seed=3)
-    grid = GridTerrain(tile, method="bilinear")
+def tiny(tiny_wide_prior: tuple[Any, ...]) -> tuple[Any, ...]:
+    """The tiny scenario with a 120 m prior, 8 runs of 40 s (conftest), with the bilinear
+    linearizer."""
+    scenario, tile, truth, grid = tiny_wide_prior
     return scenario, tile, truth, grid, make_linearizer("bilinear", tile=tile)
 
 

@@ -23,13 +23,7 @@ from neuralmap.terrain.grid import GridTerrain
 from neuralmap.terrain.latent.tileset_layout import window_tile
 
 #: A .prj as GDAL and ESRI tools write it (no AUTHORITY node): UTM zone 16N on WGS 84.
-ESRI_UTM16N = (
-    'PROJCS["WGS_1984_UTM_Zone_16N",GEOGCS["GCS_WGS_1984",DATUM["D_WGS_1984",SPHEROID['
-    '"WGS_1984",6378137.0,298.257223563]],PRIMEM["Greenwich",0.0],UNIT["Degree",'
-    '0.0174532925199433]],PROJECTION["Transverse_Mercator"],PARAMETER["False_Easting",'
-    '500000.0],PARAMETER["False_Northing",0.0],PARAMETER["Central_Meridian",-87.0],'
-    'PARAMETER["Scale_Factor",0.9996],PARAMETER["Latitude_Of_Origin",0.0],UNIT["Meter",1.0]]'
-)
+ESRI_UTM16N = (Path(__file__).parents[1] / "data" / "esri_utm16n.prj").read_text().strip()
 LAYERS = ("height", "residual", "slope")
 
 

@@ -11,7 +11,8 @@ flight logs). What it refuses, with the file, the column and the row:
 * a non-number in a numeric column (``text_columns`` may hold text).
 
 Memory: a CSV is streamed row by row into one ``array('d')`` per numeric column (8 bytes a
-value), so a log of a million rows and ten columns reads in about 80 MB.
+value), so a log of a million rows and ten columns reads in about 80 MB; a text column
+holds one string object per distinct value (flight ids repeat) and a pointer per row.
 """
 
 from __future__ import annotations
@@ -76,6 +77,7 @@ def _read_csv(path: Path, what: str, text: tuple[str, ...]) -> dict[str, np.ndar
                 seen[name] = col
             numeric = {i: array("d") for i, n in enumerate(names) if n not in text}
             words: dict[int, list[str]] = {i: [] for i, n in enumerate(names) if n in text}
+            seen_words: dict[str, str] = {}  # one object per distinct text (flight ids repeat)
             for line, row in enumerate(reader, start=2):
                 if not row or (len(row) == 1 and not row[0].strip()):
                     continue  # a blank line
@@ -92,7 +94,8 @@ def _read_csv(path: Path, what: str, text: tuple[str, ...]) -> dict[str, np.ndar
                             f"{path}, line {line}, column {names[i]!r}: {value!r} is not a "
                             "number.") from None
                 for i, store in words.items():
-                    store.append(row[i].strip())
+                    word = row[i].strip()
+                    store.append(seen_words.setdefault(word, word))
     except UnicodeDecodeError as exc:
         raise NeuralMapError(
             f"{path}: not UTF-8 text (byte {exc.start} cannot be decoded: "

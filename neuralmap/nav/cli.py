@@ -83,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Write TensorBoard events (default true).")
     p.add_argument("--progress", default="true", choices=("true", "false"),
                    help="Progress bar on a terminal, heartbeat lines otherwise (default true).")
+    p.add_argument("--chunk_epochs", type=int, default=50_000, metavar="K",
+                   help="Epochs replayed at a time: memory holds K x vehicles full fixes "
+                   "(~330 bytes each); the results do not depend on it (default %(default)s).")
     return p
 
 
@@ -111,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
             radar=args.radar, reference=args.reference, alt_datum=args.alt_datum,
             geoid_undulation=args.geoid_undulation, dem_accuracy_m=args.dem_accuracy_m,
             datum_check=not args.no_datum_check, dtype=args.dtype,
-            progress=args.progress == "true",
+            progress=args.progress == "true", chunk_epochs=args.chunk_epochs,
             navigator_options={} if args.max_gap is None else {
                 "sensor": {"max_gap_s": args.max_gap}})
         config.validate()
@@ -120,9 +123,11 @@ def main(argv: list[str] | None = None) -> int:
                 raise NeuralMapError(f"--threads must be >= 1, got {args.threads}.")
             torch.set_num_threads(args.threads)
         root = check_writable_dir(args.out, option="--out")
-        nav = navigate_flight(config)  # every refusal happens here, before any write
         with StudyOutputs(root, config=config, title=FLIGHT_TITLE,
                           tensorboard=args.tensorboard == "true") as outputs:
+            # every refusal happens before the replay, and the outputs' folder is made only
+            # when the replay starts: a refused log writes nothing
+            nav = navigate_flight(config, outputs=outputs)
             write_flight(nav, outputs)
             out_dir = outputs.finalize()
     except NeuralMapError as exc:

@@ -237,6 +237,20 @@ def _names(path: Path) -> list[str]:
     return [h.strip() for h in header]
 
 
+def _column_names(path: Path) -> set[str]:
+    """The column names of a CSV/NPZ log: a CSV's header line alone (a long log is not
+    parsed twice); an NPZ's (or a CSV whose header cannot be read: the reader's refusal)
+    from `_columns`."""
+    if path.suffix.lower() == ".csv":
+        try:
+            names = [n for n in _names(path) if n]
+        except UnicodeDecodeError:
+            names = []
+        if names:
+            return set(names)
+    return set(_columns(path))
+
+
 def _flights(path: Path, columns: dict[str, np.ndarray]) -> list[np.ndarray]:
     """Row indices of each flight (one for a log without a ``flight`` column)."""
     n = len(columns["time"])
@@ -274,7 +288,7 @@ def detect_format(path: str | os.PathLike[str], fmt: str = "auto") -> str:
         return fmt
     if path.suffix.lower() not in (".csv", ".npz"):
         return "kfgins"
-    columns = _columns(path)
+    columns = _column_names(path)
     if "ins_x" in columns or "ins_y" in columns:
         return "map_frame"
     if "lat" in columns or "lon" in columns:
@@ -324,12 +338,20 @@ def _table_log(path: Path, kind: str, map_frame: MapFrame | None, alt_datum: str
                 f"{path}: the log holds {len(flights)} flights on different times; the "
                 "navigator carries several vehicles only on common epochs. Split the log "
                 "into one file per flight (or resample them to the same times).")
-    index = np.stack(flights)  # (N, K) rows
+    n_rows = len(time)
+    # the flights are contiguous blocks of K rows each, in order: a column is an (N, K)
+    # view of itself unless (blank rows aside) they do not cover it exactly
+    k = len(flights[0])
+    blocks = len(flights) * k == n_rows and all(
+        int(r[0]) == i * k and int(r[-1]) == (i + 1) * k - 1 for i, r in enumerate(flights))
+    index = None if blocks else np.stack(flights)  # (N, K) rows
 
     def take(name: str) -> np.ndarray:
-        return np.asarray(columns[name], dtype=np.float64)[index]
+        values = np.asarray(columns[name], dtype=np.float64)
+        return values.reshape(len(flights), k) if index is None else values[index]
 
-    out: dict[str, Any] = {"t": time[flights[0]], "rows": flights[0], "names": names,
+    t = time[flights[0]] if len(flights) > 1 or index is not None else time
+    out: dict[str, Any] = {"t": t, "rows": flights[0], "names": names,
                            "radar": take("radar")}
     if kind == "map_frame":
         out["xy"] = np.stack([take("ins_x"), take("ins_y")], -1)
@@ -533,6 +555,6 @@ def read_flight_input(
         reference_position=tensor(data["ref_xy"]) if "ref_xy" in data else None,
         reference_altitude=tensor(data["ref_alt"]) if "ref_alt" in data else None,
         counts=counts, source=source, kind=kind, alt_datum=alt_datum,
-        lines=np.asarray([int(r) + (2 if line_path.suffix.lower() == ".csv" else 1)
-                          for r in data["rows"]]),
+        lines=np.asarray(data["rows"], dtype=np.int64)
+        + (2 if line_path.suffix.lower() == ".csv" else 1),
     )

@@ -37,10 +37,11 @@ def horizontal_k(risk: float) -> float:
 
 @functools.lru_cache(maxsize=64)
 def vertical_k(risk: float) -> float:
-    """``K_V = Φ⁻¹(1 − risk / 2)`` (`scipy.stats.norm.isf`)."""
-    from scipy.stats import norm
+    """``K_V = Φ⁻¹(1 − risk / 2)``: ``−ndtri(risk / 2)`` (`scipy.special.ndtri`, what
+    ``scipy.stats.norm.isf`` computes, without importing scipy.stats)."""
+    from scipy.special import ndtri
 
-    return float(norm.isf(0.5 * risk))
+    return float(-ndtri(0.5 * risk))
 
 
 def largest_sigma(cov: torch.Tensor) -> torch.Tensor:

@@ -591,8 +591,10 @@ class Navigator:
     # ------------------------------------------------------------------ whole flights
     def replay(self, t: torch.Tensor, ins_position: torch.Tensor, ins_altitude: torch.Tensor,
                clearance: torch.Tensor, quality: torch.Tensor | None = None, *,
-               progress: Callable[[float], None] | None = None) -> FixTrack:
-        """A whole flight: `reset`, then `step` at every epoch.
+               progress: Callable[[float], None] | None = None,
+               reset: bool = True) -> FixTrack:
+        """A whole flight: `reset`, then `step` at every epoch; or, with ``reset=False``, the
+        next part of one.
 
         Args:
             t: ``(K,)`` epoch times, s, strictly increasing.
@@ -602,11 +604,17 @@ class Navigator:
             quality: ``(N, K, q)`` the altimeter's quality record, or None.
             progress: Called with the fraction of the flight each epoch is (``1/K``), e.g.
                 a progress bar's ``update``; None = silent.
+            reset: True (default) starts a new flight (`reset` first). False continues the
+                flight where the last `step` or `replay` left it: a long log replayed in
+                chunks of epochs (`neuralmap.nav.flight`) gives, chunk after chunk, the
+                fixes of one replay of the whole log, bit for bit; ``t`` must then start
+                after the last epoch already navigated.
 
         Returns:
             `FixTrack` on the CPU whatever the navigator's device (equal, bit for bit, to
             the fixes of `step` called K times after `reset`, moved to the CPU), with
-            `counts` and `vehicle_counts`.
+            `counts` and `vehicle_counts` (counted since the last `reset`: after the last
+            chunk of a flight, those of the whole flight).
         """
         t = torch.as_tensor(t)
         n = self.n_vehicles
@@ -627,7 +635,8 @@ class Navigator:
                                     or tuple(quality.shape[:2]) != (n, k)):
             raise NeuralMapError(f"Navigator.replay: quality must be ({n}, {k}, q), got "
                                  f"{tuple(torch.as_tensor(quality).shape)}.")
-        self.reset()
+        if reset:
+            self.reset()
         track: FixTrack | None = None
         cpu = torch.device("cpu")
         for i in range(k):

@@ -1,6 +1,7 @@
 """What a navigated flight leaves behind: navigation.csv, navigation.geojson, and errors.
 
-``navigation.csv`` — one row per vehicle and epoch::
+``navigation.csv`` — one row per vehicle and epoch (the rows of vehicle 0, then vehicle 1,
+...)::
 
     vehicle, time, lat, lon, x, y, altitude, sigma_major_m, sigma_minor_m,
     ellipse_azimuth_deg, sigma_altitude_m, hpl_m, vpl_m, status, nis, mean_nis
@@ -8,44 +9,59 @@
 
 ``lat, lon`` WGS-84 degrees (empty when the map has no georeference), ``x, y`` the map
 frame (m), ``altitude`` on the DEM's vertical datum. The 1σ horizontal ellipse comes from
-the 2×2 position covariance ``P = [[p_xx, p_xy], [p_xy, p_yy]]``: semi-axes
-``sqrt(λ±)`` with ``λ± = (p_xx + p_yy)/2 ± sqrt(((p_xx − p_yy)/2)² + p_xy²)`` and the
-major axis at ``θ = ½·atan2(2 p_xy, p_xx − p_yy)`` from east, written as an azimuth
-(degrees clockwise from north, in [0, 180)). Numbers are written in Python's shortest
-round-trip form, so reading the CSV back gives the navigator's float64 values exactly.
-``hpl_m``, ``vpl_m``: the horizontal and vertical protection levels at the navigator's
-integrity risk (`neuralmap.nav.integrity`); ``nis`` this epoch's NIS, ``mean_nis`` the
-lost-lock window's mean. Both files are streamed into their temporary name (a log of a
-million epochs never holds its text in memory) and renamed when complete.
+the 2×2 position covariance (`neuralmap.nav.track_summary.sigma_ellipse`): semi-axes
+``sqrt(λ±)`` of ``P = [[p_xx, p_xy], [p_xy, p_yy]]`` and the major axis written as an
+azimuth (degrees clockwise from north, in [0, 180)). Numbers are written in Python's
+shortest round-trip form, so reading the CSV back gives the navigator's float64 values
+exactly. ``hpl_m``, ``vpl_m``: the horizontal and vertical protection levels at the
+navigator's integrity risk (`neuralmap.nav.integrity`); ``nis`` this epoch's NIS,
+``mean_nis`` the lost-lock window's mean.
 
 ``navigation.geojson`` — RFC 7946 (lon/lat WGS-84): one ``LineString`` track per vehicle
 (properties: vehicle, epochs, counts) and one ``Point`` per fix (properties: the CSV
 columns). Written only for a georeferenced map.
 
+Both are written by `NavigationFiles` as the replay goes: each chunk of fixes is formatted
+at once into anonymous spool files (in the run's folder; the system removes them when
+they are closed, also after a crash), so a log of a million epochs never holds its fixes
+or its text in memory; at the end each file is assembled in its final order into a
+temporary name and renamed (`neuralmap.io.atomic_write`): a failure leaves no
+half-written file. `write_navigation_csv` and `write_navigation_geojson` write a whole
+`FixTrack` the same way, byte for byte.
+
 With a reference, `add_reference_errors` puts into the study outputs the errors in
 the study report format: a table and results.json entries (horizontal RMSE, final error,
 the fraction inside the 3σ ellipse, NEES), the track over the hillshade with σ ellipses,
 the east/north error against time inside ±3σ, the status timeline and TensorBoard curves.
+They read a `TrackSummary` (the compact record of the flight, filled chunk by chunk);
+the figures and curves of a flight longer than `PLOT_POINTS` epochs draw every
+``stride``-th epoch (their captions say so), the numbers use every epoch.
 """
 
 from __future__ import annotations
 
 import csv
+import gc
 import io
 import json
 import math
+import tempfile
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 import torch
 
-from neuralmap.filters.stats import symmetrize
 from neuralmap.io import atomic_write
 from neuralmap.nav.fix import STATUS, FixTrack
+from neuralmap.nav.track_summary import PLOT_POINTS, TrackSummary, sigma_ellipse
 
-__all__ = ["CSV_COLUMNS", "add_reference_errors", "sigma_ellipse", "write_navigation_csv",
-           "write_navigation_geojson"]
+__all__ = ["CSV_COLUMNS", "NavigationFiles", "REFERENCE_COLUMNS", "add_reference_errors",
+           "add_status", "reference_errors", "sigma_ellipse", "status_summary",
+           "write_navigation_csv", "write_navigation_geojson"]
 
 #: Columns of navigation.csv (reference columns follow when the log has a reference).
 CSV_COLUMNS = ("vehicle", "time", "lat", "lon", "x", "y", "altitude", "sigma_major_m",
@@ -53,24 +69,12 @@ CSV_COLUMNS = ("vehicle", "time", "lat", "lon", "x", "y", "altitude", "sigma_maj
                "status", "nis", "mean_nis")
 REFERENCE_COLUMNS = ("ref_x", "ref_y", "horizontal_error_m")
 
+#: Epochs of one vehicle formatted into text at a time (bounds the text in memory).
+_TEXT_BLOCK = 2048
 
-def sigma_ellipse(cov_xy: torch.Tensor | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """1σ ellipse of ``(..., 2, 2)`` position covariances (closed form, see module docstring).
-
-    Returns:
-        ``(major, minor, azimuth_deg)``, each ``(...)``: semi-axes in m and the major axis
-        azimuth in degrees clockwise from north, in ``[0, 180)``.
-    """
-    p = np.asarray(cov_xy.detach().cpu().double() if isinstance(cov_xy, torch.Tensor)
-                   else cov_xy, dtype=np.float64)
-    pxx, pyy, pxy = p[..., 0, 0], p[..., 1, 1], 0.5 * (p[..., 0, 1] + p[..., 1, 0])
-    mean = 0.5 * (pxx + pyy)
-    radius = np.hypot(0.5 * (pxx - pyy), pxy)
-    major = np.sqrt(np.clip(mean + radius, 0.0, None))  # λ+ = mean + radius
-    minor = np.sqrt(np.clip(mean - radius, 0.0, None))  # λ- = mean - radius
-    theta = 0.5 * np.arctan2(2.0 * pxy, pxx - pyy)  # major axis angle from east
-    azimuth = np.mod(90.0 - np.degrees(theta), 180.0)
-    return major, minor, azimuth
+#: Status changes the timeline draws exactly (as steps); a vehicle with more is drawn at
+#: the summary's decimated epochs.
+_STEP_POINTS = 4 * PLOT_POINTS
 
 
 def _num(value: float) -> str:
@@ -79,6 +83,7 @@ def _num(value: float) -> str:
 
 
 def _track_arrays(track: FixTrack) -> dict[str, np.ndarray]:
+    """The CSV/GeoJSON quantities of a (chunk of a) track as float64 arrays."""
     def a(x: torch.Tensor | None) -> np.ndarray | None:
         return None if x is None else x.detach().cpu().double().numpy()
 
@@ -91,174 +96,354 @@ def _track_arrays(track: FixTrack) -> dict[str, np.ndarray]:
             "lat": a(track.lat), "lon": a(track.lon)}
 
 
+class _Spool:
+    """Text segments by key in one anonymous temporary file, copied out key by key.
+
+    Args:
+        folder: Where the file lives (None: the system's temporary folder).
+    """
+
+    def __init__(self, folder: str | Path | None) -> None:
+        self._file: IO[bytes] = tempfile.TemporaryFile(dir=folder)
+        self._size = 0
+        self._segments: dict[Any, list[list[int]]] = defaultdict(list)
+
+    def add(self, key: Any, data: bytes) -> None:
+        """Appends ``data`` as the next segment of ``key``."""
+        if not data:
+            return
+        self._file.seek(self._size)
+        self._file.write(data)
+        segments = self._segments[key]
+        if segments and segments[-1][0] + segments[-1][1] == self._size:
+            segments[-1][1] += len(data)  # contiguous with the key's last segment
+        else:
+            segments.append([self._size, len(data)])
+        self._size += len(data)
+
+    def copy(self, key: Any, handle: IO[bytes], block: int = 1 << 20) -> None:
+        """Writes the segments of ``key``, in the order added, into ``handle``."""
+        self._file.flush()
+        for offset, length in self._segments.get(key, []):
+            self._file.seek(offset)
+            while length > 0:
+                data = self._file.read(min(block, length))
+                if not data:
+                    raise OSError(f"spool file ended {length} bytes early")
+                handle.write(data)
+                length -= len(data)
+
+    def close(self) -> None:
+        """Closes (and so removes) the file."""
+        self._file.close()
+
+
+class NavigationFiles:
+    """navigation.csv and navigation.geojson of a flight, fed chunk by chunk.
+
+    `append` formats each chunk's rows (and GeoJSON features) into anonymous spool files as
+    the replay produces them; `write_csv` and `write_geojson` then assemble each file in its
+    final order (vehicle by vehicle) into a temporary name and rename it
+    (`neuralmap.io.atomic_write`). Memory: the text of `_TEXT_BLOCK` epochs of one vehicle
+    at a time (a few MB), whatever the chunk.
+
+    Args:
+        folder: Where the spool files live: the run's folder (the files are renamed there
+            later: the same disk), or None for the system's temporary folder.
+        n_vehicles: N.
+        reference: Whether the rows carry the reference columns (`append` then takes the
+            reference positions).
+        geojson: Whether to write navigation.geojson too (the chunks need lat/lon).
+
+    Attributes:
+        n_vehicles: N.
+        n_epochs: Epochs appended so far.
+        reference: As given.
+        geojson: As given.
+    """
+
+    def __init__(self, folder: str | Path | None, *, n_vehicles: int, reference: bool = False,
+                 geojson: bool = False) -> None:
+        self.n_vehicles, self.reference, self.geojson = int(n_vehicles), reference, geojson
+        self.n_epochs = 0
+        self._csv: _Spool | None = _Spool(folder)
+        self._geo: _Spool | None = _Spool(folder) if geojson else None
+
+    def __enter__(self) -> NavigationFiles:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    @property
+    def closed(self) -> bool:
+        """Whether the spool files are closed (`close`)."""
+        return self._csv is None
+
+    def close(self) -> None:
+        """Closes (removes) the spool files; nothing can be written after."""
+        for spool in (self._csv, self._geo):
+            if spool is not None:
+                spool.close()
+        self._csv = self._geo = None
+
+    def _check_open(self) -> None:
+        if self.closed:
+            raise ValueError("NavigationFiles: already closed (the spooled rows are gone).")
+
+    def append(self, track: FixTrack, reference_xy: torch.Tensor | None = None) -> None:
+        """Formats the next chunk of the flight.
+
+        Args:
+            track: The chunk's fixes (``N`` vehicles, ``k`` epochs).
+            reference_xy: ``(N, k, 2)`` the chunk's reference positions (with
+                ``reference=True``).
+
+        Raises:
+            ValueError: Closed, another N, a missing reference, or a GeoJSON chunk
+                without lat/lon (the map has no georeference).
+        """
+        self._check_open()
+        d = _track_arrays(track)
+        n_veh, n_ep = d["xy"].shape[:2]
+        if n_veh != self.n_vehicles:
+            raise ValueError(f"NavigationFiles.append: {n_veh} vehicles, expected "
+                             f"{self.n_vehicles}.")
+        if self.reference and reference_xy is None:
+            raise ValueError("NavigationFiles.append: the rows carry the reference: give "
+                             "reference_xy.")
+        if self.geojson and (d["lat"] is None or d["lon"] is None):
+            raise ValueError("write_navigation_geojson: the track has no lat/lon.")
+        ref = (None if not self.reference
+               else reference_xy.detach().cpu().double().numpy())
+        for n in range(n_veh):
+            for a in range(0, n_ep, _TEXT_BLOCK):  # a few MB of text at a time
+                b = min(a + _TEXT_BLOCK, n_ep)
+                self._csv.add(n, self._csv_rows(d, ref, n, a, b))
+                if self._geo is not None:
+                    coords, points = self._features(d, n, a, b, self.n_epochs + a == 0)
+                    self._geo.add(("line", n), coords)
+                    self._geo.add(("points", n), points)
+        self.n_epochs += n_ep
+
+    @staticmethod
+    def _csv_rows(d: dict[str, np.ndarray], ref: np.ndarray | None, n: int, a: int, b: int
+                  ) -> bytes:
+        """Vehicle ``n``'s rows of the chunk's epochs ``a .. b``."""
+        text = io.StringIO()
+        writer = csv.writer(text, lineterminator="\n")
+        for k in range(a, b):
+            row = [str(n), _num(d["t"][k]),
+                   "" if d["lat"] is None else _num(d["lat"][n, k]),
+                   "" if d["lon"] is None else _num(d["lon"][n, k]),
+                   _num(d["xy"][n, k, 0]), _num(d["xy"][n, k, 1]), _num(d["alt"][n, k]),
+                   _num(d["major"][n, k]), _num(d["minor"][n, k]),
+                   _num(d["azimuth"][n, k]), _num(d["sigma_h"][n, k]),
+                   _num(d["hpl"][n, k]), _num(d["vpl"][n, k]),
+                   STATUS[int(d["status"][n, k])], _num(d["nis"][n, k]),
+                   _num(d["mean_nis"][n, k])]
+            if ref is not None:
+                e = float(np.hypot(*(d["xy"][n, k] - ref[n, k])))
+                row += [_num(ref[n, k, 0]), _num(ref[n, k, 1]), _num(e)]
+            writer.writerow(row)
+        return text.getvalue().encode("utf-8")
+
+    @staticmethod
+    def _features(d: dict[str, np.ndarray], n: int, a: int, b: int, first: bool
+                  ) -> tuple[bytes, bytes]:
+        """Vehicle ``n``'s LineString coordinates and Point features of the chunk's epochs
+        ``a .. b``, each with its leading separator (``first``: the flight's first
+        coordinate has none), in the text of ``json.dumps``."""
+        def val(x: float) -> float | None:
+            return float(x) if math.isfinite(x) else None
+
+        coords, points = [], []
+        for k in range(a, b):
+            coord = [float(d["lon"][n, k]), float(d["lat"][n, k])]
+            coords.append(json.dumps(coord, allow_nan=False))
+            points.append(json.dumps({
+                "type": "Feature",
+                "geometry": {"type": "Point", "coordinates": coord},
+                "properties": {"vehicle": n, "kind": "fix", "time": val(d["t"][k]),
+                               "x": val(d["xy"][n, k, 0]), "y": val(d["xy"][n, k, 1]),
+                               "altitude": val(d["alt"][n, k]),
+                               "sigma_major_m": val(d["major"][n, k]),
+                               "sigma_minor_m": val(d["minor"][n, k]),
+                               "ellipse_azimuth_deg": val(d["azimuth"][n, k]),
+                               "sigma_altitude_m": val(d["sigma_h"][n, k]),
+                               "hpl_m": val(d["hpl"][n, k]), "vpl_m": val(d["vpl"][n, k]),
+                               "status": STATUS[int(d["status"][n, k])],
+                               "nis": val(d["nis"][n, k]),
+                               "mean_nis": val(d["mean_nis"][n, k])}}, allow_nan=False))
+        line = ("" if first else ", ") + ", ".join(coords)
+        return line.encode("utf-8"), "".join(", " + p for p in points).encode("utf-8")
+
+    def write_csv(self, path: str | Path) -> Path:
+        """Writes navigation.csv atomically from the chunks appended (columns:
+        `CSV_COLUMNS`, then `REFERENCE_COLUMNS` with a reference)."""
+        self._check_open()
+        header = ",".join(CSV_COLUMNS + (REFERENCE_COLUMNS if self.reference else ()))
+
+        def write(handle: IO[bytes]) -> None:
+            handle.write((header + "\n").encode("utf-8"))
+            for n in range(self.n_vehicles):
+                self._csv.copy(n, handle)
+
+        return atomic_write(path, write)
+
+    def write_geojson(self, path: str | Path, *, counts: dict[str, int] | None = None,
+                      properties: dict[str, Any] | None = None) -> Path:
+        """Writes navigation.geojson atomically from the chunks appended.
+
+        Args:
+            path: The file.
+            counts: The navigator's counters (each track's ``counts`` property).
+            properties: More properties of each track (map, log).
+
+        Raises:
+            ValueError: The files were made without ``geojson=True``.
+        """
+        self._check_open()
+        if self._geo is None:
+            raise ValueError("write_navigation_geojson: the track has no lat/lon.")
+
+        def write(handle: IO[bytes]) -> None:  # streamed feature by feature
+            handle.write(b'{"type": "FeatureCollection", "features": [')
+            for n in range(self.n_vehicles):
+                track_properties = {"vehicle": n, "kind": "track", "epochs": self.n_epochs,
+                                    "counts": dict(counts or {}), **(properties or {})}
+                handle.write((", " if n else "").encode() + b'{"type": "Feature", '
+                             b'"geometry": {"type": "LineString", "coordinates": [')
+                self._geo.copy(("line", n), handle)
+                handle.write(b']}, "properties": ' + json.dumps(
+                    track_properties, allow_nan=False).encode("utf-8") + b"}")
+                self._geo.copy(("points", n), handle)
+            handle.write(b"]}\n")
+
+        return atomic_write(path, write)
+
+
 def write_navigation_csv(path: str | Path, track: FixTrack,
                          reference_xy: torch.Tensor | None = None) -> Path:
-    """Writes navigation.csv atomically (columns: `CSV_COLUMNS`, then the reference
-    columns when ``reference_xy`` ``(N, K, 2)`` is given), streamed row by row into the
-    temporary file (a long log never holds its text in memory)."""
-    d = _track_arrays(track)
-    ref = None if reference_xy is None else reference_xy.detach().cpu().double().numpy()
-    n_veh, n_ep = d["xy"].shape[:2]
-
-    def write(handle: Any) -> None:
-        text = io.TextIOWrapper(handle, encoding="utf-8", newline="")
-        writer = csv.writer(text, lineterminator="\n")
-        writer.writerow(CSV_COLUMNS + (REFERENCE_COLUMNS if ref is not None else ()))
-        for n in range(n_veh):
-            for k in range(n_ep):
-                row = [str(n), _num(d["t"][k]),
-                       "" if d["lat"] is None else _num(d["lat"][n, k]),
-                       "" if d["lon"] is None else _num(d["lon"][n, k]),
-                       _num(d["xy"][n, k, 0]), _num(d["xy"][n, k, 1]), _num(d["alt"][n, k]),
-                       _num(d["major"][n, k]), _num(d["minor"][n, k]),
-                       _num(d["azimuth"][n, k]), _num(d["sigma_h"][n, k]),
-                       _num(d["hpl"][n, k]), _num(d["vpl"][n, k]),
-                       STATUS[int(d["status"][n, k])], _num(d["nis"][n, k]),
-                       _num(d["mean_nis"][n, k])]
-                if ref is not None:
-                    e = float(np.hypot(*(d["xy"][n, k] - ref[n, k])))
-                    row += [_num(ref[n, k, 0]), _num(ref[n, k, 1]), _num(e)]
-                writer.writerow(row)
-        text.flush()
-        text.detach()  # leave the binary handle to the atomic writer
-
-    return atomic_write(path, write)
+    """Writes navigation.csv of a whole track atomically (columns: `CSV_COLUMNS`, then the
+    reference columns when ``reference_xy`` ``(N, K, 2)`` is given), streamed through
+    `NavigationFiles`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with NavigationFiles(path.parent, n_vehicles=int(track.xy.shape[0]),
+                         reference=reference_xy is not None) as files:
+        files.append(track, reference_xy)
+        return files.write_csv(path)
 
 
 def write_navigation_geojson(path: str | Path, track: FixTrack, *,
                              counts: dict[str, int] | None = None,
                              properties: dict[str, Any] | None = None) -> Path:
-    """Writes navigation.geojson atomically (needs ``track.lat``/``lon``).
+    """Writes navigation.geojson of a whole track atomically (needs ``track.lat``/``lon``).
 
     Raises:
         ValueError: The track has no lat/lon (the map has no georeference).
     """
     if track.lat is None or track.lon is None:
         raise ValueError("write_navigation_geojson: the track has no lat/lon.")
-    d = _track_arrays(track)
-    n_veh, n_ep = d["xy"].shape[:2]
-
-    def val(x: float) -> float | None:
-        return float(x) if math.isfinite(x) else None
-
-    def features() -> Any:
-        for n in range(n_veh):
-            coords = [[float(d["lon"][n, k]), float(d["lat"][n, k])] for k in range(n_ep)]
-            yield {"type": "Feature",
-                   "geometry": {"type": "LineString", "coordinates": coords},
-                   "properties": {"vehicle": n, "kind": "track", "epochs": n_ep,
-                                  "counts": dict(counts or {}), **(properties or {})}}
-            for k in range(n_ep):
-                yield {
-                    "type": "Feature",
-                    "geometry": {"type": "Point", "coordinates": coords[k]},
-                    "properties": {"vehicle": n, "kind": "fix", "time": val(d["t"][k]),
-                                   "x": val(d["xy"][n, k, 0]), "y": val(d["xy"][n, k, 1]),
-                                   "altitude": val(d["alt"][n, k]),
-                                   "sigma_major_m": val(d["major"][n, k]),
-                                   "sigma_minor_m": val(d["minor"][n, k]),
-                                   "ellipse_azimuth_deg": val(d["azimuth"][n, k]),
-                                   "sigma_altitude_m": val(d["sigma_h"][n, k]),
-                                   "hpl_m": val(d["hpl"][n, k]), "vpl_m": val(d["vpl"][n, k]),
-                                   "status": STATUS[int(d["status"][n, k])],
-                                   "nis": val(d["nis"][n, k]),
-                                   "mean_nis": val(d["mean_nis"][n, k])}}
-
-    def write(handle: Any) -> None:  # streamed feature by feature
-        handle.write(b'{"type": "FeatureCollection", "features": [')
-        for i, feature in enumerate(features()):
-            handle.write((", " if i else "").encode() + json.dumps(
-                feature, allow_nan=False).encode())
-        handle.write(b"]}\n")
-
-    return atomic_write(path, write)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with NavigationFiles(path.parent, n_vehicles=int(track.xy.shape[0]),
+                         geojson=True) as files:
+        files.append(track)
+        return files.write_geojson(path, counts=counts, properties=properties)
 
 
-def status_summary(track: FixTrack) -> dict[str, float]:
+# ---------------------------------------------------------------------------- the report
+
+
+def _summary(track: FixTrack | TrackSummary, reference_xy: torch.Tensor | None = None,
+             reference_altitude: torch.Tensor | None = None,
+             ins_xy: torch.Tensor | None = None, ins_altitude: torch.Tensor | None = None,
+             n_ellipses: int = 20) -> TrackSummary:
+    if isinstance(track, TrackSummary):
+        return track
+    return TrackSummary.from_track(track, reference_xy=reference_xy,
+                                   reference_altitude=reference_altitude, ins_xy=ins_xy,
+                                   ins_altitude=ins_altitude, n_ellipses=n_ellipses)
+
+
+def status_summary(track: FixTrack | TrackSummary) -> dict[str, float]:
     """Fraction of epochs (all vehicles) in each status."""
-    codes = track.status.cpu().numpy().reshape(-1)
-    return {name: float(np.mean(codes == i)) for i, name in enumerate(STATUS)}
+    return _summary(track).status_fractions()
 
 
-def reference_errors(track: FixTrack, reference_xy: torch.Tensor) -> dict[str, Any]:
-    """Errors of a track against a reference ``(N, K, 2)``.
-
-    Returns:
-        ``rmse_horizontal_m`` (all epochs), ``rmse_horizontal_tracking_m`` (epochs with
-        status tracking), ``final_horizontal_error_m`` (per vehicle), ``inside_3sigma`` (the
-        fraction of epochs whose error lies inside the 3σ ellipse: NEES_xy ≤ 9),
-        ``mean_nees_xy`` (2 = consistent), and the ``horizontal_error_curve`` (vehicle
-        RMS per epoch).
-    """
-    xy = track.xy.detach().cpu().double()
-    err = xy - reference_xy.detach().cpu().double()  # (N, K, 2)
-    cov = track.cov[..., :2, :2].detach().cpu().double()
-    cov = symmetrize(cov)
-    chol, info = torch.linalg.cholesky_ex(cov)
-    ok = info == 0
-    nees = torch.full(err.shape[:2], float("nan"), dtype=torch.float64)
-    if ok.any():
-        z = torch.linalg.solve_triangular(chol[ok], err[ok].unsqueeze(-1), upper=False)
-        nees[ok] = (z.squeeze(-1) ** 2).sum(-1)  # NEES = eᵀ P⁻¹ e via the Cholesky factor
-    h = err.norm(dim=-1)
-    tracking = track.status.cpu() == STATUS.index("tracking")
-    finite = torch.isfinite(nees)
-    return {
-        "rmse_horizontal_m": float(h.pow(2).mean().sqrt()),
-        "rmse_horizontal_tracking_m": (float(h[tracking].pow(2).mean().sqrt())
-                                       if tracking.any() else None),
-        "final_horizontal_error_m": h[:, -1].tolist(),
-        "max_horizontal_error_m": float(h.max()),
-        "inside_3sigma": float((nees[finite] <= 9.0).double().mean()) if finite.any() else None,
-        "mean_nees_xy": float(nees[finite].mean()) if finite.any() else None,
-        "horizontal_error_curve": h.pow(2).mean(0).sqrt().tolist(),
-    }
+def reference_errors(track: FixTrack | TrackSummary,
+                     reference_xy: torch.Tensor | None = None) -> dict[str, Any]:
+    """Errors of a track against a reference ``(N, K, 2)`` (a `TrackSummary` carries its
+    own): `TrackSummary.reference_errors`."""
+    return _summary(track, reference_xy).reference_errors()
 
 
-def _track_figure(preview: Any, track: FixTrack, reference_xy: torch.Tensor,
-                  ins_xy: torch.Tensor, n_ellipses: int) -> Any:
+@contextmanager
+def _bounded_drawing() -> Iterator[None]:
+    """Matplotlib draws long paths in pieces of 2000 vertices (``agg.path.chunksize``):
+    the Agg rasteriser's memory grows with the drawn length of a path, which for the
+    decimated track of a long loiter (chords across the map) is a hundred megabytes. The
+    figures drawn in the block are collected at its end (a figure is a cycle of
+    references: it and its renderer's buffers would wait for the next collection)."""
+    import matplotlib
+
+    try:
+        with matplotlib.rc_context({"agg.path.chunksize": 2000}):
+            yield
+    finally:
+        gc.collect()
+
+
+def _decimated(summary: TrackSummary) -> str:
+    """The caption's note on a decimated series (empty when every epoch is drawn)."""
+    if summary.stride == 1:
+        return ""
+    return (f" (drawn at every {summary.stride}th of the {summary.n_epochs} epochs; the "
+            "numbers use every epoch)")
+
+
+def _track_figure(preview: Any, summary: TrackSummary) -> Any:
     from matplotlib.patches import Ellipse
 
     from neuralmap.viz.navigation import plot_trajectories
 
-    ref = reference_xy.detach().cpu().double().numpy()
-    est = track.xy.detach().cpu().double().numpy()
-    fig = plot_trajectories(preview, ref, {"TAN": est, "INS": ins_xy.cpu().double().numpy()},
+    est = summary.plot["xy"]
+    fig = plot_trajectories(preview, summary.plot["reference"],
+                            {"TAN": est, "INS": summary.plot["ins"]},
                             title="Navigated track over the map (reference white, "
                                   "3σ ellipses)")
     ax = fig.axes[0]
-    major, minor, azimuth = sigma_ellipse(track.cov[..., :2, :2])
-    n_ep = est.shape[1]
-    for k in np.unique(np.linspace(0, n_ep - 1, max(2, n_ellipses)).astype(int)):
+    ell = summary.ellipses
+    for j in range(summary.ellipse_index.size):
         for n in range(est.shape[0]):
-            if not np.isfinite(major[n, k]):
+            if not np.isfinite(ell["major"][n, j]):
                 continue
-            ax.add_patch(Ellipse((est[n, k, 0], est[n, k, 1]), 6.0 * major[n, k],
-                                 6.0 * minor[n, k], angle=90.0 - azimuth[n, k], fill=False,
-                                 color="C0", lw=0.8))
+            ax.add_patch(Ellipse((ell["xy"][n, j, 0], ell["xy"][n, j, 1]),
+                                 6.0 * ell["major"][n, j], 6.0 * ell["minor"][n, j],
+                                 angle=90.0 - ell["azimuth"][n, j], fill=False, color="C0",
+                                 lw=0.8))
     # zoom to the flight with a margin (the ellipses and tracks, not the whole tile)
-    pts = np.concatenate([ref.reshape(-1, 2), est.reshape(-1, 2)])
-    pts = pts[np.isfinite(pts).all(1)]
-    if pts.size:
-        lo, hi = pts.min(0), pts.max(0)
+    lo, hi = summary.extent_lo, summary.extent_hi
+    if np.isfinite(lo).all() and np.isfinite(hi).all():
         pad = max(float((hi - lo).max()) * 0.15, 200.0)
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
     return fig
 
 
-def _error_figure(track: FixTrack, reference_xy: torch.Tensor) -> Any:
+def _error_figure(summary: TrackSummary) -> Any:
     from matplotlib.figure import Figure
 
-    t = track.t.detach().cpu().double().numpy()
-    err = (track.xy - reference_xy).detach().cpu().double().numpy()
-    cov = track.cov.detach().cpu().double().numpy()
+    t = summary.plot_t
+    err, sigma = summary.plot["error"], summary.plot["sigma_en"]
+    major = summary.plot["major"]
     fig = Figure(figsize=(8.0, 6.4))
     axes = fig.subplots(3, 1, sharex=True)
-    major = sigma_ellipse(cov[..., :2, :2])[0]
     for n in range(err.shape[0]):
         for i, (ax, name) in enumerate(zip(axes[:2], ("east", "north"), strict=True)):
-            s3 = 3.0 * np.sqrt(np.clip(cov[n, :, i, i], 0.0, None))
+            s3 = 3.0 * sigma[n, :, i]
             ax.fill_between(t, -s3, s3, color="C0", alpha=0.15,
                             label="±3σ" if n == 0 else None)
             ax.plot(t, err[n, :, i], color=f"C{(n + 1) % 10}", lw=1.0,
@@ -277,56 +462,72 @@ def _error_figure(track: FixTrack, reference_xy: torch.Tensor) -> Any:
     return fig
 
 
-def _status_figure(track: FixTrack) -> Any:
+def _status_figure(summary: TrackSummary) -> tuple[Any, bool]:
+    """The status timeline: each vehicle's status as steps at its changes (exact), or at
+    the decimated epochs when it changes more than `_STEP_POINTS` times. Returns the
+    figure and whether any vehicle was decimated."""
     from matplotlib.figure import Figure
 
-    t = track.t.detach().cpu().double().numpy()
-    codes = track.status.cpu().numpy()
+    t, codes = summary.t, summary.status
     fig = Figure(figsize=(8.0, 1.2 + 0.35 * codes.shape[0] + 1.5))
     ax = fig.add_subplot()
+    decimated = False
     for n in range(codes.shape[0]):
-        ax.step(t, codes[n] + 0.08 * n, where="post", lw=1.2, label=f"vehicle {n}")
+        change = np.flatnonzero(np.diff(codes[n])) + 1
+        if change.size <= _STEP_POINTS:  # the step plot of every epoch, drawn at its changes
+            idx = np.unique(np.r_[0, change, codes.shape[1] - 1])
+        else:
+            idx, decimated = summary.plot_index, True
+        ax.step(t[idx], codes[n, idx] + 0.08 * n, where="post", lw=1.2, label=f"vehicle {n}")
     ax.set_yticks(range(len(STATUS)), STATUS)
     ax.set_ylim(-0.5, len(STATUS) - 0.5)
     ax.set_xlabel("time [s]")
     ax.set_title("Navigator status")
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
-    return fig
+    return fig, decimated
 
 
-def add_reference_errors(outputs: Any, track: FixTrack, reference_xy: torch.Tensor, *,
-                         ins_xy: torch.Tensor, preview: Any, n_ellipses: int = 20,
+def add_reference_errors(outputs: Any, track: FixTrack | TrackSummary,
+                         reference_xy: torch.Tensor | None = None, *,
+                         ins_xy: torch.Tensor | None = None, preview: Any,
+                         n_ellipses: int = 20,
                          reference_altitude: torch.Tensor | None = None,
                          ins_altitude: torch.Tensor | None = None) -> dict:
     """Errors against the reference into a `StudyOutputs`
-    (table, results.json ``errors``, three figures, TensorBoard curves).
+    (table, results.json ``errors``, two figures, TensorBoard curves).
 
     Args:
         outputs: The study outputs writer.
-        track: The navigated track.
-        reference_xy: ``(N, K, 2)`` reference positions, map frame.
-        ins_xy: ``(N, K, 2)`` INS positions (drawn beside the estimate).
+        track: The navigated flight: its `TrackSummary` (made with the reference, the INS
+            and their altitudes: it carries them), or a whole `FixTrack` with the arrays
+            below.
+        reference_xy: ``(N, K, 2)`` reference positions, map frame (with a `FixTrack`).
+        ins_xy: ``(N, K, 2)`` INS positions, drawn beside the estimate (with a
+            `FixTrack`).
         preview: A `DemTile` drawn as hillshade.
-        n_ellipses: σ ellipses drawn along the track.
+        n_ellipses: σ ellipses drawn along a `FixTrack` (a summary has its own).
         reference_altitude: ``(N, K)`` reference altitude (same datum), optional: adds the
-            vertical RMSE of TAN and of the INS.
+            vertical RMSE of TAN and of the INS (with a `FixTrack`).
         ins_altitude: ``(N, K)`` INS altitude, with ``reference_altitude``.
 
     Returns:
-        The error summary (`reference_errors`).
+        The error summary (`TrackSummary.reference_errors`, with the INS's and the
+        vertical RMSE).
+
+    Raises:
+        ValueError: The summary has no reference or no INS positions.
     """
-    errors = reference_errors(track, reference_xy)
-    ins_err = (ins_xy.double() - reference_xy.double()).norm(dim=-1)
-    errors["ins_rmse_horizontal_m"] = float(ins_err.pow(2).mean().sqrt())
-    errors["rmse_vertical_m"] = errors["ins_rmse_vertical_m"] = None
-    if reference_altitude is not None:
-        ref_h = reference_altitude.detach().cpu().double()
-        dh = track.altitude.detach().cpu().double() - ref_h
-        errors["rmse_vertical_m"] = float(dh.pow(2).mean().sqrt())
-        if ins_altitude is not None:
-            errors["ins_rmse_vertical_m"] = float(
-                (ins_altitude.detach().cpu().double() - ref_h).pow(2).mean().sqrt())
+    summary = _summary(track, reference_xy, reference_altitude, ins_xy, ins_altitude,
+                       n_ellipses)
+    if summary.ins_xy is None or not summary.has_reference:
+        raise ValueError("add_reference_errors: the summary needs the reference and the INS "
+                         "positions (TrackSummary(..., reference_xy=, ins_xy=)).")
+    errors = summary.reference_errors()
+    ins = summary.ins_errors()
+    errors["ins_rmse_horizontal_m"] = ins["rmse_horizontal_m"]
+    errors["rmse_vertical_m"] = summary.rmse_vertical()
+    errors["ins_rmse_vertical_m"] = ins["rmse_vertical_m"]
     outputs.results["errors"] = errors
     outputs.add_table(
         "Errors against the reference",
@@ -335,31 +536,41 @@ def add_reference_errors(outputs: Any, track: FixTrack, reference_xy: torch.Tens
         [["TAN", errors["rmse_horizontal_m"], errors["rmse_horizontal_tracking_m"],
           float(np.mean(errors["final_horizontal_error_m"])), errors["inside_3sigma"],
           errors["mean_nees_xy"], errors["rmse_vertical_m"]],
-         ["INS alone", errors["ins_rmse_horizontal_m"], None, float(ins_err[:, -1].mean()),
-          None, None, errors["ins_rmse_vertical_m"]]],
+         ["INS alone", errors["ins_rmse_horizontal_m"], None,
+          float(np.mean(ins["final_horizontal_error_m"])), None, None,
+          errors["ins_rmse_vertical_m"]]],
         note="Final error: mean over vehicles. Inside 3σ: fraction of epochs whose error "
              "lies inside the 3σ ellipse of the reported covariance (98.9 % for a "
              "consistent Gaussian).")
-    outputs.add_figure("track", _track_figure(preview, track, reference_xy, ins_xy,
-                                              n_ellipses),
-                       "Navigated track (TAN) and INS over the hillshade; reference in white; "
-                       "3σ ellipses along the track")
-    outputs.add_figure("error_vs_time", _error_figure(track, reference_xy),
-                       "East, north and horizontal error against the reference with ±3σ")
-    outputs.log_curve("error/horizontal_rms_m", errors["horizontal_error_curve"])
-    major = sigma_ellipse(track.cov[..., :2, :2])[0]
-    outputs.log_curve("sigma/major_axis_mean_m", np.nanmean(major, 0).tolist())
+    note = _decimated(summary)
+    with _bounded_drawing():
+        outputs.add_figure("track", _track_figure(preview, summary),
+                           "Navigated track (TAN) and INS over the hillshade; reference in "
+                           "white; 3σ ellipses along the track" + note)
+        outputs.add_figure("error_vs_time", _error_figure(summary),
+                           "East, north and horizontal error against the reference with ±3σ"
+                           + note)
+    s = summary.stride
+    outputs.log_curve("error/horizontal_rms_m", errors["horizontal_error_curve"],
+                      step_scale=s)
+    outputs.log_curve("sigma/major_axis_mean_m", summary.curves["major_mean"].tolist(),
+                      step_scale=s)
     return errors
 
 
-def add_status(outputs: Any, track: FixTrack) -> dict[str, float]:
+def add_status(outputs: Any, track: FixTrack | TrackSummary) -> dict[str, float]:
     """The status timeline figure, the status fractions table and TensorBoard curve."""
-    fractions = status_summary(track)
+    summary = _summary(track)
+    fractions = summary.status_fractions()
     outputs.results["status_fraction"] = fractions
     outputs.add_table("Status", ["status", "fraction of epochs"],
                       [[name, value] for name, value in fractions.items()])
-    outputs.add_figure("status_timeline", _status_figure(track),
-                       "Status against time (acquiring, tracking, lost, off map, "
-                       "no measurement)")
-    outputs.log_curve("status/code_vehicle0", track.status[0].cpu().double().tolist())
+    fig, decimated = _status_figure(summary)
+    with _bounded_drawing():
+        outputs.add_figure("status_timeline", fig,
+                           "Status against time (acquiring, tracking, lost, off map, "
+                           "no measurement)" + (_decimated(summary) if decimated else ""))
+    s = summary.stride
+    outputs.log_curve("status/code_vehicle0", summary.status[0, ::s].astype(float).tolist(),
+                      step_scale=s)
     return fractions

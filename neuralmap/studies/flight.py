@@ -34,4 +34,4 @@ class FlightStudyConfig(StudyConfig, FlightOptions):
 def run(config: FlightStudyConfig, outputs: StudyOutputs) -> None:
     """Navigates the flight and writes its outputs (`navigate_flight`,
     `write_flight`)."""
-    write_flight(navigate_flight(config), outputs)
+    write_flight(navigate_flight(config, outputs=outputs), outputs)

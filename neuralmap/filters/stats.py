@@ -1,4 +1,5 @@
-"""Small statistics every filter shares: χ² quantiles and thresholds, symmetrisation.
+"""Small statistics every filter shares: χ² quantiles and thresholds, symmetrisation,
+the NEES.
 
 One home for them, so that the lost-lock test, the spike gate, the NEES band and the
 protection levels all read the same quantile (`scipy.stats.chi2`), and every covariance
@@ -11,7 +12,7 @@ import functools
 
 import torch
 
-__all__ = ["chi2_mean_threshold", "chi2_quantile", "symmetrize"]
+__all__ = ["chi2_mean_threshold", "chi2_quantile", "nees", "symmetrize"]
 
 
 @functools.lru_cache(maxsize=256)
@@ -44,3 +45,23 @@ def chi2_mean_threshold(prob: float, window: int) -> float:
 def symmetrize(A: torch.Tensor) -> torch.Tensor:
     """``(A + Aᵀ) / 2`` over the last two axes (a covariance after round-off)."""
     return 0.5 * (A + A.transpose(-1, -2))
+
+
+def nees(err: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
+    """Normalised estimation error squared ``errᵀ P⁻¹ err`` (Cholesky solve, float64).
+
+    Args:
+        err: ``(..., n)`` estimation errors.
+        P: ``(..., n, n)`` covariances (positive definite).
+
+    Returns:
+        ``(...)`` float64 NEES; NaN where ``P`` is not positive definite.
+    """
+    err = err.double()
+    L, info = torch.linalg.cholesky_ex(P.double())
+    ok = info == 0
+    L = torch.where(ok[..., None, None], L,
+                    torch.eye(P.shape[-1], dtype=L.dtype, device=L.device))
+    y = torch.linalg.solve_triangular(L, err.unsqueeze(-1), upper=False).squeeze(-1)
+    out = (y * y).sum(-1)
+    return torch.where(ok, out, torch.full_like(out, float("nan")))

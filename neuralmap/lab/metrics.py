@@ -46,7 +46,7 @@ from typing import Any
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters.stats import chi2_quantile
+from neuralmap.filters.stats import chi2_quantile, nees
 from neuralmap.lab.monte_carlo import FilterRun
 
 #: Human-readable divergence rule (default factors), written into reports and results.json.
@@ -161,25 +161,6 @@ def diverged_runs(
         too_far = too_far | (final_err > pcrb_factor * pcrb_final)
     diverged = included & healthy & (too_far | est_left)
     return diverged if lost is None else diverged | (included & lost)
-
-
-def nees(err: torch.Tensor, P: torch.Tensor) -> torch.Tensor:
-    """Normalised estimation error squared ``errᵀ P⁻¹ err`` (Cholesky solve, float64).
-
-    Args:
-        err: ``(..., n)`` estimation errors.
-        P: ``(..., n, n)`` covariances (positive definite).
-
-    Returns:
-        ``(...)`` NEES; NaN where ``P`` is not positive definite.
-    """
-    err = err.double()
-    L, info = torch.linalg.cholesky_ex(P.double())
-    ok = info == 0
-    L = torch.where(ok[..., None, None], L, torch.eye(P.shape[-1], dtype=L.dtype))
-    y = torch.linalg.solve_triangular(L, err.unsqueeze(-1), upper=False).squeeze(-1)
-    out = (y * y).sum(-1)
-    return torch.where(ok, out, torch.full_like(out, float("nan")))
 
 
 def _time_averaged_nees(err: torch.Tensor, P: torch.Tensor, confidence: float

@@ -168,12 +168,14 @@ class Navigator:
             config's (`NavigatorConfig.model`). A simulation study passes its scenario's.
 
     Attributes:
-        config: The validated config.
-        model: The TAN model.
-        noise: `MapNoise`, the parts of ``R``.
-        method: The registered name of the navigation method.
-        counts: Counters summed over vehicles since `reset` (`COUNT_KEYS`).
-        vehicle_counts: The same per vehicle ``(N,)``, and ``first_handoff`` (epoch, −1).
+        config (NavigatorConfig): The validated config.
+        model (TanModel): The TAN model.
+        noise (MapNoise): The parts of ``R``.
+        method (str): The registered name of the navigation method.
+        counts (dict[str, int]): Counters summed over vehicles since `reset`
+            (`COUNT_KEYS`).
+        vehicle_counts (dict[str, torch.Tensor]): The same per vehicle ``(N,)``, and
+            ``first_handoff`` (epoch, −1).
 
     Raises:
         NeuralMapError: Bad config, a map without an extent, ``n_vehicles < 1``, a

@@ -35,10 +35,10 @@ from typing import Any
 import numpy as np
 import torch
 
-from neuralmap.filters.stats import symmetrize
+from neuralmap.filters.stats import nees, symmetrize
 from neuralmap.nav.fix import STATUS, STATUS_CODE, Fix, FixTrack
 
-__all__ = ["PLOT_POINTS", "TrackSummary", "exact_sum", "horizontal_nees", "sigma_ellipse"]
+__all__ = ["PLOT_POINTS", "TrackSummary", "exact_sum", "sigma_ellipse"]
 
 #: Epochs per vehicle the figures and curves of a long flight draw at most (a flight with
 #: more is drawn every ``ceil(K / PLOT_POINTS)``-th epoch).
@@ -66,27 +66,6 @@ def sigma_ellipse(cov_xy: torch.Tensor | np.ndarray) -> tuple[np.ndarray, np.nda
     theta = 0.5 * np.arctan2(2.0 * pxy, pxx - pyy)  # major axis angle from east
     azimuth = np.mod(90.0 - np.degrees(theta), 180.0)
     return major, minor, azimuth
-
-
-def horizontal_nees(error_xy: torch.Tensor, cov_xy: torch.Tensor) -> torch.Tensor:
-    """Horizontal NEES ``eᵀ P⁻¹ e`` through the Cholesky factor of ``P``.
-
-    Args:
-        error_xy: ``(..., 2)`` horizontal errors (estimate − reference), m.
-        cov_xy: ``(..., 2, 2)`` their covariances, m² (symmetrised here).
-
-    Returns:
-        ``(...)`` float64 NEES; NaN where ``P`` is not positive definite.
-    """
-    err = error_xy.detach().cpu().double()
-    cov = symmetrize(cov_xy.detach().cpu().double())
-    chol, info = torch.linalg.cholesky_ex(cov)
-    ok = info == 0
-    nees = torch.full(err.shape[:-1], math.nan, dtype=torch.float64)
-    if ok.any():
-        z = torch.linalg.solve_triangular(chol[ok], err[ok].unsqueeze(-1), upper=False)
-        nees[ok] = (z.squeeze(-1) ** 2).sum(-1)
-    return nees
 
 
 def exact_sum(values: np.ndarray | torch.Tensor) -> int:
@@ -306,9 +285,10 @@ class TrackSummary:
             self._h2.add(h2)
             self._h2_tracking.add(h2[status == STATUS_CODE["tracking"]])
             self._h_max = float(np.maximum(self._h_max, h.max()))
-            nees = horizontal_nees(err, cov_xy).numpy()
-            self._nees.add(nees)
-            self._inside += int((nees <= 9.0).sum())  # NaN compares False
+            nees_xy = nees(err.detach().cpu(),
+                           symmetrize(cov_xy.detach().cpu().double())).numpy()
+            self._nees.add(nees_xy)
+            self._inside += int((nees_xy <= 9.0).sum())  # NaN compares False
             self._h_last = h[:, -1].copy()
             self.curves["error_rms"][c_sel] = np.sqrt(np.mean(h2[:, c_loc], 0))
             self.plot["error"][:, p_sel] = err.numpy()[:, p_loc]
@@ -385,15 +365,15 @@ class TrackSummary:
             value = mean.value()
             return None if value is None else math.sqrt(value)
 
-        nees = self._nees
+        mean_nees = self._nees
         return {
             "rmse_horizontal_m": root(self._h2),
             "rmse_horizontal_tracking_m": root(self._h2_tracking),
             "final_horizontal_error_m": ([] if self._h_last is None
                                          else self._h_last.tolist()),
             "max_horizontal_error_m": self._h_max,
-            "inside_3sigma": self._inside / nees.count if nees.count else None,
-            "mean_nees_xy": nees.value(),
+            "inside_3sigma": self._inside / mean_nees.count if mean_nees.count else None,
+            "mean_nees_xy": mean_nees.value(),
             "horizontal_error_curve": self.curves["error_rms"].tolist(),
             "horizontal_error_curve_stride": self.stride,
         }

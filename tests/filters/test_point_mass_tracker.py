@@ -16,8 +16,7 @@ from scipy.ndimage import gaussian_filter
 
 from neuralmap.exceptions import NeuralMapError
 from neuralmap.filters.point_mass_tracker import PointMassTracker, TrackerConfig
-from neuralmap.filters.stats import chi2_quantile
-from neuralmap.lab.metrics import nees
+from neuralmap.filters.stats import chi2_quantile, nees
 
 D = torch.float64
 T = 1.0

@@ -147,7 +147,7 @@ def write_log(path: Path, rows: int, seed: int = 7) -> dict[str, float]:
 def run_navigate(log: Path, out: Path, chunk: int | None, *, echo: bool) -> dict:
     """``neuralmap-navigate`` on ``log`` in a child process: wall time, ``ru_maxrss``, the
     resident memory sampled every second, and the run's results.json."""
-    cmd = [sys.executable, "-m", "neuralmap.nav.cli", str(log), "--map", TILE, "--out",
+    cmd = [sys.executable, "-m", "neuralmap.flights.cli", str(log), "--map", TILE, "--out",
            str(out), "--threads", "1", "--progress", "true"]
     if chunk is not None:
         cmd += ["--chunk_epochs", str(chunk)]

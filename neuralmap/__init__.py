@@ -9,7 +9,7 @@ The front door::
 * `load_map` — a trained map file (`neuralmap.terrain.export.load_map`), or `resolve_map`
   for a DEM file or a tile name (`neuralmap.nav.map_source.resolve_map`);
 * `read_flight_input` — a recorded flight log in the map's frame
-  (`neuralmap.nav.flight_input.read_flight_input`).
+  (`neuralmap.flights.flight_input.read_flight_input`).
 
 These names load on first use, so that ``import neuralmap`` (and the console commands,
 whose start-up must stay quick and interruptible) loads no torch; the packages themselves
@@ -35,7 +35,7 @@ _FRONT_DOOR = {
     "load_navigator_config": "neuralmap.nav.config",
     "Fix": "neuralmap.nav.fix",
     "FixTrack": "neuralmap.nav.fix",
-    "read_flight_input": "neuralmap.nav.flight_input",
+    "read_flight_input": "neuralmap.flights.flight_input",
     "resolve_map": "neuralmap.nav.map_source",
     "load_map": "neuralmap.terrain.export",
 }

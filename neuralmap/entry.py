@@ -91,8 +91,8 @@ def gins(args: list[str] | None = None) -> int:
 
 
 def navigate(args: list[str] | None = None) -> int:
-    """``neuralmap-navigate`` (`neuralmap.nav.cli.main`), Ctrl-C-safe while importing."""
-    return _console("neuralmap-navigate", "neuralmap.nav.cli", args)
+    """``neuralmap-navigate`` (`neuralmap.flights.cli.main`), Ctrl-C-safe while importing."""
+    return _console("neuralmap-navigate", "neuralmap.flights.cli", args)
 
 
 _PARSER_KEY = re.compile(r'Parser key "([\w.]+)"')

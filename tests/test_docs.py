@@ -497,3 +497,18 @@ def test_train_py_writes_a_summary_that_update_stamps(tmp_path: Path) -> None:
     assert stamp.overrides["trainer.max_epochs"] == "1" and "runs_dir" not in stamp.overrides
     assert f"| rmse_m | {metrics['rmse_m']:.4g} |" in page.read_text()
     assert check_page(page, REPO) == []
+
+
+@pytest.mark.parametrize("package, page", [("neuralmap.nav", "nav.md"),
+                                           ("neuralmap.flights", "flights.md")])
+def test_the_product_api_pages_list_every_exported_name(package: str, page: str) -> None:
+    import importlib
+
+    text = (REPO / "docs" / "api" / page).read_text(encoding="utf-8")
+    listed = set(re.findall(r"^\s+- (\w+)$", text, flags=re.M))
+    blocks = re.findall(r"^::: ([\w.]+)\n((?:[ \t]+\S.*\n?)*)", text, flags=re.M)
+    whole = {name for name, options in blocks if "members:" not in options}
+    module = importlib.import_module(package)
+    missing = [n for n in module.__all__ if n not in listed
+               and getattr(getattr(module, n), "__module__", None) not in whole]
+    assert not missing, f"docs/api/{page} does not list {missing} of {package}.__all__"

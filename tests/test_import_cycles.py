@@ -11,6 +11,8 @@ import ast
 import sys
 from pathlib import Path
 
+import pytest
+
 PACKAGE = Path(__file__).resolve().parents[1] / "neuralmap"
 
 
@@ -93,21 +95,24 @@ def test_the_checker_finds_a_circle_through_a_function_level_import(tmp_path: Pa
 
 
 #: Packages each package must not import (lower layers never import upper ones; the lab
-#: uses the product, the product the methods, never the other way).
+#: and the recorded flights use the product's engine, the engine the methods, never the
+#: other way).
 FORBIDDEN: dict[str, tuple[str, ...]] = {
     "neuralmap.dem": ("neuralmap.terrain", "neuralmap.linearize", "neuralmap.filters",
-                      "neuralmap.tan", "neuralmap.nav", "neuralmap.lab", "neuralmap.studies",
-                      "neuralmap.training"),
+                      "neuralmap.tan", "neuralmap.nav", "neuralmap.flights", "neuralmap.lab",
+                      "neuralmap.studies", "neuralmap.training"),
     "neuralmap.filters": ("neuralmap.terrain", "neuralmap.linearize", "neuralmap.tan",
-                          "neuralmap.nav", "neuralmap.lab", "neuralmap.studies",
-                          "neuralmap.training", "lightning"),
-    "neuralmap.terrain": ("neuralmap.tan", "neuralmap.nav", "neuralmap.lab",
-                          "neuralmap.studies"),
-    "neuralmap.tan": ("neuralmap.nav", "neuralmap.lab", "neuralmap.studies",
+                          "neuralmap.nav", "neuralmap.flights", "neuralmap.lab",
+                          "neuralmap.studies", "neuralmap.training", "lightning"),
+    "neuralmap.terrain": ("neuralmap.tan", "neuralmap.nav", "neuralmap.flights",
+                          "neuralmap.lab", "neuralmap.studies"),
+    "neuralmap.tan": ("neuralmap.nav", "neuralmap.flights", "neuralmap.lab",
+                      "neuralmap.studies", "neuralmap.training", "neuralmap.learning"),
+    "neuralmap.nav": ("neuralmap.flights", "neuralmap.lab", "neuralmap.studies",
                       "neuralmap.training", "neuralmap.learning"),
-    "neuralmap.nav": ("neuralmap.lab", "neuralmap.studies", "neuralmap.training",
-                      "neuralmap.learning"),
-    "neuralmap.lab": ("neuralmap.studies", "neuralmap.training"),
+    "neuralmap.flights": ("neuralmap.lab", "neuralmap.studies", "neuralmap.training",
+                          "neuralmap.learning"),
+    "neuralmap.lab": ("neuralmap.flights", "neuralmap.studies", "neuralmap.training"),
 }
 
 
@@ -141,7 +146,8 @@ def test_no_package_imports_an_upper_layer() -> None:
 def test_the_navigation_packages_import_no_private_name_of_another_module() -> None:
     found = []
     for name, path in _modules().items():
-        if not name.startswith(("neuralmap.tan", "neuralmap.nav", "neuralmap.lab")):
+        if not name.startswith(("neuralmap.tan", "neuralmap.nav", "neuralmap.flights",
+                                "neuralmap.lab")):
             continue
         for target, names in _imports(path):
             if target != name and target.startswith("neuralmap."):
@@ -153,3 +159,15 @@ def test_the_layer_check_finds_an_upward_import(tmp_path: Path) -> None:
     (tmp_path / "m.py").write_text("def f():\n    from neuralmap.nav.navigator import Navigator\n")
     assert upward_imports({"neuralmap.tan.m": tmp_path / "m.py"}) == [
         "neuralmap.tan.m -> neuralmap.nav.navigator"]
+
+
+#: Lines a navigation package may hold (about 3 k: a package a reader can take in whole).
+PACKAGE_LINES = 3_500
+
+
+@pytest.mark.parametrize("package", ["tan", "nav", "flights", "lab"])
+def test_each_navigation_package_stays_small(package: str) -> None:
+    root = Path(__file__).resolve().parents[1] / "neuralmap" / package
+    lines = sum(len(p.read_text(encoding="utf-8").splitlines()) for p in root.rglob("*.py"))
+    assert lines <= PACKAGE_LINES, (
+        f"neuralmap/{package} holds {lines} lines (limit {PACKAGE_LINES}): split it by job")

@@ -142,6 +142,7 @@ def run_example(out_dir: str | Path, *, size: str = "tiny", seed: int = 0,
     import json
 
     from neuralmap.dem.load import load_tile
+    from neuralmap.flights.cli import main as navigate_main
     from neuralmap.ins.gins_cli import NAV_FILE, STD_FILE
     from neuralmap.ins.gins_cli import main as gins_main
     from neuralmap.ins.gnss import UrbanEffects, simulate_gnss
@@ -149,7 +150,6 @@ def run_example(out_dir: str | Path, *, size: str = "tiny", seed: int = 0,
     from neuralmap.ins.kfgins import simulated_logs, write_gnss, write_imu, write_nav
     from neuralmap.ins.trajectory import Segment, generate
     from neuralmap.io import atomic_write_text
-    from neuralmap.nav.cli import main as navigate_main
     from neuralmap.nav.georef import MapFrame
     from neuralmap.terrain.grid import GridTerrain
 

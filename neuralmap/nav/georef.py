@@ -14,7 +14,7 @@ its georeference says where that frame lies:
   ``pip install 'neuralmap[nav]'``.
 
 Heights are not converted here: the vertical datum is handled by
-`neuralmap.nav.vertical_datum`.
+`neuralmap.flights.vertical_datum`.
 """
 
 from __future__ import annotations

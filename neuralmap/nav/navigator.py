@@ -608,7 +608,7 @@ class Navigator:
                 a progress bar's ``update``; None = silent.
             reset: True (default) starts a new flight (`reset` first). False continues the
                 flight where the last `step` or `replay` left it: a long log replayed in
-                chunks of epochs (`neuralmap.nav.flight`) gives, chunk after chunk, the
+                chunks of epochs (`neuralmap.flights.flight`) gives, chunk after chunk, the
                 fixes of one replay of the whole log, bit for bit; ``t`` must then start
                 after the last epoch already navigated.
 

@@ -1,7 +1,7 @@
 """The ``flight`` study: navigate one recorded flight, as ``neuralmap-navigate`` does.
 
 ``python evaluate.py --config configs/flight.yaml --log LOG --map MAP`` runs the product's
-flight navigation (`neuralmap.nav.flight`: `navigate_flight`, then `write_flight`) with a
+flight navigation (`neuralmap.flights.flight`: `navigate_flight`, then `write_flight`) with a
 study's outputs (report.md, results.json, figures, TensorBoard, config.yaml).
 """
 
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from neuralmap.nav.flight import FlightOptions, navigate_flight, write_flight
+from neuralmap.flights.flight import FlightOptions, navigate_flight, write_flight
 from neuralmap.outputs import StudyOutputs
 from neuralmap.studies.base import StudyConfig
 
@@ -19,7 +19,7 @@ __all__ = ["FlightStudyConfig", "run"]
 @dataclass
 class FlightStudyConfig(StudyConfig, FlightOptions):
     """Options of the flight study: the study's (`StudyConfig`) and the flight's
-    (`neuralmap.nav.flight.FlightOptions`)."""
+    (`neuralmap.flights.flight.FlightOptions`)."""
 
     study: str = "flight"
     experiment: str = "flight"

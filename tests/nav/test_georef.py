@@ -15,9 +15,9 @@ import torch
 from neuralmap.dem.geo import geographic_reference
 from neuralmap.dem.tile import DemTile, ProjectedReference
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.flights.vertical_datum import apply_datum, check_datum
 from neuralmap.nav.georef import MapFrame
 from neuralmap.nav.map_source import resolve_map
-from neuralmap.nav.vertical_datum import apply_datum, check_datum
 
 pyproj = pytest.importorskip("pyproj")
 rasterio = pytest.importorskip("rasterio")

@@ -12,7 +12,7 @@ import pytest
 import torch
 import yaml
 
-from neuralmap.nav.cli import main as navigate_main
+from neuralmap.flights.cli import main as navigate_main
 from neuralmap.resources import config_file
 from neuralmap.studies.cli import main as evaluate_main
 

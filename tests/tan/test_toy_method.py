@@ -95,9 +95,9 @@ def test_replay_flies_the_toy(flight) -> None:  # noqa: ANN001
 def test_neuralmap_navigate_flies_the_toy(flight, tmp_path: Path) -> None:  # noqa: ANN001
     import yaml
 
+    from neuralmap.flights.cli import main
     from neuralmap.lab.scenario import load_scenario
     from neuralmap.lab.simulator import simulate
-    from neuralmap.nav.cli import main
     from neuralmap.nav.map_source import resolve_map
 
     tile = resolve_map("synthetic").tile  # the embedded synthetic tile: --map synthetic

@@ -9,7 +9,7 @@
 
 ``lat, lon`` WGS-84 degrees (empty when the map has no georeference), ``x, y`` the map
 frame (m), ``altitude`` on the DEM's vertical datum. The 1σ horizontal ellipse comes from
-the 2×2 position covariance (`neuralmap.nav.track_summary.sigma_ellipse`): semi-axes
+the 2×2 position covariance (`neuralmap.flights.track_summary.sigma_ellipse`): semi-axes
 ``sqrt(λ±)`` of ``P = [[p_xx, p_xy], [p_xy, p_yy]]`` and the major axis written as an
 azimuth (degrees clockwise from north, in [0, 180)). Numbers are written in Python's
 shortest round-trip form, so reading the CSV back gives the navigator's float64 values
@@ -55,9 +55,9 @@ from typing import IO, Any
 import numpy as np
 import torch
 
+from neuralmap.flights.track_summary import PLOT_POINTS, TrackSummary, sigma_ellipse
 from neuralmap.io import atomic_write
 from neuralmap.nav.fix import STATUS, FixTrack
-from neuralmap.nav.track_summary import PLOT_POINTS, TrackSummary, sigma_ellipse
 
 __all__ = ["CSV_COLUMNS", "NavigationFiles", "REFERENCE_COLUMNS", "add_reference_errors",
            "add_status", "reference_errors", "sigma_ellipse", "status_summary",

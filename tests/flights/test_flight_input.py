@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.nav.flight_input import read_flight_input
+from neuralmap.flights.flight_input import read_flight_input
 from neuralmap.nav.map_source import resolve_map
 
 pytest.importorskip("pyproj")

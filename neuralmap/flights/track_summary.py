@@ -3,7 +3,7 @@ filled chunk by chunk, without the whole `FixTrack`.
 
 A `FixTrack` costs about 330 bytes per epoch and vehicle (its ``(5, 5)`` float64 covariance
 alone 200), so a log of a million epochs would need a third of a gigabyte for the track
-and as much again for the float64 copies of the writers. `neuralmap.nav.flight` replays a
+and as much again for the float64 copies of the writers. `neuralmap.flights.flight` replays a
 long log in chunks of epochs (`Navigator.replay` with ``reset=False``) and hands each
 chunk's `FixTrack` to `TrackSummary.add`, which keeps:
 

@@ -6,23 +6,23 @@ then `write_flight`):
 
 1. resolve the map (`neuralmap.nav.map_source.resolve_map`: trained map, DEM file or
    embedded tile) and its frame;
-2. read the log into the map frame (`neuralmap.nav.flight_input.read_flight_input`),
+2. read the log into the map frame (`neuralmap.flights.flight_input.read_flight_input`),
    refusing bad logs before anything is written;
-3. check the vertical datum (`neuralmap.nav.vertical_datum.check_datum`);
+3. check the vertical datum (`neuralmap.flights.vertical_datum.check_datum`);
 4. replay it through the `Navigator` (configured by the navigator YAML,
    ``configs/navigator.yaml`` by default) in chunks of ``chunk_epochs`` epochs: one
    navigator carries on from chunk to chunk (`Navigator.replay` with ``reset=False``), so
    the fixes are those of one replay of the whole log, bit for bit; each chunk's fixes are
    formatted into the spool of navigation.csv / navigation.geojson
-   (`neuralmap.nav.outputs.NavigationFiles`) and reduced to the compact record the report
-   needs (`neuralmap.nav.track_summary.TrackSummary`), then dropped;
+   (`neuralmap.flights.outputs.NavigationFiles`) and reduced to the compact record the report
+   needs (`neuralmap.flights.track_summary.TrackSummary`), then dropped;
 5. write navigation.csv, navigation.geojson (each assembled into a temporary name and
    renamed) and, with a reference, the errors in the report format of the toolkit
    (report.md, results.json, figures, TensorBoard) through its one outputs writer.
 
 Memory: while the replay runs, the log's per-epoch arrays (about 40 bytes per epoch and
 vehicle, 72 with a reference) live in a memory-mapped temporary file of which one chunk is
-resident at a time (`neuralmap.nav.mapped_flight`); besides them one chunk of full fixes
+resident at a time (`neuralmap.flights.mapped_flight`); besides them one chunk of full fixes
 (about 330 bytes per epoch and vehicle: 16 MB for the default 50 000 epochs of one
 vehicle), the compact record (1 byte per epoch and vehicle) and the ≈ 300 MB of the
 libraries themselves (torch, scipy, matplotlib). Reading the log holds its arrays in
@@ -57,7 +57,7 @@ class FlightOptions:
 
     Attributes:
         log: The flight log: map-frame or geographic CSV/NPZ, or a KF-GINS navigation
-            result (then ``radar`` is required). See `neuralmap.nav.flight_input`.
+            result (then ``radar`` is required). See `neuralmap.flights.flight_input`.
         map: A DEM file, a trained map file or an embedded tile name
             (`neuralmap.nav.map_source`).
         navigator: Navigator YAML (None = the shipped ``configs/navigator.yaml``).
@@ -112,8 +112,8 @@ class FlightOptions:
         Raises:
             NeuralMapError: A missing ``log``/``map`` or a value out of range.
         """
-        from neuralmap.nav.flight_input import FLIGHT_FORMATS
-        from neuralmap.nav.vertical_datum import ALT_DATUMS
+        from neuralmap.flights.flight_input import FLIGHT_FORMATS
+        from neuralmap.flights.vertical_datum import ALT_DATUMS
 
         if not self.log:
             raise NeuralMapError("--log LOG is required: the flight log to navigate (CSV/NPZ "
@@ -197,7 +197,7 @@ def navigate_flight(config: FlightOptions, *, outputs: Any = None) -> FlightNavi
 
     Every refusal happens before the replay starts. The replay then writes only anonymous
     temporary files (removed by the system when closed): the log's per-epoch arrays,
-    memory-mapped (`neuralmap.nav.mapped_flight`), and the spooled rows of navigation.csv /
+    memory-mapped (`neuralmap.flights.mapped_flight`), and the spooled rows of navigation.csv /
     navigation.geojson; in the outputs' folder when ``outputs`` is given (on the disk of
     the results), else in the system's temporary folder.
 
@@ -209,14 +209,14 @@ def navigate_flight(config: FlightOptions, *, outputs: Any = None) -> FlightNavi
     Raises:
         NeuralMapError: A refused log or map (file, line and column named) or bad options.
     """
-    from neuralmap.nav.flight_input import detect_format, read_flight_input
+    from neuralmap.flights.flight_input import detect_format, read_flight_input
+    from neuralmap.flights.mapped_flight import map_flight
+    from neuralmap.flights.outputs import NavigationFiles
+    from neuralmap.flights.track_summary import TrackSummary
+    from neuralmap.flights.vertical_datum import check_datum
     from neuralmap.nav.map_noise import measurement_noise
     from neuralmap.nav.map_source import resolve_map
-    from neuralmap.nav.mapped_flight import map_flight
     from neuralmap.nav.navigator import Navigator
-    from neuralmap.nav.outputs import NavigationFiles
-    from neuralmap.nav.track_summary import TrackSummary
-    from neuralmap.nav.vertical_datum import check_datum
 
     dtype = config.torch_dtype
     nav_cfg = _navigator_config(config)
@@ -366,7 +366,7 @@ def write_flight(nav: FlightNavigation, outputs: Any) -> None:
     Raises:
         NeuralMapError: ``nav`` was written already.
     """
-    from neuralmap.nav.outputs import add_reference_errors, add_status
+    from neuralmap.flights.outputs import add_reference_errors, add_status
 
     flight, summary, source, nav_files = nav.flight, nav.summary, nav.source, nav.files
     if nav_files.closed:

@@ -13,7 +13,7 @@ import pytest
 import torch
 import yaml
 
-from neuralmap.nav.cli import main
+from neuralmap.flights.cli import main
 from neuralmap.nav.fix import STATUS
 
 pytest.importorskip("pyproj")

@@ -16,12 +16,12 @@ import pytest
 import torch
 import yaml
 
+from neuralmap.flights.cli import main
+from neuralmap.flights.track_summary import TrackSummary, exact_sum
 from neuralmap.lab.scenario import load_scenario, scenario_tile
 from neuralmap.lab.simulator import simulate
-from neuralmap.nav.cli import main
 from neuralmap.nav.fix import FIX_FIELDS, STATUS, STATUS_CODE, FixTrack
 from neuralmap.nav.navigator import Navigator
-from neuralmap.nav.track_summary import TrackSummary, exact_sum
 from neuralmap.terrain.grid import GridTerrain
 
 TINY = {"sensor": {"dt_s": 1.0, "altimeter_sigma_m": 3.0},
@@ -170,7 +170,7 @@ def test_the_replay_holds_one_chunk_of_fixes(two_vehicle_log, monkeypatch) -> No
     from dataclasses import fields
 
     from neuralmap.exceptions import NeuralMapError
-    from neuralmap.nav.flight import FlightOptions, navigate_flight, write_flight
+    from neuralmap.flights.flight import FlightOptions, navigate_flight, write_flight
 
     log, nav = two_vehicle_log
     calls: list[tuple[int, bool]] = []
@@ -237,7 +237,7 @@ def test_a_full_disk_while_writing_navigation_csv_writes_nothing(two_vehicle_log
 
 def test_chunk_epochs_must_be_positive(two_vehicle_log, tmp_path: Path, capsys) -> None:  # noqa: ANN001
     from neuralmap.exceptions import NeuralMapError
-    from neuralmap.nav.flight import FlightOptions
+    from neuralmap.flights.flight import FlightOptions
 
     log, nav = two_vehicle_log
     with pytest.raises(NeuralMapError, match="--chunk_epochs must be an integer >= 1"):
@@ -326,8 +326,8 @@ def test_summary_against_numpy_whatever_the_chunks(tiny_flight) -> None:  # noqa
 def test_mapped_flight_reads_the_same_values(tiny_flight, tmp_path: Path) -> None:  # noqa: ANN001
     """The memory-mapped flight input holds the log's values, also after its pages were
     handed back."""
-    from neuralmap.nav.flight_input import FlightInput
-    from neuralmap.nav.mapped_flight import map_flight
+    from neuralmap.flights.flight_input import FlightInput
+    from neuralmap.flights.mapped_flight import map_flight
 
     _, truth, _ = tiny_flight
     flight = FlightInput(t=truth.t.clone(), ins_position=truth.ins_pos[..., :2].clone(),
@@ -349,7 +349,7 @@ def test_the_format_is_told_from_the_header_alone(tmp_path: Path) -> None:
     """Detecting a CSV log's format reads its header line only (a long log is parsed
     once); the bad value is refused when the log is read, with its line and column."""
     from neuralmap.exceptions import NeuralMapError
-    from neuralmap.nav.flight_input import detect_format, read_flight_input
+    from neuralmap.flights.flight_input import detect_format, read_flight_input
 
     path = tmp_path / "log.csv"
     path.write_text("time,ins_x,ins_y,ins_h,radar\n0,1,2,3,4\n1,abc,2,3,4\n")

@@ -12,7 +12,7 @@ report.md, results.json, config.yaml and, when the log carries a reference, the 
 against it (track on the hillshade with σ ellipses, error against time with ±3σ, status
 timeline, TensorBoard events). The same implementation runs as the ``flight`` study
 (``python evaluate.py --config configs/flight.yaml --log LOG``;
-`neuralmap.nav.flight`). A refused log or bad option prints one ``error:`` line,
+`neuralmap.flights.flight`). A refused log or bad option prints one ``error:`` line,
 exits 2 and writes nothing.
 """
 
@@ -103,8 +103,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from neuralmap.exceptions import NeuralMapError
+    from neuralmap.flights.flight import FLIGHT_TITLE, FlightOptions, navigate_flight, write_flight
     from neuralmap.io import check_writable_dir
-    from neuralmap.nav.flight import FLIGHT_TITLE, FlightOptions, navigate_flight, write_flight
     from neuralmap.outputs import StudyOutputs
 
     previous = torch.get_num_threads()

@@ -8,7 +8,7 @@ Three inputs, one result (`FlightInput`, batch first like the Navigator):
     each). Optional reference columns ``ref_x, ref_y, ref_h`` (map frame, m).
 (b) **Geographic log** (CSV or NPZ): ``time, lat, lon, alt, radar``; ``lat, lon`` WGS-84
     degrees, ``alt`` the INS altitude (m, above the DEM's vertical datum unless declared
-    ellipsoidal, `neuralmap.nav.vertical_datum`), ``radar`` the measured clearance (m).
+    ellipsoidal, `neuralmap.flights.vertical_datum`), ``radar`` the measured clearance (m).
     Optional reference ``ref_lat, ref_lon, ref_alt`` (same datum as ``alt``).
 (c) **KF-GINS navigation result** (11 columns, what ``neuralmap-gins`` writes as
     ``KF_GINS_Navresult.nav``) as the INS, with a separate radar log (CSV/NPZ: ``time,
@@ -36,8 +36,8 @@ import numpy as np
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.flights.vertical_datum import apply_datum
 from neuralmap.nav.georef import MapFrame
-from neuralmap.nav.vertical_datum import apply_datum
 
 __all__ = ["FLIGHT_FORMATS", "FlightInput", "detect_format", "read_flight_input"]
 

@@ -14,9 +14,9 @@ import torch
 
 from neuralmap import Navigator
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.nav.cli import main
+from neuralmap.flights.cli import main
+from neuralmap.flights.flight_input import read_flight_input
 from neuralmap.nav.fix import STATUS_CODE
-from neuralmap.nav.flight_input import read_flight_input
 
 COLUMNS = ["time", "ins_x", "ins_y", "ins_h", "radar"]
 
@@ -184,7 +184,7 @@ def test_a_bad_max_gap_is_one_line(flight, tmp_path, capsys, value) -> None:  # 
 
 def test_an_out_folder_that_cannot_be_made_is_refused_first(flight, tmp_path, capsys,  # noqa: ANN001
                                                             monkeypatch) -> None:
-    import neuralmap.nav.flight as flight_module
+    import neuralmap.flights.flight as flight_module
 
     _, truth = flight
     log = _write(tmp_path / "f.csv", COLUMNS, _rows(truth))

@@ -453,10 +453,13 @@ def _fly_registered(config: Any, scenario: Any, truth: Any, tile: Any, truth_ter
                                       seconds=time.perf_counter() - tick)
         if table is not None and "linearizer" in options:
             infos[name]["table"] = table.to_dict()
+        handoff = infos[name]["handoff_median_s"]
+        handoff = ("no hand-off (started without the acquisition grid)" if handoff is None
+                   else f"hand-off median {handoff} s")
         print(f"{name}: R {infos[name]['R_m2']:.1f} m² (altimeter + DEM error) | "
-              f"{infos[name]['cell_updates_per_s']:.3g} cell-updates/s | hand-off median "
-              f"{infos[name]['handoff_median_s']} s, lost {infos[name]['runs_lost']} runs | "
-              f"{infos[name]['elapsed_s']:.1f} s", flush=True)
+              f"{infos[name]['cell_updates_per_s']:.3g} cell-updates/s | {handoff}, "
+              f"lost {infos[name]['runs_lost']} runs | {infos[name]['elapsed_s']:.1f} s",
+              flush=True)
     default = _default_method()
     if config.stated_r and default in runs:
         R_user = float(scenario.dem_error_sigma_m) ** 2

@@ -60,7 +60,7 @@ from neuralmap.io import atomic_write
 from neuralmap.nav.fix import STATUS, FixTrack
 
 __all__ = ["CSV_COLUMNS", "NavigationFiles", "REFERENCE_COLUMNS", "add_reference_errors",
-           "add_status", "reference_errors", "sigma_ellipse", "status_summary",
+           "add_status", "reference_errors", "status_summary",
            "write_navigation_csv", "write_navigation_geojson"]
 
 #: Columns of navigation.csv (reference columns follow when the log has a reference).

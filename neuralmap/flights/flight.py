@@ -282,15 +282,15 @@ _HEIGHT_BATCH = 65_536
 def _map_heights(source: Any, xy: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     """``(M,)`` float64 map heights under ``xy`` ``(M, 2)`` (NaN off the map), evaluated in
     batches of `_HEIGHT_BATCH` points."""
-    xmin, xmax, ymin, ymax = source.extent
+    from neuralmap.terrain.base import inside_extent
+
     heights = torch.full((xy.shape[0],), float("nan"), dtype=torch.float64)
     terrain_dtype = next((b.dtype for b in source.terrain.buffers() if b.is_floating_point()),
                          dtype)
     with torch.no_grad():
         for a in range(0, xy.shape[0], _HEIGHT_BATCH):
             part = xy[a:a + _HEIGHT_BATCH]
-            on = ((part[:, 0] >= xmin) & (part[:, 0] <= xmax) & (part[:, 1] >= ymin)
-                  & (part[:, 1] <= ymax))
+            on = inside_extent(part, source.extent)
             if on.any():
                 heights[a:a + part.shape[0]][on] = source.terrain(
                     part[on].to(terrain_dtype)).double()

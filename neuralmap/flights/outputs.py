@@ -26,8 +26,7 @@ at once into anonymous spool files (in the run's folder; the system removes them
 they are closed, also after a crash), so a log of a million epochs never holds its fixes
 or its text in memory; at the end each file is assembled in its final order into a
 temporary name and renamed (`neuralmap.io.atomic_write`): a failure leaves no
-half-written file. `write_navigation_csv` and `write_navigation_geojson` write a whole
-`FixTrack` the same way, byte for byte.
+half-written file. A whole `FixTrack` goes the same way: one `NavigationFiles.append`.
 
 With a reference, `add_reference_errors` puts into the study outputs the errors in
 the study report format: a table and results.json entries (horizontal RMSE, final error,
@@ -60,8 +59,7 @@ from neuralmap.io import atomic_write
 from neuralmap.nav.fix import STATUS, FixTrack
 
 __all__ = ["CSV_COLUMNS", "NavigationFiles", "REFERENCE_COLUMNS", "add_reference_errors",
-           "add_status", "reference_errors", "status_summary",
-           "write_navigation_csv", "write_navigation_geojson"]
+           "add_status"]
 
 #: Columns of navigation.csv (reference columns follow when the log has a reference).
 CSV_COLUMNS = ("vehicle", "time", "lat", "lon", "x", "y", "altitude", "sigma_major_m",
@@ -213,7 +211,8 @@ class NavigationFiles:
             raise ValueError("NavigationFiles.append: the rows carry the reference: give "
                              "reference_xy.")
         if self.geojson and (d["lat"] is None or d["lon"] is None):
-            raise ValueError("write_navigation_geojson: the track has no lat/lon.")
+            raise ValueError("NavigationFiles: navigation.geojson needs the track's lat/lon "
+                             "(the map has no georeference).")
         ref = (None if not self.reference
                else reference_xy.detach().cpu().double().numpy())
         for n in range(n_veh):
@@ -305,7 +304,8 @@ class NavigationFiles:
         """
         self._check_open()
         if self._geo is None:
-            raise ValueError("write_navigation_geojson: the track has no lat/lon.")
+            raise ValueError("NavigationFiles.write_geojson: the files were made without "
+                             "geojson=True.")
 
         def write(handle: IO[bytes]) -> None:  # streamed feature by feature
             handle.write(b'{"type": "FeatureCollection", "features": [')
@@ -323,61 +323,7 @@ class NavigationFiles:
         return atomic_write(path, write)
 
 
-def write_navigation_csv(path: str | Path, track: FixTrack,
-                         reference_xy: torch.Tensor | None = None) -> Path:
-    """Writes navigation.csv of a whole track atomically (columns: `CSV_COLUMNS`, then the
-    reference columns when ``reference_xy`` ``(N, K, 2)`` is given), streamed through
-    `NavigationFiles`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with NavigationFiles(path.parent, n_vehicles=int(track.xy.shape[0]),
-                         reference=reference_xy is not None) as files:
-        files.append(track, reference_xy)
-        return files.write_csv(path)
-
-
-def write_navigation_geojson(path: str | Path, track: FixTrack, *,
-                             counts: dict[str, int] | None = None,
-                             properties: dict[str, Any] | None = None) -> Path:
-    """Writes navigation.geojson of a whole track atomically (needs ``track.lat``/``lon``).
-
-    Raises:
-        ValueError: The track has no lat/lon (the map has no georeference).
-    """
-    if track.lat is None or track.lon is None:
-        raise ValueError("write_navigation_geojson: the track has no lat/lon.")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with NavigationFiles(path.parent, n_vehicles=int(track.xy.shape[0]),
-                         geojson=True) as files:
-        files.append(track)
-        return files.write_geojson(path, counts=counts, properties=properties)
-
-
 # ---------------------------------------------------------------------------- the report
-
-
-def _summary(track: FixTrack | TrackSummary, reference_xy: torch.Tensor | None = None,
-             reference_altitude: torch.Tensor | None = None,
-             ins_xy: torch.Tensor | None = None, ins_altitude: torch.Tensor | None = None,
-             n_ellipses: int = 20) -> TrackSummary:
-    if isinstance(track, TrackSummary):
-        return track
-    return TrackSummary.from_track(track, reference_xy=reference_xy,
-                                   reference_altitude=reference_altitude, ins_xy=ins_xy,
-                                   ins_altitude=ins_altitude, n_ellipses=n_ellipses)
-
-
-def status_summary(track: FixTrack | TrackSummary) -> dict[str, float]:
-    """Fraction of epochs (all vehicles) in each status."""
-    return _summary(track).status_fractions()
-
-
-def reference_errors(track: FixTrack | TrackSummary,
-                     reference_xy: torch.Tensor | None = None) -> dict[str, Any]:
-    """Errors of a track against a reference ``(N, K, 2)`` (a `TrackSummary` carries its
-    own): `TrackSummary.reference_errors`."""
-    return _summary(track, reference_xy).reference_errors()
 
 
 @contextmanager
@@ -488,28 +434,15 @@ def _status_figure(summary: TrackSummary) -> tuple[Any, bool]:
     return fig, decimated
 
 
-def add_reference_errors(outputs: Any, track: FixTrack | TrackSummary,
-                         reference_xy: torch.Tensor | None = None, *,
-                         ins_xy: torch.Tensor | None = None, preview: Any,
-                         n_ellipses: int = 20,
-                         reference_altitude: torch.Tensor | None = None,
-                         ins_altitude: torch.Tensor | None = None) -> dict:
+def add_reference_errors(outputs: Any, summary: TrackSummary, *, preview: Any) -> dict:
     """Errors against the reference into a `StudyOutputs`
     (table, results.json ``errors``, two figures, TensorBoard curves).
 
     Args:
         outputs: The study outputs writer.
-        track: The navigated flight: its `TrackSummary` (made with the reference, the INS
-            and their altitudes: it carries them), or a whole `FixTrack` with the arrays
-            below.
-        reference_xy: ``(N, K, 2)`` reference positions, map frame (with a `FixTrack`).
-        ins_xy: ``(N, K, 2)`` INS positions, drawn beside the estimate (with a
-            `FixTrack`).
+        summary: The navigated flight's `TrackSummary`, made with the reference, the INS
+            and their altitudes (`TrackSummary.from_track` for a whole `FixTrack`).
         preview: A `DemTile` drawn as hillshade.
-        n_ellipses: σ ellipses drawn along a `FixTrack` (a summary has its own).
-        reference_altitude: ``(N, K)`` reference altitude (same datum), optional: adds the
-            vertical RMSE of TAN and of the INS (with a `FixTrack`).
-        ins_altitude: ``(N, K)`` INS altitude, with ``reference_altitude``.
 
     Returns:
         The error summary (`TrackSummary.reference_errors`, with the INS's and the
@@ -518,8 +451,6 @@ def add_reference_errors(outputs: Any, track: FixTrack | TrackSummary,
     Raises:
         ValueError: The summary has no reference or no INS positions.
     """
-    summary = _summary(track, reference_xy, reference_altitude, ins_xy, ins_altitude,
-                       n_ellipses)
     if summary.ins_xy is None or not summary.has_reference:
         raise ValueError("add_reference_errors: the summary needs the reference and the INS "
                          "positions (TrackSummary(..., reference_xy=, ins_xy=)).")
@@ -558,9 +489,8 @@ def add_reference_errors(outputs: Any, track: FixTrack | TrackSummary,
     return errors
 
 
-def add_status(outputs: Any, track: FixTrack | TrackSummary) -> dict[str, float]:
+def add_status(outputs: Any, summary: TrackSummary) -> dict[str, float]:
     """The status timeline figure, the status fractions table and TensorBoard curve."""
-    summary = _summary(track)
     fractions = summary.status_fractions()
     outputs.results["status_fraction"] = fractions
     outputs.add_table("Status", ["status", "fraction of epochs"],

@@ -175,7 +175,6 @@ class TrackSummary:
             estimate and the reference over every epoch (NaN before any).
         final: The last epoch added, as a `Fix` (None before any).
         counts: The navigator's counters after the last chunk (the whole flight's).
-        vehicle_counts: Its per-vehicle counters.
         filled: Epochs added so far.
     """
 
@@ -225,7 +224,6 @@ class TrackSummary:
         self._ins_h_last: np.ndarray | None = None
         self.final: Fix | None = None
         self.counts: dict[str, int] = {}
-        self.vehicle_counts: dict[str, torch.Tensor] = {}
         self.filled = 0
 
     # ------------------------------------------------------------------ filling
@@ -285,8 +283,7 @@ class TrackSummary:
             self._h2.add(h2)
             self._h2_tracking.add(h2[status == STATUS_CODE["tracking"]])
             self._h_max = float(np.maximum(self._h_max, h.max()))
-            nees_xy = nees(err.detach().cpu(),
-                           symmetrize(cov_xy.detach().cpu().double())).numpy()
+            nees_xy = nees(err, symmetrize(cov_xy)).numpy()
             self._nees.add(nees_xy)
             self._inside += int((nees_xy <= 9.0).sum())  # NaN compares False
             self._h_last = h[:, -1].copy()
@@ -317,7 +314,6 @@ class TrackSummary:
             self.ellipses[name][:, e_sel] = values[:, e_loc]
         self.final = _clone(track.fix(k - 1))
         self.counts = dict(track.counts)
-        self.vehicle_counts = {key: v.clone() for key, v in track.vehicle_counts.items()}
         self.filled = stop
 
     # ------------------------------------------------------------------ reading

@@ -11,8 +11,11 @@ jacksboro tile (bilinear heights at the cells). Rows, measured in the same run:
 * **one vehicle** (N = 1, one thread): median and p99 milliseconds of predict + update +
   moments (the lattice step) and of the epoch with the map lookup at the cells, for the
   previous code (the commit ``--before``, loaded from git), the eager step and the step
-  under ``torch.compile`` (``TrackerConfig.compile``); and the aten operations one step
-  issues (``torch.profiler``: all, and the top-level ones);
+  under ``torch.compile`` (``TrackerConfig.compile``), and the whole epoch as one compiled
+  step (`PointMassTracker.track`: prediction, map lookup at the cells, update and moments
+  in one call, as the Navigator runs it with ``compile: true``; its two columns are the
+  same call); and the aten operations one step issues (``torch.profiler``: all, and the
+  top-level ones);
 * **fleet** (N = ``--runs``, one thread): vehicle-epochs per second (lattice step only) and
   cell-updates per second (one predict + update of one cell);
 * **same algorithm in NumPy** (`neuralmap.filters.lattice.reference.FollowLatticeReference`,
@@ -181,6 +184,24 @@ class TorchMap:
         return (h00 * (1 - fu) + h01 * fu) * (1 - fv) + (h10 * (1 - fu) + h11 * fu) * fv
 
 
+def map_at_cells(h: torch.Tensor, origin: tuple[float, float], spacing: tuple[float, float],
+                 ins: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """`TorchMap` at ``ins − points`` as a module-level function: the map lookup a whole-epoch
+    step (`PointMassTracker.track`) fuses with the filter."""
+    xy = ins[:, None, None, :] - points
+    ny, nx = h.shape
+    u = ((xy[..., 0] - origin[0]) / spacing[0]).clamp(0.0, nx - 1.0)
+    v = ((xy[..., 1] - origin[1]) / spacing[1]).clamp(0.0, ny - 1.0)
+    j = u.floor().clamp(max=nx - 2)
+    i = v.floor().clamp(max=ny - 2)
+    fu, fv = u - j, v - i
+    idx = (i * nx + j).long()
+    flat = h.reshape(-1)
+    h00, h01 = flat[idx], flat[idx + 1]
+    h10, h11 = flat[idx + nx], flat[idx + nx + 1]
+    return (h00 * (1 - fu) + h01 * fu) * (1 - fv) + (h10 * (1 - fu) + h11 * fu) * fv
+
+
 def tracker_config(module: ModuleType, cells: int, **extra: Any) -> Any:
     """The Navigator's tracker options: lattice floor ``1.5 b (G − 1)/2`` with ``b`` one
     step's transition spread, no internal lost-track test."""
@@ -260,8 +281,49 @@ def fly(trk: Any, flight: Flight, rows: slice, steps: range, tmap: TorchMap,
     return lattice, epoch
 
 
+def _track_args(trk: Any, flight: Flight, rows: slice, tmap: TorchMap,
+                device: torch.device) -> tuple[Any, ...]:
+    dtype = trk.dtype
+    ins = torch.as_tensor(flight.ins[rows], dtype=dtype, device=device)
+    y = torch.as_tensor(flight.y[rows], dtype=dtype, device=device)
+    n = ins.shape[0]
+    r = torch.full((n,), R_M2, dtype=dtype, device=device)
+    everyone = torch.ones(n, dtype=torch.bool, device=device)
+    return ins, y, r, everyone
+
+
+def track_epoch(trk: Any, k: int, args: tuple[Any, ...], tmap: TorchMap,
+                qs: torch.Tensor, qz: torch.Tensor) -> None:
+    """One epoch as one step (`PointMassTracker.track`: predict, map lookup, update,
+    moments); the separate prediction and update where the step declines."""
+    ins, y, r, everyone = args
+    out = trk.track(Q_s=qs, Q_z=qz, measurement=y[:, k], heights=map_at_cells,
+                    heights_args=(tmap.h, tmap.origin, tmap.spacing, ins[:, k]), R=r,
+                    mask=everyone)
+    if out is None:
+        trk.predict(Q_s=qs, Q_z=qz)
+        trk.update(y[:, k], tmap(ins[:, k, None, None, :] - trk.points()), R=R_M2)
+    trk.moments()
+
+
+def fly_track(trk: Any, flight: Flight, rows: slice, steps: range, tmap: TorchMap,
+              device: torch.device) -> tuple[list[float], list[float]]:
+    """`fly` with each epoch as one step (`track_epoch`): the lattice step and the epoch
+    are the same call (the map lookup inside)."""
+    qs, qz = _qs_qz(trk.dtype, device)
+    args = _track_args(trk, flight, rows, tmap, device)
+    epoch = []
+    for k in steps:
+        _sync(device)
+        t0 = time.perf_counter()
+        track_epoch(trk, k, args, tmap, qs, qz)
+        _sync(device)
+        epoch.append(time.perf_counter() - t0)
+    return epoch, epoch
+
+
 def aten_calls(trk: Any, flight: Flight, k: int, tmap: TorchMap,
-               device: torch.device) -> tuple[int, int]:
+               device: torch.device, whole_epoch: bool = False) -> tuple[int, int]:
     """aten operations of one lattice step (predict, update, moments; the map lookup not
     counted): all of them and the top-level ones."""
     from torch.profiler import ProfilerActivity, profile
@@ -271,6 +333,14 @@ def aten_calls(trk: Any, flight: Flight, k: int, tmap: TorchMap,
     ins = torch.as_tensor(flight.ins[:1, k], dtype=dtype, device=device)
     y = torch.as_tensor(flight.y[:1, k], dtype=dtype, device=device)
     events = []
+    if whole_epoch:  # one call: predict, map lookup, update, moments
+        args = _track_args(trk, flight, slice(0, 1), tmap, device)
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            track_epoch(trk, k, args, tmap, qs, qz)
+        aten = [e for e in prof.events() if e.name.startswith("aten::")]
+        top = [e for e in aten
+               if e.cpu_parent is None or not e.cpu_parent.name.startswith("aten::")]
+        return len(aten), len(top)
     with profile(activities=[ProfilerActivity.CPU]) as prof:
         trk.predict(Q_s=qs, Q_z=qz)
     events += list(prof.events())
@@ -467,32 +537,37 @@ def main() -> None:
     previous = load_previous(args.before) if args.before else None
     if args.before and previous is None:
         print(f"(previous code row skipped: commit {args.before} not available via git)")
-    variants: list[tuple[str, Callable[[int], Any]]] = []
+    current = sys.modules[PointMassTracker.__module__]
+    variants: list[tuple[str, Callable[[int], Any], Callable[..., Any]]] = []
     if previous is not None:
         variants.append((f"previous code ({args.before}), eager",
-                         lambda n: make_tracker(previous, n, g, dtype, device)))
+                         lambda n: make_tracker(previous, n, g, dtype, device), fly))
     variants.append(("lean step, eager",
-                     lambda n: make_tracker(sys.modules[PointMassTracker.__module__], n, g,
-                                            dtype, device)))
+                     lambda n: make_tracker(current, n, g, dtype, device), fly))
     if not args.no_compile:
         variants.append(("lean step, torch.compile",
-                         lambda n: make_tracker(sys.modules[PointMassTracker.__module__], n,
-                                                g, dtype, device, compile=True)))
+                         lambda n: make_tracker(current, n, g, dtype, device, compile=True),
+                         fly))
+        variants.append(("one step per epoch (`track`, map lookup inside), torch.compile",
+                         lambda n: make_tracker(current, n, g, dtype, device, compile=True),
+                         fly_track))
     tmap = TorchMap(one, dtype, device)
     one_rows, fleet_rows = [], []
-    for name, make in variants:
+    for name, make, flies in variants:
         trk = make(1)
-        fly(trk, one, slice(0, 1), range(warm), tmap, device)  # warm-up (compiles)
-        lat, ep = fly(trk, one, slice(0, 1), range(warm, warm + args.one_steps), tmap, device)
-        calls = aten_calls(trk, one, warm + args.one_steps - 1, tmap, device)
+        flies(trk, one, slice(0, 1), range(warm), tmap, device)  # warm-up (compiles)
+        lat, ep = flies(trk, one, slice(0, 1), range(warm, warm + args.one_steps), tmap,
+                        device)
+        calls = aten_calls(trk, one, warm + args.one_steps - 1, tmap, device,
+                           whole_epoch=flies is fly_track)
         one_rows.append((name, *median_p99(lat), *median_p99(ep), *calls))
     fmap = TorchMap(fleet, dtype, device)
-    for name, make in variants:
+    for name, make, flies in variants:
         rates = []
         for _ in range(args.repeats):
             trk = make(args.runs)
-            fly(trk, fleet, slice(None), range(3), fmap, device)  # warm-up (compiles)
-            lat, _ = fly(trk, fleet, slice(None), range(3, 3 + args.steps), fmap, device)
+            flies(trk, fleet, slice(None), range(3), fmap, device)  # warm-up (compiles)
+            lat, _ = flies(trk, fleet, slice(None), range(3, 3 + args.steps), fmap, device)
             rates.append(args.runs / statistics.median(lat))
         fleet_rows.append((name, statistics.median(rates), max(rates)))
     ref = reference_rate(one, args.ref_runs, args.one_steps // 3 or 1, g)
@@ -535,8 +610,9 @@ def main() -> None:
     else:
         print(ss_note)
     print()
-    best_one = min(r[1] for r in one_rows[-2:]) if len(one_rows) > 1 else one_rows[0][1]
-    best_epoch = min(r[3] for r in one_rows[-2:]) if len(one_rows) > 1 else one_rows[0][3]
+    current_rows = [r for r in one_rows if not r[0].startswith("previous")]
+    best_one = min(r[1] for r in current_rows if "track" not in r[0])
+    best_epoch = min(r[3] for r in current_rows)
     best_fleet = max(r[1] for r in fleet_rows)
     ratio = best_fleet * g * g / ref
 

@@ -23,7 +23,9 @@ per step, optionally under ``torch.compile``: ``TrackerConfig.compile``) in
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from typing import Any
 
 import torch
 
@@ -177,6 +179,36 @@ class PointMassTracker(LatticeFilter):
         """
         return super().update(measurement, predicted, R=R, mask=mask,
                               cell_variance=cell_variance, regrid=regrid)
+
+    def track(self, *, Q_s: torch.Tensor, Q_z: torch.Tensor, measurement: torch.Tensor,
+              heights: Callable[..., torch.Tensor], heights_args: tuple[Any, ...],
+              R: torch.Tensor, mask: torch.Tensor, gate: float = math.inf,
+              ) -> tuple[TrackerUpdate, torch.Tensor, torch.Tensor, Any] | None:
+        """`predict` then `update` as one static step, the map lookup and a spike gate in it
+        (`FollowLattice.track`; one compiled call with ``config.compile``).
+
+        Args:
+            Q_s: ``(2, 2)`` or ``(N, 2, 2)`` process noise of ``s``.
+            Q_z: ``(nz, nz)`` or ``(N, nz, nz)`` process noise of ``z``.
+            measurement: ``(N,)`` ``y`` in the filter's dtype (NaN = no measurement).
+            heights: A module-level function: ``heights(*heights_args, points)`` is ``g``
+                ``(N, G, G)`` at the predicted cells ``points (N, G, G, 2)`` (NaN: no
+                likelihood), e.g. `neuralmap.tan.cells.cell_heights`.
+            heights_args: Its other arguments (the map, the INS positions, ...).
+            R: ``(N,)`` measurement variances (> 0) in the filter's dtype.
+            mask: ``(N,)`` bool, runs to update.
+            gate: Leave out ``y`` where its NIS against the predicted mixture
+                (`predictive_nis`) exceeds ``gate``.
+
+        Returns:
+            The update, the predictive NIS ``(N,)``, the gated runs ``(N,)`` and the radial
+            mass profile ``(reach, fraction)`` of the result around its mean
+            (`neuralmap.filters.lattice.kernels.radial_mass_profile`; None for a large
+            batch); None, with nothing changed, where the epoch is to run as `predict` and `update` (the eager
+            driver, or a rare event of the prediction).
+        """
+        return self.rule.track(self, Q_s=Q_s, Q_z=Q_z, y=measurement, heights=heights,
+                               heights_args=heights_args, r=R, mask=mask, gate=gate)
 
     def regrid(self, force: torch.Tensor | None = None) -> torch.Tensor:
         """Moves runs whose posterior no longer fits their lattice (`FollowLattice.regrid`).

@@ -156,17 +156,30 @@ def pcrb_position(bound: torch.Tensor) -> torch.Tensor:
     return (bound[:, 0, 0] + bound[:, 1, 1]).clamp_min(0.0).sqrt()
 
 
+def _terrain_device(terrain: Any, default: torch.device) -> torch.device:
+    """Where the terrain model's tensors are (its first parameter or buffer), else
+    ``default``: the truth may be simulated on another device than the map is kept on."""
+    for name in ("parameters", "buffers"):
+        tensors = getattr(terrain, name, None)
+        if callable(tensors):
+            for tensor in tensors():
+                return tensor.device
+    return default
+
+
 def _terrain_slopes(terrain: Any, xy: torch.Tensor,
                     progress: Callable[[float], None] | None = None) -> torch.Tensor:
-    """``(M, 2)`` terrain slopes at ``(M, 2)`` points (float64), chunked.
+    """``(M, 2)`` terrain slopes at ``(M, 2)`` points (float64, on ``xy``'s device), chunked.
 
     Uses ``terrain.height_and_slope`` when the model has it (analytic, e.g. GridTerrain),
-    else autograd of ``terrain(xy)``. ``progress`` is called with each chunk's share.
+    else autograd of ``terrain(xy)``, on the terrain's device. ``progress`` is called with
+    each chunk's share.
     """
     parts = []
     analytic = getattr(terrain, "height_and_slope", None)
+    device = _terrain_device(terrain, xy.device)
     for start in range(0, xy.shape[0], SLOPE_CHUNK):
-        chunk = xy[start:start + SLOPE_CHUNK]
+        chunk = xy[start:start + SLOPE_CHUNK].to(device)
         if callable(analytic):
             with torch.no_grad():
                 slope = analytic(chunk)[1]
@@ -175,7 +188,7 @@ def _terrain_slopes(terrain: Any, xy: torch.Tensor,
                 pts = chunk.detach().clone().requires_grad_(True)
                 height = terrain(pts)
                 (slope,) = torch.autograd.grad(height.sum(), pts)
-        parts.append(slope.detach().to(torch.float64))
+        parts.append(slope.detach().to(device=xy.device, dtype=torch.float64))
         if progress is not None:
             progress(chunk.shape[0] / xy.shape[0])
     if not parts:
@@ -225,7 +238,7 @@ def terrain_information(
     xy = pos[..., :2].detach()
     if on_map is None:
         contains = getattr(terrain, "contains", None)
-        on_map = (contains(xy) if callable(contains)
+        on_map = (contains(xy.to(_terrain_device(terrain, xy.device))) if callable(contains)
                   else torch.ones(N, steps, dtype=torch.bool, device=pos.device))
     on_map = torch.as_tensor(on_map, device=pos.device).to(torch.bool)
     if tuple(on_map.shape) != (N, steps):

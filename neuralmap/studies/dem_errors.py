@@ -397,7 +397,7 @@ def _identify_along_path(field_model: Any, truth: Any, max_order: int) -> dict[s
     """AR(1) and AR(2) moments of the DEM error sampled along the true paths (pooled)."""
 
     with torch.no_grad():
-        e = field_model(truth.pos[..., :2].to(torch.float64)).numpy()  # (N, K+1)
+        e = field_model(truth.pos[..., :2].cpu().to(torch.float64)).numpy()  # (N, K+1)
     e = e - e.mean(axis=1, keepdims=True)
     n = e.shape[1]
     lags = max_order + 1

@@ -13,10 +13,12 @@ from typing import Any
 
 import torch
 
+from neuralmap.filters.lattice.kernels import cell_reach
 from neuralmap.terrain.base import inside_extent
 
-__all__ = ["cell_height_variance", "cells_on_map", "heights_on_cells", "is_bilinear_grid",
-           "lattice_bilinear", "lattice_protection_radius", "mask_voids"]
+__all__ = ["cell_height_variance", "cell_heights", "cells_on_map", "heights_on_cells",
+           "is_bilinear_grid", "lattice_bilinear", "lattice_protection_radius", "map_dtype",
+           "mask_voids"]
 
 
 def is_bilinear_grid(terrain: Any) -> bool:
@@ -41,19 +43,44 @@ def heights_on_cells(terrain: Any, ins_xy: torch.Tensor, extent: tuple[float, ..
         Callable on cell coordinates ``(N, G, G, 2)`` returning ``(N, G, G)`` heights in
         their dtype (the map is evaluated in its own parameters' dtype).
     """
-    param = next(iter(terrain.parameters()), None) if hasattr(terrain, "parameters") else None
-    own = param.dtype if param is not None and not hasattr(terrain, "heights") else None
+    own = map_dtype(terrain)
 
     def g(points: torch.Tensor) -> torch.Tensor:
-        xy = ins_xy[:, None, None, :].to(points.dtype) - points  # p_ins − s
-        flat = xy.reshape(-1, 2)
-        with torch.no_grad():
-            h = terrain(flat if own is None else flat.to(own))
-        h = h.to(points.dtype).reshape(points.shape[:-1])
-        h = mask_voids(terrain, xy, h)
-        return torch.where(inside_extent(xy, extent), h, torch.nan) if mask_off_map else h
+        return cell_heights(terrain, ins_xy, extent, own, points, mask_off_map=mask_off_map)
 
     return g
+
+
+def map_dtype(terrain: Any) -> torch.dtype | None:
+    """The dtype a neural map is evaluated in (its parameters'); None for a grid (it takes
+    its queries' dtype) or a map without parameters."""
+    param = next(iter(terrain.parameters()), None) if hasattr(terrain, "parameters") else None
+    return param.dtype if param is not None and not hasattr(terrain, "heights") else None
+
+
+def cell_heights(terrain: Any, ins_xy: torch.Tensor, extent: tuple[float, ...],
+                 own: torch.dtype | None, points: torch.Tensor, *,
+                 mask_off_map: bool = True) -> torch.Tensor:
+    """``g(s) = t(p_ins − s)`` at the cells ``points (N, G, G, 2)``: ``(N, G, G)`` in their
+    dtype, NaN off the map and over its voids (`heights_on_cells`, whose callable this is;
+    a module-level function, so that a compiled tracking epoch takes it as its map lookup:
+    `neuralmap.filters.point_mass_tracker.PointMassTracker.track`).
+
+    Args:
+        terrain: The map.
+        ins_xy: ``(N, 2)`` INS horizontal positions.
+        extent: Map extent ``(xmin, xmax, ymin, ymax)``.
+        own: The map's own dtype (`map_dtype`), None to query it in the cells' dtype.
+        points: ``(N, G, G, 2)`` cell coordinates ``s``.
+        mask_off_map: As `heights_on_cells`.
+    """
+    xy = ins_xy[:, None, None, :].to(points.dtype) - points  # p_ins − s
+    flat = xy.reshape(-1, 2)
+    with torch.no_grad():
+        h = terrain(flat if own is None else flat.to(own))
+    h = h.to(points.dtype).reshape(points.shape[:-1])
+    h = mask_voids(terrain, xy, h)
+    return torch.where(inside_extent(xy, extent), h, torch.nan) if mask_off_map else h
 
 
 def mask_voids(terrain: Any, xy: torch.Tensor, heights: torch.Tensor) -> torch.Tensor:
@@ -187,10 +214,7 @@ def lattice_protection_radius(points: torch.Tensor, weights: torch.Tensor, axes:
     Returns:
         ``(N,)`` radii, m (float64).
     """
-    half = 0.5 * torch.maximum((axes[:, :, 0] + axes[:, :, 1]).norm(dim=-1),
-                               (axes[:, :, 0] - axes[:, :, 1]).norm(dim=-1))
-    reach = ((points - centre[:, None, None, :].to(points.dtype)).norm(dim=-1)
-             + half[:, None, None].to(points.dtype)).flatten(1).double()
+    reach = cell_reach(points, axes, centre)
     w = weights.flatten(1).double()
     outside = torch.where(reach > gaussian[:, None], w, 0.0).sum(1)
     out = gaussian.double().clone()

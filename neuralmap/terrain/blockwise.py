@@ -149,10 +149,12 @@ class BlockwiseTerrainNet(TerrainModel):
         blocks = self.layout.count
         generator = torch.Generator().manual_seed(seed)
         if encoding == "fourier":
-            frequencies = torch.randn(2, n_frequencies, generator=generator) * frequency_scale
+            # The generator's device, not a default device a caller set (Lightning's init_module).
+            frequencies = torch.randn(2, n_frequencies, generator=generator,
+                                      device=generator.device) * frequency_scale
             d_in = 2 * n_frequencies + 2
         else:
-            frequencies = torch.zeros(2, 0)
+            frequencies = torch.zeros(2, 0, device=generator.device)
             d_in = 2
         self.register_buffer("frequencies", frequencies)
         bounds = torch.as_tensor(self.layout.block_bounds(), dtype=torch.float32)
@@ -175,7 +177,8 @@ class BlockwiseTerrainNet(TerrainModel):
     def _uniform(blocks: int, fan_in: int, fan_out: int, generator: torch.Generator) -> torch.Tensor:
         # nn.Linear's default: U(-1/sqrt(fan_in), 1/sqrt(fan_in)).
         bound = 1.0 / math.sqrt(fan_in)
-        return (torch.rand(blocks, fan_in, fan_out, generator=generator) * 2.0 - 1.0) * bound
+        return (torch.rand(blocks, fan_in, fan_out, generator=generator, device=generator.device)
+                * 2.0 - 1.0) * bound
 
     # ------------------------------------------------------------------ construction
     @classmethod

@@ -352,13 +352,17 @@ def _init_blocks(net: BlockwiseTerrainNet, ids: np.ndarray, seed: int) -> None:
     with torch.no_grad():
         for local, key in enumerate(keys.tolist()):
             gen = torch.Generator().manual_seed(int(key) & 0x7FFF_FFFF_FFFF_FFFF)
+
+            def uniform(shape: torch.Size, gen: torch.Generator = gen) -> torch.Tensor:
+                """U(-1, 1) on the generator's device (not a caller's default device)."""
+                return torch.rand(shape, generator=gen, device=gen.device) * 2 - 1
+
             for weight, bias in zip(net.weights, net.biases, strict=True):
                 bound = 1.0 / math.sqrt(weight.shape[1])
-                weight[local] = (torch.rand(weight.shape[1:], generator=gen) * 2 - 1) * bound
-                bias[local] = (torch.rand(bias.shape[1:], generator=gen) * 2 - 1) * bound
+                weight[local] = uniform(weight.shape[1:]) * bound
+                bias[local] = uniform(bias.shape[1:]) * bound
             bound = 1.0 / math.sqrt(net.out_weight.shape[1])
-            net.out_weight[local] = (torch.rand(net.out_weight.shape[1:], generator=gen) * 2
-                                     - 1) * bound
+            net.out_weight[local] = uniform(net.out_weight.shape[1:]) * bound
             net.out_bias[local] = 0.0
 
 

@@ -9,6 +9,10 @@
 * The closed forms the step uses against LAPACK: the moment-correction map, the eigenvalue
   floor of the linear part, the thin-posterior test, the blur with a static band.
 * `LatticeFilter.predictive_nis` against a brute-force sum over the cells.
+* The whole tracking epoch as one step (`PointMassTracker.track`: prediction, map at the
+  cells, spike gate, update, moments, radial mass profile) against the eager driver's
+  prediction, predictive NIS, gate and update, uncompiled and (slow) compiled; its mass
+  profile's protection radius against `lattice_protection_radius`.
 """
 
 from __future__ import annotations
@@ -22,9 +26,10 @@ import torch
 from neuralmap.filters.lattice import follow_rule
 from neuralmap.filters.lattice import follow_step as fs
 from neuralmap.filters.lattice.algebra2 import sqrtm2
-from neuralmap.filters.lattice.kernels import blur
+from neuralmap.filters.lattice.kernels import blur, mass_radius
 from neuralmap.filters.point_mass import PointMassConfig, PointMassFilter
 from neuralmap.filters.point_mass_tracker import PointMassTracker, TrackerConfig
+from neuralmap.tan.cells import lattice_protection_radius
 
 D = torch.float64
 T = 1.0
@@ -126,6 +131,69 @@ def test_compiled_step_equals_the_eager_step() -> None:
     cfg = TrackerConfig(lost_window=4, local_widenings=1, min_half_width=26.0)
     events = _compare(3, 12, compile_=True, rtol=1e-8, config=cfg)
     assert events["regrids"] >= 3 and events["widenings"] >= 3
+
+
+def _cells_relief(ins: torch.Tensor, east_limit: float, points: torch.Tensor) -> torch.Tensor:
+    """The test relief at the cells ``points (N, G, G, 2)`` seen from ``ins (N, 2)``; cells
+    east of ``east_limit`` off the map (a module-level map for the whole-epoch step)."""
+    g = _relief(ins[:, None, None, :].to(points.dtype) - points)
+    return torch.where(points[..., 0] > east_limit, math.nan, g)
+
+
+@pytest.mark.parametrize("compile_", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_whole_epoch_step_equals_prediction_then_gated_update(compile_: bool) -> None:
+    """`PointMassTracker.track` from the eager driver's state at every epoch equals its
+    prediction, `predictive_nis`, the spike gate (a 300 m spike on one run) and the masked
+    update (float64: 1e-9 eager, 1e-8 compiled); its mass profile gives
+    `lattice_protection_radius` at three risks."""
+    n, steps, gate, r = 3, 12, 10.83, 9.0
+    cfg = TrackerConfig(lost_window=4, local_widenings=1, min_half_width=26.0)
+    gen = torch.Generator().manual_seed(3)
+    truth = torch.randn(n, 5, generator=gen, dtype=D) * P0.diagonal().sqrt()
+    eager = _tracker(n, cfg)
+    ins = torch.zeros(n, 2, dtype=D)
+    ins[:, 0] = torch.arange(n, dtype=D) * 3000.0
+    fused_steps = gated_runs = profiles = 0
+    for k in range(steps):
+        ins = ins + torch.tensor([60.0, 20.0], dtype=D)
+        truth[:, :2] += truth[:, 3:] * T
+        y = _relief(ins - truth[:, :2]) + truth[:, 2] + 3.0 * torch.randn(n, generator=gen,
+                                                                        dtype=D)
+        if k == 6:
+            y[1] += 300.0  # a spike
+        mask = torch.tensor([(k + i) % 5 != 0 for i in range(n)])
+        limit = 60.0 + 10.0 * k
+        static = eager.take(torch.arange(n))
+        static.rule.static, static.rule._compile = True, compile_
+        eager.predict(Q_s=QS, Q_z=QZ)
+        g = _cells_relief(ins, limit, eager.points())
+        nis_pred = eager.predictive_nis(y, g, r)
+        gated = mask & torch.isfinite(nis_pred) & (nis_pred > gate)
+        want = eager.update(y, g, R=r, mask=mask & ~gated)
+        out = static.track(Q_s=QS, Q_z=QZ, measurement=y, heights=_cells_relief,
+                           heights_args=(ins, limit), R=torch.full((n,), r, dtype=D),
+                           mask=mask, gate=gate)
+        if out is None:  # a rare event of the prediction: the epoch runs in two steps
+            continue
+        fused_steps += 1
+        got, nis_got, gated_got, mass = out
+        assert torch.equal(gated_got, gated), k
+        gated_runs += int(gated.sum())
+        assert torch.equal(got.applied, want.applied), k
+        tol = 1e-8 if compile_ else 1e-9
+        for a, b in zip((*static.state(), *static.moments(), got.nis, nis_got),
+                        (*eager.state(), *eager.moments(), want.nis, nis_pred), strict=True):
+            torch.testing.assert_close(a, b, rtol=tol, atol=tol, equal_nan=True)
+        if mass is not None:
+            profiles += 1
+            mean = static.moments()[0][:, :2]
+            for risk in (1e-1, 1e-2, 1e-4):
+                gauss = torch.full((n,), 5.0, dtype=D)  # below the lattice's own radius
+                torch.testing.assert_close(
+                    torch.maximum(gauss, mass_radius(mass[0], mass[1], risk)),
+                    lattice_protection_radius(static.points(), static.weights, static.axes,
+                                              mean, risk, gauss), rtol=1e-9, atol=1e-9)
+    assert fused_steps >= steps - 2 and gated_runs >= 1 and profiles >= steps - 2
 
 
 # ---------------------------------------------------------------------------- closed forms

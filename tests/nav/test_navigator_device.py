@@ -1,6 +1,7 @@
 """The Navigator's ``device`` option: the CPU request is the default bit for bit, a CUDA
 request without CUDA is refused by name, and on CUDA (when present) the fixes match the
-CPU's within float64 round-off."""
+CPU's within float64 round-off. The tracker's static driver (what CUDA and ``compile: true``
+run: one step per epoch, `PointMassTracker.track`) gives the eager driver's fixes."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import pytest
 import torch
 
 from neuralmap.exceptions import NeuralMapError
+from neuralmap.filters.lattice import follow_step
 from neuralmap.lab.scenario import load_scenario, scenario_tile
 from neuralmap.lab.simulator import simulate
 from neuralmap.nav.fix import FixTrack
@@ -113,3 +115,37 @@ def test_cuda_matches_the_cpu(tiny_flight, name: str) -> None:
     fix = nav.step(truth.t[k], truth.ins_pos[:, k, :2].cuda(), truth.ins_pos[:, k, 2].cuda(),
                    truth.radar[:, k].cuda())
     assert fix.xy.device.type == "cuda"  # step stays on the device
+
+
+@pytest.mark.parametrize("name", ["tracker", "grid_then_tracker", "reacquire"])
+def test_one_step_per_epoch_gives_the_eager_drivers_fixes(tiny_flight, name: str,
+                                                          monkeypatch: pytest.MonkeyPatch,
+                                                          ) -> None:
+    """The tracker on its static driver (uncompiled here: the compiled form is tested
+    against it in tests/filters/test_lattice_step.py) runs each epoch as one step — the
+    prediction, the map at the cells, the spike gate, the update, the moments and the mass
+    profile its protection level reads — and flies the eager driver's flight: fixes,
+    protection levels and status equal to float64 round-off (1e-9 relative), the same
+    counts, through a hand-off and a re-acquisition."""
+    truth, k, radar, grid, _ = tiny_flight
+    steps = []
+    whole_epoch = follow_step.track_step
+    monkeypatch.setattr(follow_step, "track_step",
+                        lambda *args: steps.append(1) or whole_epoch(*args))
+    cfg = dict(CONFIGS[name], point_mass_tracker={"dtype": "float64"})
+    ref = _replay(Navigator(grid, cfg, n_vehicles=3), truth, k, radar, name)
+    assert not steps  # the eager driver: a prediction, then an update
+    nav = Navigator(grid, cfg, n_vehicles=3)
+    nav._track.tracker.rule.static = True  # the driver CUDA and compile: true run
+    got = nav.replay(truth.t[:k], truth.ins_pos[:, :k, :2], truth.ins_pos[:, :k, 2],
+                     radar + RADAR_BIAS_M.get(name, 0.0), reset=False)
+    assert len(steps) >= k // 2  # one step per tracking epoch
+    for f in FIELDS:
+        a, b = getattr(got, f), getattr(ref, f)
+        if not a.is_floating_point():
+            assert torch.equal(a, b), (name, f)
+            continue
+        assert torch.equal(a.isnan(), b.isnan()), (name, f)
+        torch.testing.assert_close(a.nan_to_num(0.0), b.nan_to_num(0.0), rtol=1e-9,
+                                   atol=1e-9, msg=f"{name}: {f}")
+    assert got.counts == ref.counts

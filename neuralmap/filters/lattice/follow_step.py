@@ -778,6 +778,53 @@ def update_step(w: torch.Tensor, mu: torch.Tensor, P: torch.Tensor, centre: torc
             move, read)
 
 
+def track_step(w: torch.Tensor, mu: torch.Tensor, P: torch.Tensor, centre: torch.Tensor,
+               axes: torch.Tensor, E: torch.Tensor, F: torch.Tensor, qs: torch.Tensor,
+               qz: torch.Tensor, shift: torch.Tensor, open_mean: torch.Tensor,
+               open_cov: torch.Tensor, c: torch.Tensor, y: torch.Tensor,
+               heights: Any, heights_args: tuple[Any, ...], r: torch.Tensor,
+               mask: torch.Tensor, gate: float, nis_win: torch.Tensor,
+               nis_count: torch.Tensor, lost: torch.Tensor, slot: torch.Tensor,
+               recoveries: torch.Tensor, regrids: torch.Tensor, off: torch.Tensor,
+               p: FollowParams, threshold: float, window: bool, regrid: str,
+               profile: bool) -> tuple[Any, ...]:
+    """One whole tracking epoch of every run as one static step: `predict_step`, the
+    measurement model at the predicted cells, the spike gate, `update_step` and (``profile``)
+    the radial mass profile of the result around its mean
+    (`neuralmap.filters.lattice.kernels.radial_mass_profile`: the protection radius of any
+    risk in a few operations).
+
+    ``g = heights(*heights_args, points)`` ``(N, G, G)`` at the predicted cells ``points
+    (N, G, G, 2)`` (a module-level function: under ``torch.compile`` the map lookup is
+    fused with the filter). The spike gate leaves out ``y`` of the runs whose NIS against
+    the predicted mixture (`predictive_nis_core`) exceeds ``gate`` (``inf``: no gate). The
+    result equals `predict_step`, then `predictive_nis_core` and `update_step` with the
+    mask ``mask & ~gated``; the driver commits it only when the prediction raised none of
+    `PREDICT_FLAGS` and its kernel fitted the band (else it redoes the epoch as a
+    prediction and an update).
+
+    Returns:
+        ``predicted`` (the outputs of `predict_step`), ``updated`` (those of `update_step`),
+        ``nis_predicted`` ``(N,)``, ``gated`` ``(N,)`` bool, the profile (None without
+        ``profile``) and ``read``: the prediction's ``read`` followed by the update's (one
+        host read).
+    """
+    predicted = predict_step(w, mu, P, centre, axes, None, E, F, qs, qz, shift, open_mean,
+                             open_cov, off, p)
+    state, points, q_next = predicted[0], predicted[1], predicted[2]
+    g = heights(*heights_args, points)
+    nis_pred = predictive_nis_core(state[0], state[1], state[2], c, y, g, r)
+    gated = mask & torch.isfinite(nis_pred) & (nis_pred > gate)
+    updated = update_step(*state, c, y, g, r, mask & ~gated, None, q_next, nis_win,
+                          nis_count, lost, slot, recoveries, regrids, off, p, threshold,
+                          window, regrid)
+    read = torch.cat([predicted[-1], updated[-1]])
+    final = updated[0]
+    mass = (_kernels.radial_mass_profile(updated[1], final[0], final[4], updated[2][:, :2])
+            if profile else None)
+    return predicted, updated, nis_pred, gated, mass, read
+
+
 def floor_weights(w: torch.Tensor, weight_floor: float) -> torch.Tensor:
     """The following lattice's weight floor: masses below ``weight_floor × max`` raised to
     it, renormalised (0: unchanged)."""

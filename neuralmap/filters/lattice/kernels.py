@@ -373,3 +373,31 @@ def grid_sample_op(chans: torch.Tensor, coords: torch.Tensor, padding: str) -> t
 def _grid_sample_shape(chans: torch.Tensor, coords: torch.Tensor,
                        padding: str) -> torch.Tensor:
     return chans.new_empty(chans.shape[0], chans.shape[1], coords.shape[1], coords.shape[2])
+
+
+def cell_reach(points: torch.Tensor, axes: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+    """``(N, G²)`` float64: how far each cell's area reaches from ``centre (N, 2)``, ``d +
+    h`` with ``d`` the distance of the cell ``points (N, G, G, 2)`` and ``h`` the half
+    diagonal of a cell of steps ``axes (N, 2, 2)`` (columns)."""
+    half = 0.5 * torch.maximum((axes[:, :, 0] + axes[:, :, 1]).norm(dim=-1),
+                               (axes[:, :, 0] - axes[:, :, 1]).norm(dim=-1))
+    return ((points - centre[:, None, None, :].to(points.dtype)).norm(dim=-1)
+            + half[:, None, None].to(points.dtype)).flatten(1).double()
+
+
+def radial_mass_profile(points: torch.Tensor, weights: torch.Tensor, axes: torch.Tensor,
+                        centre: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The lattice's mass against the radius around ``centre (N, 2)``: the cells' reach
+    (`cell_reach`) sorted ``(N, G²)`` and the fraction of the mass ``w (N, G, G)`` within
+    each ``(N, G²)`` (float64, non-decreasing to 1). The radius holding ``1 − risk`` of the
+    mass is the reach at the first fraction ``≥ 1 − risk`` (`mass_radius`)."""
+    reach, order = torch.sort(cell_reach(points, axes, centre), dim=1)
+    cum = torch.gather(weights.flatten(1).double(), 1, order).cumsum(1)
+    return reach, cum / cum[:, -1:].clamp_min(torch.finfo(torch.float64).tiny)
+
+
+def mass_radius(reach: torch.Tensor, fraction: torch.Tensor, risk: float) -> torch.Tensor:
+    """``(N,)`` the smallest radius of a `radial_mass_profile` holding at least ``1 − risk``
+    of the mass."""
+    first = (fraction >= 1.0 - risk).long().argmax(1)
+    return reach.gather(1, first[:, None]).squeeze(1)

@@ -15,6 +15,16 @@ Gaussian, predicted, never updated.
 
 Spike gate: a clearance whose predictive NIS against the predicted mixture (before the
 update, `LatticeFilter.predictive_nis`) exceeds the Navigator's gate is not used.
+
+One step per epoch: where the lattice runs its static driver (``compile: true``, or on
+CUDA) the prediction waits for the update and the two run as one step
+(`PointMassTracker.track`): the prediction, the map at the predicted cells
+(`neuralmap.tan.cells.cell_heights`, fused into the compiled code with it), the spike gate,
+the update, the moments and the radial mass profile the protection level reads
+(`neuralmap.filters.lattice.kernels.radial_mass_profile`): one compiled call and one host
+read for the whole tracking epoch. A rare event of the prediction, or a map that
+``torch.compile`` cannot trace, falls back to the separate prediction and update (the same
+results, tested).
 """
 
 from __future__ import annotations
@@ -26,12 +36,19 @@ from dataclasses import dataclass
 import torch
 
 from neuralmap.exceptions import NeuralMapError
-from neuralmap.filters.point_mass_tracker import PointMassTracker, TrackerConfig
+from neuralmap.filters.lattice.kernels import mass_radius
+from neuralmap.filters.point_mass_tracker import (
+    PointMassTracker,
+    TrackerConfig,
+    TrackerUpdate,
+)
 from neuralmap.filters.stats import symmetrize
 from neuralmap.tan.cells import (
     cell_height_variance,
+    cell_heights,
     heights_on_cells,
     lattice_protection_radius,
+    map_dtype,
 )
 from neuralmap.tan.method import Innovation, MethodContext, NavigationMethod
 from neuralmap.tan.model import N_STATES, TanModel
@@ -135,20 +152,49 @@ class PointMassTrackerMethod(NavigationMethod):
                                         c=form.c, config=options.lattice_config(
                                             transition_blur(model)), dtype=self.dtype)
         self._form = form
+        # the whole epoch as one step (`PointMassTracker.track`) where the lattice runs its
+        # static driver (compiled, or on CUDA): the prediction waits for its update
+        self._pending = False
+        self._map_dtype = map_dtype(context.terrain)
+        self._R = torch.full((n,), float(context.R), **kw)
+        self._mass: tuple[torch.Tensor, ...] | None = None  # (weights, reach, fraction)
+        self._mean: torch.Tensor | None = None  # the last estimate's mean
 
     def predict(self, dt: float) -> None:
+        self._flush()
         if dt != self._dt:
             self._form = (self._nominal if dt == self.context.model.dt else
                           self.context.model.lattice_form(dt, dtype=self.dtype,
                                                           device=self.context.device))
             self.tracker.E, self.tracker.F = self._form.E, self._form.F
             self._dt = dt
-        self.tracker.predict(Q_s=self._form.Q_s, Q_z=self._form.Q_z)
+        if self.tracker.rule.static and not self.options.flatten_likelihood:
+            self._pending = True
+        else:
+            self.tracker.predict(Q_s=self._form.Q_s, Q_z=self._form.Q_z)
+
+    def _flush(self) -> None:
+        """Applies a prediction still waiting for its update."""
+        if self._pending:
+            self._pending = False
+            self.tracker.predict(Q_s=self._form.Q_s, Q_z=self._form.Q_z)
 
     def update(self, ins: torch.Tensor, clearance: torch.Tensor, mask: torch.Tensor, *,
                gate: float = math.inf, quality: torch.Tensor | None = None) -> Innovation:
         trk, ctx = self.tracker, self.context
         y = (ins[:, 2] - clearance).to(self.dtype)
+        if self._pending:
+            self._pending = False
+            fused = trk.track(Q_s=self._form.Q_s, Q_z=self._form.Q_z, measurement=y,
+                              heights=cell_heights, heights_args=(
+                                  ctx.terrain, ins[:, :2], ctx.extent, self._map_dtype),
+                              R=self._R, mask=mask, gate=gate)
+            if fused is not None:
+                upd, nis_pred, gated, mass = fused
+                self._mass = None if mass is None else (trk.weights, *mass)
+                return self._innovation(upd, mask & ~gated, gated,
+                                        nis_pred if gate < math.inf else None)
+            trk.predict(Q_s=self._form.Q_s, Q_z=self._form.Q_z)
         g = heights_on_cells(ctx.terrain, ins[:, :2], ctx.extent)(trk.points())
         gated = torch.zeros_like(mask)
         nis_pred = None
@@ -161,27 +207,41 @@ class PointMassTrackerMethod(NavigationMethod):
             spread = torch.nan_to_num(cell_height_variance(g), nan=0.0)
         upd = trk.update(y, g, R=ctx.R, mask=None if bool(use.all()) else use,
                          cell_variance=spread)
+        return self._innovation(upd, use, gated, nis_pred)
+
+    def _innovation(self, upd: TrackerUpdate, use: torch.Tensor, gated: torch.Tensor,
+                    nis_pred: torch.Tensor | None) -> Innovation:
+        """The method's `Innovation` of a lattice update (``use``: the runs it was asked to
+        update; the gated ones report their predictive NIS)."""
         applied = upd.applied & use
-        self.cell_updates += int(applied.sum()) * trk.cells ** 2
+        self.cell_updates += int(applied.sum()) * self.tracker.cells ** 2
         nan = torch.tensor(math.nan, dtype=torch.float64, device=applied.device)
         nis = torch.where(applied, upd.nis.double(), nan)
         if nis_pred is not None:
             nis = torch.where(gated, nis_pred.double(), nis)
         return Innovation(innovation=torch.where(applied, upd.innovation.double(), nan),
-                          nis=nis, applied=applied, gated=gated, on_map=torch.ones_like(mask))
+                          nis=nis, applied=applied, gated=gated, on_map=torch.ones_like(use))
 
     def estimate(self) -> tuple[torch.Tensor, torch.Tensor]:
+        self._flush()
         mean, cov = self.tracker.moments()
-        return mean.double(), cov.double()
+        self._mean = mean.double()
+        return self._mean, cov.double()
 
     def protection_level(self, risk: float, gaussian: torch.Tensor,
                          mean: torch.Tensor) -> torch.Tensor:
         """From the lattice's mass (`neuralmap.tan.cells.lattice_protection_radius`)."""
+        self._flush()
         trk = self.tracker
+        mass = self._mass
+        if mass is not None and mass[0] is trk.weights and mean is self._mean:
+            # the epoch's profile of the lattice around this very mean
+            return torch.maximum(gaussian.double(), mass_radius(mass[1], mass[2], risk))
         return lattice_protection_radius(trk.points(), trk.weights, trk.axes, mean[:, :2],
                                          risk, gaussian)
 
     def load(self, mask: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> None:
+        self._flush()
         cov = spd_floor(cov)
         m = mask[:, None]
         full_mean = torch.where(m, mean.to(self.dtype), 0.0)
@@ -189,6 +249,7 @@ class PointMassTrackerMethod(NavigationMethod):
         self.tracker.reset(full_mean, full_cov, mask=mask)
 
     def drop(self, mask: torch.Tensor) -> None:
+        self._flush()
         if bool(mask.any()):
             n = mask.shape[0]
             self.tracker.reset(torch.zeros(n, N_STATES, dtype=self.dtype,
@@ -197,7 +258,9 @@ class PointMassTrackerMethod(NavigationMethod):
     def counters(self) -> dict[str, torch.Tensor]:
         """``recoveries`` (updates whose likelihood vanished on every cell) and ``regrids``
         (lattice moves) of the tracker's lattice."""
+        self._flush()
         return {"recoveries": self.tracker.recoveries, "regrids": self.tracker.regrids}
 
     def healthy(self) -> torch.Tensor:
+        self._flush()
         return ~self.tracker.lost

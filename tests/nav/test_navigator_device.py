@@ -149,3 +149,31 @@ def test_one_step_per_epoch_gives_the_eager_drivers_fixes(tiny_flight, name: str
         torch.testing.assert_close(a.nan_to_num(0.0), b.nan_to_num(0.0), rtol=1e-9,
                                    atol=1e-9, msg=f"{name}: {f}")
     assert got.counts == ref.counts
+
+
+def test_a_map_the_compiler_cannot_trace_falls_back_to_two_steps(
+        tiny_flight, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``compile: true`` with a whole-epoch step that fails to compile (as for a map
+    ``torch.compile`` cannot trace): one warning, then the prediction and the update as
+    separate steps (compiled; here their uncompiled functions stand in), with the eager
+    driver's fixes."""
+
+    def compiled(name: str, fn):  # noqa: ANN001, ANN202 - the step functions, uncompiled
+        if name == "track":
+            def fails(*args):  # noqa: ANN002, ANN202
+                raise RuntimeError("cannot trace this map")
+            return fails
+        return fn
+
+    truth, k, radar, grid, _ = tiny_flight
+    cfg = dict(TINY, point_mass_tracker={"dtype": "float64"})
+    ref = _replay(Navigator(grid, cfg, n_vehicles=3), truth, k, radar, "tracker")
+    monkeypatch.setattr(follow_step, "compiled", compiled)
+    nav = Navigator(grid, dict(TINY, point_mass_tracker={"dtype": "float64", "compile": True}),
+                    n_vehicles=3)
+    with pytest.warns(RuntimeWarning, match="whole tracking epoch failed"):
+        got = _replay(nav, truth, k, radar, "tracker")
+    for f in ("xy", "cov", "hpl", "nis"):
+        a, b = getattr(got, f), getattr(ref, f)
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-9, equal_nan=True, msg=f)
+    assert torch.equal(got.status, ref.status)

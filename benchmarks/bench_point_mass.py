@@ -171,24 +171,12 @@ class TorchMap:
         self.origin, self.spacing = flight.origin, flight.spacing
 
     def __call__(self, xy: torch.Tensor) -> torch.Tensor:
-        ny, nx = self.h.shape
-        u = ((xy[..., 0] - self.origin[0]) / self.spacing[0]).clamp(0.0, nx - 1.0)
-        v = ((xy[..., 1] - self.origin[1]) / self.spacing[1]).clamp(0.0, ny - 1.0)
-        j = u.floor().clamp(max=nx - 2)
-        i = v.floor().clamp(max=ny - 2)
-        fu, fv = u - j, v - i
-        idx = (i * nx + j).long()
-        flat = self.h.reshape(-1)
-        h00, h01 = flat[idx], flat[idx + 1]
-        h10, h11 = flat[idx + nx], flat[idx + nx + 1]
-        return (h00 * (1 - fu) + h01 * fu) * (1 - fv) + (h10 * (1 - fu) + h11 * fu) * fv
+        return bilinear_at(self.h, self.origin, self.spacing, xy)
 
 
-def map_at_cells(h: torch.Tensor, origin: tuple[float, float], spacing: tuple[float, float],
-                 ins: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """`TorchMap` at ``ins − points`` as a module-level function: the map lookup a whole-epoch
-    step (`PointMassTracker.track`) fuses with the filter."""
-    xy = ins[:, None, None, :] - points
+def bilinear_at(h: torch.Tensor, origin: tuple[float, float], spacing: tuple[float, float],
+                xy: torch.Tensor) -> torch.Tensor:
+    """Bilinear heights of the grid ``h`` at ``xy (..., 2)`` (clamped to the grid)."""
     ny, nx = h.shape
     u = ((xy[..., 0] - origin[0]) / spacing[0]).clamp(0.0, nx - 1.0)
     v = ((xy[..., 1] - origin[1]) / spacing[1]).clamp(0.0, ny - 1.0)
@@ -200,6 +188,13 @@ def map_at_cells(h: torch.Tensor, origin: tuple[float, float], spacing: tuple[fl
     h00, h01 = flat[idx], flat[idx + 1]
     h10, h11 = flat[idx + nx], flat[idx + nx + 1]
     return (h00 * (1 - fu) + h01 * fu) * (1 - fv) + (h10 * (1 - fu) + h11 * fu) * fv
+
+
+def map_at_cells(h: torch.Tensor, origin: tuple[float, float], spacing: tuple[float, float],
+                 ins: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """`bilinear_at` ``ins − points`` as a module-level function: the map lookup a
+    whole-epoch step (`PointMassTracker.track`) fuses with the filter."""
+    return bilinear_at(h, origin, spacing, ins[:, None, None, :] - points)
 
 
 def tracker_config(module: ModuleType, cells: int, **extra: Any) -> Any:

@@ -647,9 +647,11 @@ class FollowLattice:
         Returns:
             The update, the predictive NIS ``(N,)``, the gated runs ``(N,)`` and the radial
             mass profile of the result around its mean (`kernels.radial_mass_profile`; for
-            at most `PROFILE_MAX_RUNS` runs, else None); None (and nothing changed) where the epoch needs the separate prediction and update: not
-            ``static``, or the prediction raised a flag its eager branches handle (a thin
-            posterior, a kernel longer than the band, an eigenvalue floor, an unhealthy run).
+            at most `PROFILE_MAX_RUNS` runs, else None); None, with nothing changed, where
+            the epoch needs the separate prediction and update: not ``static``, a whole-epoch
+            step that does not compile, or a flag of the prediction that its eager branches
+            handle (a thin posterior, a kernel longer than the band, an eigenvalue floor, an
+            unhealthy run).
         """
         if not self.static:
             return None

@@ -27,6 +27,9 @@ jacksboro tile (bilinear heights at the cells). Rows, measured in the same run:
   (``PointMassPredictor``: re-grid along the predicted covariance's eigenvectors,
   interpolation, FFT convolution; a NumPy Bayes update on its grid) on the same terrain
   with a 2-D state (the horizontal error; altitude and velocity known) at 32² points;
+* **grid sizes** (``--sweep``, default 16, 32 and 64 cells per axis): the per-step time
+  of Stone Soup's filter (2-D state, G² points, one run) beside the tracker's whole epoch
+  as one compiled step for one vehicle (5-state model, G² cells), and their ratio;
 * the **roofline**: a NumPy copy gives the memory bandwidth B (read + write); a
   cell-update must at least read and write the cell's mass and linear-part means once,
   ``2 · (1 + nz) · itemsize`` bytes, so the roofline rate is ``B / (2 (1 + nz) itemsize)``.
@@ -507,6 +510,8 @@ def main() -> None:
                         help="commit of the previous code's row ('' to skip it)")
     parser.add_argument("--no_compile", action="store_true",
                         help="skip the torch.compile rows (they compile for minutes)")
+    parser.add_argument("--sweep", default="16,32,64",
+                        help="cells per axis of the grid-size rows beside Stone Soup")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--device", default="cpu",
                         help="torch device of the tracker rows (cpu, cuda, cuda:<i>)")
@@ -516,6 +521,7 @@ def main() -> None:
     bench = start_bench(__file__, args)
     if args.quick:
         args.runs, args.steps, args.one_steps, args.ref_runs, args.repeats = 50, 3, 20, 1, 1
+        args.sweep = "16,32"
     torch.set_num_threads(args.threads)
     warnings.filterwarnings("ignore", category=FutureWarning)
     from neuralmap.dem import load_tile
@@ -574,6 +580,21 @@ def main() -> None:
             ss = stonesoup_rate(one, args.ref_runs, args.one_steps // 3 or 1, g)
     except (np.linalg.LinAlgError, ValueError) as exc:
         ss_note = f"(Stone Soup row failed on this problem: {type(exc).__name__}: {exc})"
+    sweep = []  # (cells, tracker ms per epoch, Stone Soup ms per step or None)
+    if not args.no_compile:
+        for cells in (int(c) for c in args.sweep.split(",") if c.strip()):
+            trk = make_tracker(current, 1, cells, dtype, device, compile=True)
+            fly_track(trk, one, slice(0, 1), range(warm), tmap, device)  # compiles
+            _, ep = fly_track(trk, one, slice(0, 1), range(warm, warm + args.one_steps),
+                              tmap, device)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                try:
+                    rate = stonesoup_rate(one, 1, args.one_steps // 3 or 1, cells)
+                except (np.linalg.LinAlgError, ValueError):
+                    rate = None
+            sweep.append((cells, statistics.median(ep),
+                          None if rate is None else cells * cells / rate))
     bandwidth = copy_bandwidth()
     device_bw = bandwidth if device.type == "cpu" else device_copy_bandwidth(device)
     cell_bytes = 2 * (1 + nz) * dtype.itemsize
@@ -604,6 +625,15 @@ def main() -> None:
               f"{ss / g / g:,.0f} | | {ss:.3e} | {ss / ref:.1f}x | |")
     else:
         print(ss_note)
+    if sweep:
+        print()
+        print("| cells per axis | tracker, one step per epoch, compiled, one vehicle, ms | "
+              "Stone Soup Lagrangian PMF (2-D state), ms per step | Stone Soup / tracker |")
+        print("|---:|---:|---:|---:|")
+        for cells, ours, theirs in sweep:
+            peer = "n/a" if theirs is None else f"{1e3 * theirs:.3f}"
+            ratio = "n/a" if theirs is None else f"{theirs / ours:.1f}x"
+            print(f"| {cells} | {1e3 * ours:.3f} | {peer} | {ratio} |")
     print()
     current_rows = [r for r in one_rows if not r[0].startswith("previous")]
     best_one = min(r[1] for r in current_rows if "track" not in r[0])

@@ -116,7 +116,7 @@ done
 bench_sizes() {
   case "$1" in
     bench_filter) echo "--n 20000 --n_neural 5000 --n_filterpy 10 --n_queries 100000 --n_scipy 2000 --steps 5 --repeats 2 --skip_policies" ;;
-    bench_point_mass) echo "--runs 1000 --steps 5 --ref_runs 1 --repeats 1" ;;
+    bench_point_mass) echo "--runs 1000 --steps 5 --ref_runs 1 --repeats 1 --sweep 32" ;;
     bench_navigator) echo "--quick" ;;
   esac
 }

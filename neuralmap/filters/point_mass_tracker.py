@@ -202,7 +202,7 @@ class PointMassTracker(LatticeFilter):
 
         Returns:
             The update, the predictive NIS ``(N,)``, the gated runs ``(N,)`` and the radial
-            mass profile ``(reach, fraction)`` of the result around its mean
+            mass profile ``(reach, cumulative mass)`` of the result around its mean
             (`neuralmap.filters.lattice.kernels.radial_mass_profile`; None for a large
             batch); None, with nothing changed, where the epoch is to run as `predict` and `update` (the eager
             driver, or a rare event of the prediction).

@@ -35,6 +35,7 @@ from neuralmap.filters.kalman import add_information
 from neuralmap.filters.stats import symmetrize
 from neuralmap.filters.validation import check_covariance, check_finite, shape_error
 from neuralmap.tan.model import TanModel
+from neuralmap.terrain.base import model_device
 
 __all__ = ["map_aware_pcrb", "pcrb", "pcrb_position", "pcrb_recursion", "terrain_information"]
 
@@ -156,17 +157,6 @@ def pcrb_position(bound: torch.Tensor) -> torch.Tensor:
     return (bound[:, 0, 0] + bound[:, 1, 1]).clamp_min(0.0).sqrt()
 
 
-def _terrain_device(terrain: Any, default: torch.device) -> torch.device:
-    """Where the terrain model's tensors are (its first parameter or buffer), else
-    ``default``: the truth may be simulated on another device than the map is kept on."""
-    for name in ("parameters", "buffers"):
-        tensors = getattr(terrain, name, None)
-        if callable(tensors):
-            for tensor in tensors():
-                return tensor.device
-    return default
-
-
 def _terrain_slopes(terrain: Any, xy: torch.Tensor,
                     progress: Callable[[float], None] | None = None) -> torch.Tensor:
     """``(M, 2)`` terrain slopes at ``(M, 2)`` points (float64, on ``xy``'s device), chunked.
@@ -177,7 +167,7 @@ def _terrain_slopes(terrain: Any, xy: torch.Tensor,
     """
     parts = []
     analytic = getattr(terrain, "height_and_slope", None)
-    device = _terrain_device(terrain, xy.device)
+    device = model_device(terrain) or xy.device
     for start in range(0, xy.shape[0], SLOPE_CHUNK):
         chunk = xy[start:start + SLOPE_CHUNK].to(device)
         if callable(analytic):
@@ -238,7 +228,7 @@ def terrain_information(
     xy = pos[..., :2].detach()
     if on_map is None:
         contains = getattr(terrain, "contains", None)
-        on_map = (contains(xy.to(_terrain_device(terrain, xy.device))) if callable(contains)
+        on_map = (contains(xy.to(model_device(terrain) or xy.device)) if callable(contains)
                   else torch.ones(N, steps, dtype=torch.bool, device=pos.device))
     on_map = torch.as_tensor(on_map, device=pos.device).to(torch.bool)
     if tuple(on_map.shape) != (N, steps):

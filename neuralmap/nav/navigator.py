@@ -88,7 +88,7 @@ from neuralmap.tan.methods.point_mass import PointMassGrid
 from neuralmap.tan.methods.tracker import spd_floor
 from neuralmap.tan.model import N_STATES, TanModel
 from neuralmap.tan.registry import method_class
-from neuralmap.terrain.base import inside_extent
+from neuralmap.terrain.base import inside_extent, model_device
 
 __all__ = ["COUNT_KEYS", "Navigator"]
 
@@ -107,19 +107,11 @@ _VEHICLE_KEYS = ("missing_radar", "out_of_range", "spikes", "off_map_epochs",
 _PER_EPOCH = 6  # the first six columns are counted every epoch, the last ones on events
 
 
-def _map_tensors(terrain: Any) -> Any:
-    """The map's parameters, then its buffers (none for a map that is not a module)."""
-    for name in ("parameters", "buffers"):
-        tensors = getattr(terrain, name, None)
-        if callable(tensors):
-            yield from tensors()
-
-
 def _resolve_device(device: Any, terrain: Any) -> torch.device:
     """The navigator's device: ``device`` (``"cpu"``, ``"cuda"``, ``"cuda:<i>"``, a
     `torch.device`) or, when None, the map's (its first parameter or buffer, else the CPU);
     a clear error when it is unknown, absent, or not where the map's tensors are."""
-    on_map = next((t.device for t in _map_tensors(terrain)), None)
+    on_map = model_device(terrain)
     if device is None:
         return on_map if on_map is not None else torch.device("cpu")
     try:

@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from neuralmap.filters.lattice.kernels import cell_reach
+from neuralmap.filters.lattice.kernels import cell_reach, mass_radius, sorted_mass
 from neuralmap.terrain.base import inside_extent
 
 __all__ = ["cell_height_variance", "cell_heights", "cells_on_map", "heights_on_cells",
@@ -220,8 +220,6 @@ def lattice_protection_radius(points: torch.Tensor, weights: torch.Tensor, axes:
     out = gaussian.double().clone()
     rows = (outside > risk).nonzero().reshape(-1)
     if rows.numel() > 0:  # the lattice's quantile: the (1 − risk) point of w over d + h
-        r, order = torch.sort(reach.index_select(0, rows), dim=1)
-        cum = torch.gather(w.index_select(0, rows), 1, order).cumsum(1)
-        first = (cum >= (1.0 - risk) * cum[:, -1:]).long().argmax(1)
-        out[rows] = torch.maximum(out[rows], r.gather(1, first[:, None]).squeeze(1))
+        r, cum = sorted_mass(reach.index_select(0, rows), w.index_select(0, rows))
+        out[rows] = torch.maximum(out[rows], mass_radius(r, cum, risk))
     return out

@@ -8,6 +8,17 @@ import torch
 from torch import nn
 
 
+def model_device(terrain: Any) -> torch.device | None:
+    """The device of a map's tensors (its first parameter, else its first buffer); None
+    for a map that holds no tensors (an analytic surface, a plain callable)."""
+    for name in ("parameters", "buffers"):
+        tensors = getattr(terrain, name, None)
+        if callable(tensors):
+            for tensor in tensors():
+                return tensor.device
+    return None
+
+
 def inside_extent(
     xy: torch.Tensor, extent: tuple[float, float, float, float], margin: float = 0.0
 ) -> torch.Tensor:

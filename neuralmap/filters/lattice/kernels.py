@@ -385,19 +385,24 @@ def cell_reach(points: torch.Tensor, axes: torch.Tensor, centre: torch.Tensor) -
             + half[:, None, None].to(points.dtype)).flatten(1).double()
 
 
+def sorted_mass(reach: torch.Tensor, weights: torch.Tensor,
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+    """``reach (N, M)`` sorted ascending and the cumulative mass ``(N, M)`` of ``weights
+    (N, M)`` taken in that order (float64): the mass within each radius."""
+    reach, order = torch.sort(reach, dim=1)
+    return reach, torch.gather(weights.double(), 1, order).cumsum(1)
+
+
 def radial_mass_profile(points: torch.Tensor, weights: torch.Tensor, axes: torch.Tensor,
                         centre: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The lattice's mass against the radius around ``centre (N, 2)``: the cells' reach
-    (`cell_reach`) sorted ``(N, G²)`` and the fraction of the mass ``w (N, G, G)`` within
-    each ``(N, G²)`` (float64, non-decreasing to 1). The radius holding ``1 − risk`` of the
-    mass is the reach at the first fraction ``≥ 1 − risk`` (`mass_radius`)."""
-    reach, order = torch.sort(cell_reach(points, axes, centre), dim=1)
-    cum = torch.gather(weights.flatten(1).double(), 1, order).cumsum(1)
-    return reach, cum / cum[:, -1:].clamp_min(torch.finfo(torch.float64).tiny)
+    """The lattice's mass against the radius around ``centre (N, 2)``: `sorted_mass` of the
+    cells' reach (`cell_reach`) and masses ``w (N, G, G)``, ``(N, G²)`` each. The radius
+    holding ``1 − risk`` of the mass is `mass_radius`."""
+    return sorted_mass(cell_reach(points, axes, centre), weights.flatten(1))
 
 
-def mass_radius(reach: torch.Tensor, fraction: torch.Tensor, risk: float) -> torch.Tensor:
-    """``(N,)`` the smallest radius of a `radial_mass_profile` holding at least ``1 − risk``
-    of the mass."""
-    first = (fraction >= 1.0 - risk).long().argmax(1)
+def mass_radius(reach: torch.Tensor, cum: torch.Tensor, risk: float) -> torch.Tensor:
+    """``(N,)`` the smallest radius of a `sorted_mass` profile holding at least ``1 − risk``
+    of the mass: the reach where the cumulative mass first reaches ``(1 − risk)`` × total."""
+    first = (cum >= (1.0 - risk) * cum[:, -1:]).long().argmax(1)
     return reach.gather(1, first[:, None]).squeeze(1)

@@ -157,7 +157,7 @@ class PointMassTrackerMethod(NavigationMethod):
         self._pending = False
         self._map_dtype = map_dtype(context.terrain)
         self._R = torch.full((n,), float(context.R), **kw)
-        self._mass: tuple[torch.Tensor, ...] | None = None  # (weights, reach, fraction)
+        self._mass: tuple[torch.Tensor, ...] | None = None  # (weights, reach, cumulative mass)
         self._mean: torch.Tensor | None = None  # the last estimate's mean
 
     def predict(self, dt: float) -> None:
